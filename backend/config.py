@@ -1,0 +1,151 @@
+"""The engine's parameters: one typed, frozen config, the paper's defaults.
+
+Loaded from TOML (sections = the stage names below) and overridden from the CLI
+(``--set optimize.scope=80``) or a session's JSON ``config``. Unknown keys are errors.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class SyncConfig(_Section):
+    """Framesets from free-running sensors."""
+
+    rate: float = Field(15.0, gt=0, le=200, description="framesets per second of data time")
+    max_offset: float = Field(0.05, gt=0, description="s: a sensor whose nearest message is further from the frameset time sits out")
+    max_span: float = Field(0.05, gt=0, description="s: reject a frameset whose used stamps span more (paper: 50 ms)")
+    max_std: float = Field(0.025, gt=0, description="s: reject a frameset whose stamp std is larger (paper: 25 ms)")
+    interpolate: bool = Field(True, description="interpolate each sensor's keypoints to the frameset time from its two bracketing messages")
+    wait: float = Field(0.25, ge=0, description="s of data time to wait for late messages before a frameset is closed")
+    min_views: int = Field(2, ge=2)
+    max_stamp_future: float = Field(5.0, gt=0, description="s: messages stamped further ahead of the clock are rejected")
+    max_stamp_past: float = Field(30.0, gt=0, description="s: messages stamped further behind the clock are rejected")
+
+
+class PreprocessConfig(_Section):
+    min_confidence: float = Field(0.6, ge=0, le=1)
+    min_box_distance: float = Field(0.1, ge=0, description="fraction of the image diagonal (paper: 100 px at 848x480)")
+    max_persons: int = Field(10, ge=1)
+    pixel_sigma: float = Field(2.0, gt=0, description="px: keypoint noise at confidence 1 when a message has no covariance")
+
+
+class AssociateConfig(_Section):
+    min_height: float = Field(1.70, gt=0, description="m, smallest person expected")
+    max_height: float = Field(2.00, gt=0, description="m, tallest person expected")
+    hips_ratio: float = 0.1526
+    shoulders_ratio: float = 0.1753
+    torso_ratio: float = 0.2924
+    depth_margin: float = Field(0.15, ge=0, description="relative widening of the depth interval")
+    max_distance: float = Field(1.0, gt=0, description="m, closest-point distance threshold between segments")
+    min_views: int = Field(2, ge=2)
+    reassociate: bool = Field(True, description="once cameras are certain, gate hypotheses by reprojection error")
+    gate_pixels: float = Field(25.0, gt=0, description="px, a view whose torso reprojects further is split off")
+
+
+class SelectConfig(_Section):
+    scope: int = Field(50, ge=1, description="hypotheses per cycle")
+    min_spacing: float = Field(0.2, ge=0, description="m between centres of mass within one cycle")
+    queue_size: int = Field(5000, ge=10)
+    newer_bias: float = Field(3.0, ge=0, description="selection weight grows as exp(bias * age rank in [0, 1])")
+    interval: float = Field(0.5, gt=0, description="s of data time between cycles")
+
+
+class OptimizeConfig(_Section):
+    solver: Literal["lm", "dogleg"] = "lm"
+    max_iterations: int = Field(50, ge=1)
+    robust: Literal["none", "huber", "cauchy"] = "huber"
+    robust_k: float = Field(2.0, gt=0, description="robust kernel width in sigmas")
+    min_landmark_views: int = Field(2, ge=2)
+    min_camera_observations: int = Field(10, ge=1, description="a camera with fewer projections in a cycle is left out of it")
+
+
+class RefineConfig(_Section):
+    initial_std_translation: float = Field(0.025, gt=0, description="m (paper)")
+    initial_std_rotation: float = Field(1.0, gt=0, description="deg (paper)")
+    process_noise: float = Field(0.05, ge=0, description="fraction of the initial std added per cycle")
+    keep_scale: bool = Field(True, description="similarity-align to the initial estimate and keep its scale")
+    measurement: Literal["posterior", "marginal"] = Field(
+        "posterior",
+        description="'marginal': the paper's update with the marginal covariance as noise (counts the prior twice); "
+        "'posterior': the data-only information of the cycle",
+    )
+    converged_translation: float = Field(0.002, gt=0, description="m: a camera is converged when its std and recent change are below")
+    converged_rotation: float = Field(0.05, gt=0, description="deg")
+    converged_cycles: int = Field(10, ge=1, description="cycles the change is averaged over")
+    final_batch: bool = Field(True, description="a batch adjustment over the kept hypotheses when the run stops")
+    batch_size: int = Field(3000, ge=10, description="hypotheses kept for the final batch adjustment")
+
+
+class EngineConfig(_Section):
+    sync: SyncConfig = SyncConfig()
+    preprocess: PreprocessConfig = PreprocessConfig()
+    associate: AssociateConfig = AssociateConfig()
+    select: SelectConfig = SelectConfig()
+    optimize: OptimizeConfig = OptimizeConfig()
+    refine: RefineConfig = RefineConfig()
+
+    @staticmethod
+    def from_dict(d: dict[str, Any], source: str = "config") -> "EngineConfig":
+        try:
+            return EngineConfig.model_validate(d)
+        except ValidationError as e:
+            raise ConfigError(source, _describe(e)) from None
+
+    @staticmethod
+    def load(path: str | Path | None, overrides: list[str] | None = None) -> "EngineConfig":
+        d: dict[str, Any] = {}
+        if path is not None:
+            try:
+                d = tomllib.loads(Path(path).read_text())
+            except FileNotFoundError:
+                raise ConfigError(str(path), "file does not exist") from None
+            except tomllib.TOMLDecodeError as e:
+                raise ConfigError(str(path), f"not valid TOML: {e}") from None
+        for item in overrides or []:
+            apply_override(d, item)
+        return EngineConfig.from_dict(d, str(path or "overrides"))
+
+    def merged(self, overrides: dict[str, Any]) -> "EngineConfig":
+        """A copy with a nested dict of overrides applied (validated)."""
+        d = self.model_dump()
+        for section, values in overrides.items():
+            if isinstance(values, dict) and isinstance(d.get(section), dict):
+                d[section].update(values)
+            else:
+                d[section] = values
+        return EngineConfig.from_dict(d)
+
+
+class ConfigError(ValueError):
+    def __init__(self, source: str, reason: str):
+        super().__init__(f"{source}: {reason}")
+
+
+def apply_override(d: dict[str, Any], item: str) -> None:
+    """``section.key=value`` (value parsed as TOML, else a string) into a nested dict."""
+    if "=" not in item or "." not in item.split("=", 1)[0]:
+        raise ConfigError("--set", f"expected section.key=value, got {item!r}")
+    key, raw = item.split("=", 1)
+    section, name = key.strip().split(".", 1)
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw
+    d.setdefault(section, {})[name] = value
+
+
+def _describe(e: ValidationError) -> str:
+    parts = []
+    for err in e.errors():
+        loc = ".".join(str(x) for x in err["loc"])
+        parts.append(f"{loc}: {err['msg']}")
+    return "; ".join(parts)

@@ -1,0 +1,81 @@
+"""Accuracy figures of a calibration against a reference (shared/FORMATS.md)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Mapping
+
+import numpy as np
+
+from .cameras import Pose, natural_key
+from .geometry import rotation_angle_deg, umeyama
+
+
+@dataclass(frozen=True)
+class Stats:
+    mean: float
+    std: float
+    min: float
+    max: float
+
+    @staticmethod
+    def of(x: np.ndarray) -> "Stats":
+        x = np.asarray(x, dtype=np.float64)
+        return Stats(float(x.mean()), float(x.std()), float(x.min()), float(x.max()))
+
+
+@dataclass(frozen=True)
+class Accuracy:
+    """Rigid figures (the paper's), shape figures (similarity) and the scale factor.
+
+    per_camera: name → (rigid position error m, orientation error deg,
+    shape position error m, shape orientation error deg).
+    """
+
+    cameras: tuple[str, ...]
+    position: Stats
+    orientation: Stats
+    shape_position: Stats
+    shape_orientation: Stats
+    scale: float
+    per_camera: Mapping[str, tuple[float, float, float, float]]
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["cameras"] = list(self.cameras)
+        d["per_camera"] = {k: dict(zip(("position", "orientation", "shape_position", "shape_orientation"), v))
+                           for k, v in self.per_camera.items()}
+        return d
+
+    def summary(self) -> str:
+        return (
+            f"position {self.position.mean:.4f} m (max {self.position.max:.4f}), "
+            f"orientation {self.orientation.mean:.3f}° (max {self.orientation.max:.3f}), "
+            f"shape {self.shape_position.mean:.4f} m / {self.shape_orientation.mean:.3f}°, "
+            f"scale {self.scale:.5f}"
+        )
+
+
+def _errors(result: Mapping[str, Pose], reference: Mapping[str, Pose], names, with_scale: bool):
+    src = np.array([result[n].t for n in names])
+    dst = np.array([reference[n].t for n in names])
+    s, R, t = umeyama(src, dst, with_scale=with_scale)
+    pos = np.linalg.norm(s * src @ R.T + t - dst, axis=1)
+    ori = np.array([rotation_angle_deg(R @ result[n].R, reference[n].R) for n in names])
+    return s, pos, ori
+
+
+def evaluate(result: Mapping[str, Pose], reference: Mapping[str, Pose],
+             cameras: list[str] | None = None) -> Accuracy:
+    """Compare camera poses; both map camera name → Pose. Needs >= 3 shared cameras."""
+    names = cameras or sorted(set(result) & set(reference), key=natural_key)
+    missing = [n for n in names if n not in result or n not in reference]
+    if missing:
+        raise ValueError(f"cameras missing from result or reference: {', '.join(missing)}")
+    if len(names) < 3:
+        raise ValueError(f"need at least 3 cameras in common to align, got {len(names)}")
+    _, pos, ori = _errors(result, reference, names, with_scale=False)
+    scale, spos, sori = _errors(result, reference, names, with_scale=True)
+    per = {n: (float(pos[i]), float(ori[i]), float(spos[i]), float(sori[i])) for i, n in enumerate(names)}
+    return Accuracy(tuple(names), Stats.of(pos), Stats.of(ori), Stats.of(spos), Stats.of(sori),
+                    float(scale), per)

@@ -1,0 +1,190 @@
+"""Rotations, rigid/similarity transforms and alignment, in plain numpy.
+
+Conventions: quaternions are (x, y, z, w); a pose (R, t) maps camera to world
+(``X_w = R @ X_c + t``), so ``t`` is the optical centre. Tangent vectors of SE(3)
+are ordered (rotation ω, translation ρ) like GTSAM's Pose3.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def quat_to_R(q) -> np.ndarray:
+    """(4,) quaternion x, y, z, w (normalised here) → (3, 3) rotation."""
+    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def R_to_quat(R: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation → (4,) unit quaternion x, y, z, w with w >= 0."""
+    R = np.asarray(R, dtype=np.float64)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, s / 4]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [s / 4, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 1] + R[1, 0]) / s, s / 4, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, s / 4, (R[1, 0] - R[0, 1]) / s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return q if q[3] >= 0 else -q
+
+
+def hat(w) -> np.ndarray:
+    x, y, z = w
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def so3_exp(w) -> np.ndarray:
+    """(3,) rotation vector → (3, 3) rotation (Rodrigues)."""
+    w = np.asarray(w, dtype=np.float64)
+    th = np.linalg.norm(w)
+    K = hat(w)
+    if th < 1e-10:
+        return np.eye(3) + K + 0.5 * K @ K
+    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * K @ K
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation → (3,) rotation vector, robust near 0 and π."""
+    R = np.asarray(R, dtype=np.float64)
+    c = np.clip((np.trace(R) - 1) / 2, -1.0, 1.0)
+    th = np.arccos(c)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if th < 1e-7:
+        return 0.5 * v
+    if np.pi - th < 1e-4:
+        # Near π the antisymmetric part vanishes; take the axis from the symmetric part.
+        B = (R + np.eye(3)) / 2
+        i = int(np.argmax(np.diag(B)))
+        axis = B[:, i] / np.sqrt(max(B[i, i], 1e-300))
+        axis /= np.linalg.norm(axis)
+        if np.dot(axis, v) < 0:
+            axis = -axis
+        return th * axis
+    return th / (2 * np.sin(th)) * v
+
+
+def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    """Shortest-arc angle between two rotations, degrees."""
+    c = (np.trace(Ra.T @ Rb) - 1) / 2
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def _left_jacobian_so3(w: np.ndarray) -> np.ndarray:
+    th = np.linalg.norm(w)
+    K = hat(w)
+    if th < 1e-8:
+        return np.eye(3) + 0.5 * K
+    return (
+        np.eye(3)
+        + (1 - np.cos(th)) / th**2 * K
+        + (th - np.sin(th)) / th**3 * K @ K
+    )
+
+
+def se3_exp(xi) -> tuple[np.ndarray, np.ndarray]:
+    """(6,) tangent (ω, ρ) → (R, t), GTSAM's Pose3.Expmap convention."""
+    xi = np.asarray(xi, dtype=np.float64)
+    w, rho = xi[:3], xi[3:]
+    return so3_exp(w), _left_jacobian_so3(w) @ rho
+
+
+def se3_log(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(R, t) → (6,) tangent (ω, ρ), inverse of se3_exp."""
+    w = so3_log(R)
+    return np.concatenate([w, np.linalg.solve(_left_jacobian_so3(w), t)])
+
+
+def pose_compose(Ra, ta, Rb, tb) -> tuple[np.ndarray, np.ndarray]:
+    return Ra @ Rb, Ra @ tb + ta
+
+
+def pose_inverse(R, t) -> tuple[np.ndarray, np.ndarray]:
+    return R.T, -R.T @ t
+
+
+def pose_retract(R, t, xi) -> tuple[np.ndarray, np.ndarray]:
+    """Right perturbation (GTSAM's Pose3.retract with Expmap): pose ⊕ exp(ξ)."""
+    dR, dt = se3_exp(xi)
+    return pose_compose(R, t, dR, dt)
+
+
+def pose_local(Ra, ta, Rb, tb) -> np.ndarray:
+    """ξ with a ⊕ exp(ξ) = b (GTSAM's Pose3.localCoordinates with Logmap)."""
+    Ri, ti = pose_inverse(Ra, ta)
+    R, t = pose_compose(Ri, ti, Rb, tb)
+    return se3_log(R, t)
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, *, with_scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares (s, R, t) with dst ≈ s·R·src + t.
+
+    src, dst: (N, 3) float64, N >= 3 non-collinear points (Umeyama 1991).
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    assert src.shape == dst.shape and src.ndim == 2 and src.shape[1] == 3 and len(src) >= 3
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    U, S, Vt = np.linalg.svd(cov)
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1
+    R = U @ D @ Vt
+    var_s = (xs**2).sum() / len(src)
+    s = float(np.trace(np.diag(S) @ D) / var_s) if with_scale else 1.0
+    t = mu_d - s * R @ mu_s
+    return s, R, t
+
+
+def triangulate_dlt(P: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Linear triangulation of one point.
+
+    P: (V, 3, 4) projection matrices on normalised coordinates (cam_R_world | cam_t);
+    xy: (V, 2) normalised image coordinates. Returns (3,) world point.
+    """
+    A = np.concatenate([xy[:, :1] * P[:, 2] - P[:, 0], xy[:, 1:2] * P[:, 2] - P[:, 1]])
+    _, _, Vt = np.linalg.svd(A)
+    X = Vt[-1]
+    return X[:3] / X[3]
+
+
+def closest_points_segments(p0, p1, q0, q1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closest points between segments [p0,p1] and [q0,q1], vectorised.
+
+    All inputs (..., 3). Returns (distance (...), point on p (..., 3), point on q (..., 3)).
+    """
+    p0, p1, q0, q1 = (np.asarray(a, dtype=np.float64) for a in (p0, p1, q0, q1))
+    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
+    a = np.einsum("...i,...i", d1, d1)
+    e = np.einsum("...i,...i", d2, d2)
+    f = np.einsum("...i,...i", d2, r)
+    c = np.einsum("...i,...i", d1, r)
+    b = np.einsum("...i,...i", d1, d2)
+    denom = a * e - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(denom > 1e-12, np.clip((b * f - c * e) / denom, 0, 1), 0.0)
+        t = np.where(e > 1e-12, (b * s + f) / e, 0.0)
+        # Re-clamp t and recompute s for the clamped t (Ericson, Real-Time Collision Detection).
+        t_c = np.clip(t, 0, 1)
+        s = np.where(t < 0, np.where(a > 1e-12, np.clip(-c / a, 0, 1), 0.0), s)
+        s = np.where(t > 1, np.where(a > 1e-12, np.clip((b - c) / a, 0, 1), 0.0), s)
+    t = t_c
+    cp = p0 + d1 * s[..., None]
+    cq = q0 + d2 * t[..., None]
+    return np.linalg.norm(cp - cq, axis=-1), cp, cq

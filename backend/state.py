@@ -1,0 +1,144 @@
+"""What the engine knows at a moment: plain, frozen, JSON-able records.
+
+These are the engine's outputs that the service, the API, persistence and the
+benchmarks read; they hold no gtsam objects and no references into the pipeline.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .cameras import Extrinsics, Pose
+
+
+@dataclass(frozen=True)
+class CameraState:
+    """One camera's estimate.
+
+    R: (3, 3) world_R_cam, t: (3,) optical centre, cov: (6, 6) tangent covariance
+    (rotation rad, translation m; GTSAM Pose3 order, body frame).
+    """
+
+    name: str
+    R: np.ndarray
+    t: np.ndarray
+    cov: np.ndarray
+    observations: int  # projections of this camera used in cycles so far
+    cycles: int  # cycles this camera took part in
+    change_translation: float  # m, mean pose change per cycle over the last cycles
+    change_rotation: float  # deg
+    converged: bool
+    last_seen: float | None  # data time of its last message
+
+    @property
+    def std_translation(self) -> float:
+        return float(np.sqrt(max(np.trace(self.cov[3:, 3:]) / 3, 0.0)))
+
+    @property
+    def std_rotation(self) -> float:
+        return float(np.degrees(np.sqrt(max(np.trace(self.cov[:3, :3]) / 3, 0.0))))
+
+    @property
+    def pose(self) -> Pose:
+        return Pose(self.R, self.t)
+
+    def to_dict(self) -> dict[str, Any]:
+        from .geometry import R_to_quat
+
+        return {
+            "name": self.name,
+            "translation": self.t.tolist(),
+            "rotation": R_to_quat(self.R).tolist(),
+            "std_translation": self.std_translation,
+            "std_rotation": self.std_rotation,
+            "observations": self.observations,
+            "cycles": self.cycles,
+            "change_translation": self.change_translation,
+            "change_rotation": self.change_rotation,
+            "converged": self.converged,
+            "last_seen": self.last_seen,
+        }
+
+
+@dataclass(frozen=True)
+class CycleReport:
+    """What one optimisation cycle did."""
+
+    cycle: int
+    data_time: float
+    hypotheses: int  # used in the graph
+    observations: int
+    cameras: tuple[str, ...]  # cameras constrained in this cycle
+    initial_error: float  # graph error before / after the solve
+    final_error: float
+    iterations: int
+    solve_seconds: float
+    moved: bool  # did the solver change the estimate (not a silent stall)
+    accepted: bool
+    reason: str  # why not accepted, or ''
+    max_change_translation: float  # m over cameras
+    max_change_rotation: float  # deg
+    reprojection_px: float  # median reprojection error of the cycle's projections after the solve
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["cameras"] = list(self.cameras)
+        return d
+
+
+@dataclass(frozen=True)
+class Counters:
+    """Cumulative counts of the front end, with rejections by reason."""
+
+    messages: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)  # reason → count
+    framesets: int = 0
+    framesets_rejected: dict[str, int] = field(default_factory=dict)
+    views: int = 0  # person detections that passed preprocessing
+    views_rejected: dict[str, int] = field(default_factory=dict)
+    hypotheses: int = 0
+    queue_length: int = 0
+    queue_dropped: int = 0
+    cycles: int = 0
+    cycles_rejected: int = 0
+
+
+@dataclass(frozen=True)
+class CalibrationState:
+    """The current calibration: every camera, convergence, counters."""
+
+    data_time: float | None
+    cycle: int
+    cameras: tuple[CameraState, ...]
+    converged: bool  # every camera that can be calibrated is converged
+    counters: Counters
+    last_cycle: CycleReport | None
+
+    def camera(self, name: str) -> CameraState:
+        for c in self.cameras:
+            if c.name == name:
+                return c
+        raise KeyError(name)
+
+    def poses(self) -> dict[str, Pose]:
+        return {c.name: c.pose for c in self.cameras}
+
+    def extrinsics(self, resolutions: dict[str, tuple[int, int]]) -> dict[str, Extrinsics]:
+        """The FORMATS.md extrinsics of this state (with per-camera std)."""
+        return {
+            c.name: Extrinsics(c.pose, resolutions[c.name], c.std_translation, c.std_rotation)
+            for c in self.cameras
+        }
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "data_time": self.data_time,
+            "cycle": self.cycle,
+            "converged": self.converged,
+            "cameras": [c.to_dict() for c in self.cameras],
+            "counters": asdict(self.counters),
+            "last_cycle": self.last_cycle.to_dict() if self.last_cycle else None,
+        }
