@@ -101,7 +101,8 @@ def _register_all() -> None:
     """Commands of other areas live next to their code; each module adds its own."""
     import importlib
 
-    for mod in ("backend.cli_engine", "backend.cli_service", "edge_clients.cli", "backend.cli_tools"):
+    for mod in ("edge_clients.cli_simulate", "backend.cli_engine", "backend.cli_service",
+                "edge_clients.cli", "backend.cli_tools"):
         try:
             m = importlib.import_module(mod)
         except ModuleNotFoundError as e:
