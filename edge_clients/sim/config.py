@@ -1,0 +1,172 @@
+"""Every knob of the simulator, with defaults that look like the paper's lab."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """What is simulated and how badly the sensors behave.
+
+    Run
+      persons: number of people walking (>= 0).
+      duration: seconds of true time to simulate; ``math.inf`` runs until the caller stops.
+      seed: the one seed; the world derives from it, each sensor from (seed, sensor name).
+      heights: body heights in m, one per person; None draws them from N(1.75, 0.07)
+        clipped to [1.55, 2.0] (from the world's stream).
+      start_time: true time of t = 0, seconds since the Unix epoch (the caller passes the
+        wall clock for live use; the default keeps recordings reproducible).
+      noise: False turns off every detector error: pixel noise, rounding, confidence
+        jitter, gross errors, missed and false detections, noisy guesses of hidden joints.
+        What remains is exact projection of the visible joints (image bounds, walls,
+        other people and the face seen from behind still hide joints), confidence from
+        the visibility model, and the timing model (clocks, rates, delays, drops).
+      noise_scale: multiplies every pixel noise sigma.
+
+    World
+      world_rate: Hz at which the walkers and skeletons are computed; joints between two
+        ticks are linearly interpolated (this interpolation *is* the ground truth).
+      camera_height: m of the cameras above the floor, used only to find the floor when
+        the scene has no room.yaml (see Scene).
+      speed: (min, max) m/s cruising speed, drawn per person and per leg of the walk.
+      step_freq: steps per second at 1.3 m/s (scales with the square root of speed).
+      turn_rate: deg/s, the fastest a walker turns.
+      pause_prob: chance to stop at a waypoint; pause: (min, max) s of a stop.
+      bend_prob, reach_prob: chance that a stop includes bending down / reaching up.
+      leave_prob: chance that a waypoint lies where fewer than 2 cameras see (people
+        leave the views).
+      min_separation: m, people never come closer (centre to centre); they slow down,
+        swerve and wait for each other before that.
+      coverage_range: m, a camera "covers" floor points whose torso is at most this far.
+
+    Sensors (timing)
+      rates: (min, max) Hz, each sensor's capture rate is drawn uniformly in it.
+      sensor_rates: {sensor: Hz} overrides for some sensors.
+      frame_jitter: s, std of a capture instant around its nominal time.
+      drop_prob: chance that a frame is lost (its ``seq`` is skipped).
+      stall_prob, stall: chance per frame that the sensor stalls for (min, max) s,
+        losing every frame meanwhile (Wi-Fi hiccup, detector hang).
+      clock_std: s, std of each sensor's constant NTP clock error.
+      drift_std: std of each sensor's clock rate error (1e-6 = 1 ppm).
+      delay: (min, max) s, each sensor's base network + processing delay.
+      delay_jitter: s, mean of the extra per-message delay (gamma distributed).
+
+    Detector
+      sigma_torso, sigma_head, sigma_limb, sigma_extremity: px pixel noise std at
+        848x480 for shoulders/hips, nose/eyes/ears, elbows/knees, wrists/ankles. Scaled
+        with the image size and mildly with the person's size in the image; half of the
+        variance is correlated over time (``noise_tau``).
+      noise_tau: s, correlation time of the correlated part of the pixel noise.
+      swap_prob: chance that a detection has its left and right swapped (whole body or
+        one limb pair; four times as likely when the person is seen from behind).
+      snap_prob: chance, per pair of overlapping people in an image, that a joint of one
+        is reported on the other.
+      miss_prob: chance that a clearly visible person is not detected (more when small,
+        truncated or occluded).
+      min_person_px: px, persons whose visible part is shorter than this are mostly missed.
+      false_rate: mean number of random false detections per frame.
+      ghost_prob, ghost_rate: chance that a sensor has a persistent false detection (a
+        poster, a coat) and how often per frame it fires.
+      hidden_drop: chance that a hidden joint (occluded, face from behind) is dropped;
+        otherwise it is guessed with large noise and low confidence.
+      pixel_decimals: pixel coordinates and confidences are rounded to this many decimals
+        (None: full float64); ignored when ``noise`` is False.
+    """
+
+    persons: int = 2
+    duration: float = 180.0
+    seed: int = 0
+    heights: tuple[float, ...] | None = None
+    start_time: float = 1.7e9
+    noise: bool = True
+    noise_scale: float = 1.0
+    # world
+    world_rate: float = 100.0
+    camera_height: float = 2.6
+    speed: tuple[float, float] = (1.0, 1.5)
+    step_freq: float = 1.8
+    turn_rate: float = 120.0
+    pause_prob: float = 0.5
+    pause: tuple[float, float] = (2.0, 6.0)
+    bend_prob: float = 0.25
+    reach_prob: float = 0.2
+    leave_prob: float = 0.1
+    min_separation: float = 0.5
+    coverage_range: float = 12.0
+    # sensors: timing
+    rates: tuple[float, float] = (10.0, 30.0)
+    sensor_rates: tuple[tuple[str, float], ...] = ()
+    frame_jitter: float = 0.001
+    drop_prob: float = 0.01
+    stall_prob: float = 0.0003
+    stall: tuple[float, float] = (0.2, 1.5)
+    clock_std: float = 0.003
+    drift_std: float = 2e-6
+    delay: tuple[float, float] = (0.02, 0.08)
+    delay_jitter: float = 0.008
+    # detector
+    sigma_torso: float = 1.7
+    sigma_head: float = 2.0
+    sigma_limb: float = 3.0
+    sigma_extremity: float = 4.5
+    noise_tau: float = 0.3
+    swap_prob: float = 0.005
+    snap_prob: float = 0.1
+    miss_prob: float = 0.03
+    min_person_px: float = 40.0
+    false_rate: float = 0.02
+    ghost_prob: float = 0.3
+    ghost_rate: float = 0.05
+    hidden_drop: float = 0.5
+    pixel_decimals: int | None = 3
+
+    def __post_init__(self) -> None:
+        def bad(name: str, why: str) -> None:
+            raise ValueError(f"SimConfig.{name}: {why}")
+
+        if isinstance(self.sensor_rates, dict):  # accept a mapping, store it hashable
+            object.__setattr__(self, "sensor_rates", tuple(sorted(self.sensor_rates.items())))
+        if self.persons < 0:
+            bad("persons", f"must be >= 0, got {self.persons}")
+        if not (self.duration > 0):
+            bad("duration", f"must be > 0 (inf allowed), got {self.duration}")
+        if self.heights is not None:
+            object.__setattr__(self, "heights", tuple(float(h) for h in self.heights))
+            if len(self.heights) != self.persons:
+                bad("heights", f"{len(self.heights)} heights for {self.persons} persons")
+            if any(not (1.0 <= h <= 2.3) for h in self.heights):
+                bad("heights", f"expected body heights in m between 1.0 and 2.3, got {self.heights}")
+        if not math.isfinite(self.start_time) or self.start_time <= 0:
+            bad("start_time", f"must be seconds since the Unix epoch, got {self.start_time}")
+        if self.world_rate < 20:
+            bad("world_rate", f"must be >= 20 Hz, got {self.world_rate}")
+        for name in ("speed", "pause", "rates", "stall", "delay"):
+            lo, hi = getattr(self, name)
+            if not (0 <= lo <= hi):
+                bad(name, f"expected (min, max) with 0 <= min <= max, got {(lo, hi)}")
+        if self.rates[0] <= 0:
+            bad("rates", "rates must be > 0 Hz")
+        for s, r in self.sensor_rates:
+            if not r > 0:
+                bad("sensor_rates", f"{s}: rate must be > 0 Hz, got {r}")
+        for name in ("pause_prob", "bend_prob", "reach_prob", "leave_prob", "drop_prob",
+                     "stall_prob", "swap_prob", "snap_prob", "miss_prob", "ghost_prob",
+                     "ghost_rate", "hidden_drop"):
+            p = getattr(self, name)
+            if not 0 <= p <= 1:
+                bad(name, f"a probability in [0, 1], got {p}")
+        for name in ("noise_scale", "clock_std", "drift_std", "delay_jitter", "frame_jitter",
+                     "false_rate", "sigma_torso", "sigma_head", "sigma_limb", "sigma_extremity"):
+            if getattr(self, name) < 0:
+                bad(name, f"must be >= 0, got {getattr(self, name)}")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["duration"] = None if math.isinf(self.duration) else self.duration
+        return d
+
+    @staticmethod
+    def field_names() -> tuple[str, ...]:
+        return tuple(f.name for f in fields(SimConfig))
