@@ -188,3 +188,31 @@ def closest_points_segments(p0, p1, q0, q1) -> tuple[np.ndarray, np.ndarray, np.
     cp = p0 + d1 * s[..., None]
     cq = q0 + d2 * t[..., None]
     return np.linalg.norm(cp - cq, axis=-1), cp, cq
+
+
+def triangulate_views(R: np.ndarray, t: np.ndarray, cams: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batch DLT. cams: (V,) int; xy: (V, J, 2) normalised, NaN = missing.
+
+    Returns points (J, 3) (NaN where fewer than 2 views or behind a camera) and the
+    number of views per joint (J,).
+    """
+    V, J, _ = xy.shape
+    Rt = np.transpose(R[cams], (0, 2, 1))  # cam_R_world
+    P = np.concatenate([Rt, -np.einsum("vij,vj->vi", Rt, t[cams])[..., None]], axis=2)  # (V, 3, 4)
+    valid = np.all(np.isfinite(xy), axis=2)  # (V, J)
+    x = np.nan_to_num(xy)
+    rows_u = x[:, :, 0, None] * P[:, None, 2, :] - P[:, None, 0, :]  # (V, J, 4)
+    rows_v = x[:, :, 1, None] * P[:, None, 2, :] - P[:, None, 1, :]
+    A = np.concatenate([rows_u, rows_v], axis=0) * np.concatenate([valid, valid])[..., None]  # (2V, J, 4)
+    A = np.transpose(A, (1, 0, 2))  # (J, 2V, 4)
+    _, _, Vt = np.linalg.svd(A)
+    Xh = Vt[:, -1, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = Xh[:, :3] / Xh[:, 3:4]
+    n = valid.sum(0)
+    bad = (n < 2) | ~np.all(np.isfinite(X), axis=1)
+    # depth of each joint in each observing camera
+    Xc_z = np.einsum("vk,vjk->vj", Rt[:, 2, :], X[None, :, :] - t[cams][:, None, :])
+    bad |= np.any(valid & (Xc_z <= 0.05), axis=0)
+    X[bad] = np.nan
+    return X, n

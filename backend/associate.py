@@ -1,0 +1,206 @@
+"""Person hypotheses across views (the paper's association, plus a reprojection gate).
+
+Each detection's torso size bounds its depth for persons of 1.70-2.00 m in any
+orientation; its torso-centre ray cut to that interval is a 3D line segment. Detections
+are taken by ascending depth and greedily joined to the hypothesis whose segments are
+closest (closest-point distance below ``max_distance``), at most one per camera. Once
+the camera poses are known well, every view of a hypothesis must also reproject its
+torso within a gate, which splits wrong associations that segments alone allow.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from .config import AssociateConfig
+from .geometry import closest_points_segments, triangulate_views
+from .preprocess import L_HIP, L_SHOULDER, R_HIP, R_SHOULDER, TORSO, Detection
+
+
+@dataclass(frozen=True, eq=False)
+class Hypothesis:
+    """One person at one instant, seen by >= 2 cameras.
+
+    cams: (V,) int camera indices, distinct.
+    xy: (V, 17, 2) float64 undistorted normalised coordinates, NaN = missing.
+    sigma: (V, 17) float64 normalised std (pixel std / focal), NaN = missing.
+    com: (3,) float64 centre of mass (torso centre) in the world.
+    """
+
+    time: float
+    cams: np.ndarray
+    xy: np.ndarray
+    sigma: np.ndarray
+    com: np.ndarray
+
+    def __post_init__(self) -> None:
+        V = len(self.cams)
+        assert V >= 2 and self.xy.shape == (V, 17, 2) and self.sigma.shape == (V, 17)
+        assert self.com.shape == (3,)
+
+
+def depth_interval(xy: np.ndarray, cfg: AssociateConfig) -> tuple[float, float]:
+    """Depth range (along the optical axis) of a person from its torso in normalised
+    coordinates xy (17, 2).
+
+    An image length l of a body segment of length L at depth d is at most L/d
+    (foreshortening only shrinks), so d <= L_max/l for each segment. The torso is
+    perpendicular to the shoulder and hip lines, so their foreshortenings cannot both be
+    large: (l_t d/L_t)² + (l_w d/L_w)² >= 1, which bounds d from below with L_min.
+    """
+    sh = np.linalg.norm(xy[L_SHOULDER] - xy[R_SHOULDER])
+    hp = np.linalg.norm(xy[L_HIP] - xy[R_HIP])
+    to = np.linalg.norm(0.5 * (xy[L_SHOULDER] + xy[R_SHOULDER]) - 0.5 * (xy[L_HIP] + xy[R_HIP]))
+    eps = 1e-6
+    lo_h, hi_h = cfg.min_height, cfg.max_height
+    d_max = min(
+        cfg.shoulders_ratio * hi_h / max(sh, eps),
+        cfg.hips_ratio * hi_h / max(hp, eps),
+        cfg.torso_ratio * hi_h / max(to, eps),
+    )
+    d_min = max(
+        1.0 / np.sqrt((to / (cfg.torso_ratio * lo_h)) ** 2 + (sh / (cfg.shoulders_ratio * lo_h)) ** 2 + eps),
+        1.0 / np.sqrt((to / (cfg.torso_ratio * lo_h)) ** 2 + (hp / (cfg.hips_ratio * lo_h)) ** 2 + eps),
+    )
+    m = cfg.depth_margin
+    d_min, d_max = d_min * (1 - m), d_max * (1 + m)
+    if d_min > d_max:  # noisy keypoints: keep an interval around the geometric mean
+        c = np.sqrt(d_min * d_max)
+        d_min, d_max = c * (1 - m), c * (1 + m)
+    return float(max(d_min, 0.1)), float(max(d_max, 0.2))
+
+
+def torso_centre(xy: np.ndarray) -> np.ndarray:
+    return xy[list(TORSO)].mean(0)
+
+
+def intersect_rays(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Least-squares point closest to rays: origins (V, 3), unit dirs (V, 3)."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for o, d in zip(origins, dirs):
+        M = np.eye(3) - np.outer(d, d)
+        A += M
+        b += M @ o
+    return np.linalg.lstsq(A, b, rcond=None)[0]
+
+
+class Associator:
+    """Detections of one frameset → hypotheses, with the current camera poses.
+
+    R: (C, 3, 3) world_R_cam and t: (C, 3) centres are read from ``poses`` at each call.
+    """
+
+    def __init__(self, config: AssociateConfig):
+        self.cfg = config
+        self.rejected: Counter = Counter()
+        self.created = 0
+
+    def __call__(self, time: float, views: Sequence[Sequence[Detection]], R: np.ndarray, t: np.ndarray,
+                 gate_px: np.ndarray | None = None) -> list[Hypothesis]:
+        """gate_px: (C,) px reprojection gate per camera (inf = not gated), or None."""
+        dets = [d for v in views for d in v]
+        if len(dets) < 2:
+            return []
+        seg0, seg1, depth, dirs = [], [], [], []
+        for d in dets:
+            lo, hi = depth_interval(d.xy, self.cfg)
+            c = torso_centre(d.xy)
+            ray_c = np.array([c[0], c[1], 1.0])
+            dw = R[d.cam] @ ray_c
+            seg0.append(t[d.cam] + lo * dw)
+            seg1.append(t[d.cam] + hi * dw)
+            depth.append(0.5 * (lo + hi))
+            dirs.append(dw / np.linalg.norm(dw))
+        seg0, seg1, dirs = np.array(seg0), np.array(seg1), np.array(dirs)
+        n = len(dets)
+        ii, jj = np.triu_indices(n, 1)
+        dist = np.full((n, n), np.inf)
+        dd, _, _ = closest_points_segments(seg0[ii], seg1[ii], seg0[jj], seg1[jj])
+        dist[ii, jj] = dd
+        dist[jj, ii] = dd
+        cams = np.array([d.cam for d in dets])
+        dist[cams[:, None] == cams[None, :]] = np.inf
+
+        groups: list[list[int]] = []
+        for k in np.argsort(depth, kind="stable"):
+            best, best_cost = None, self.cfg.max_distance
+            for g in groups:
+                if any(cams[m] == cams[k] for m in g):
+                    continue
+                cost = max(dist[k, m] for m in g)
+                if cost < best_cost:
+                    best, best_cost = g, cost
+            if best is None:
+                groups.append([int(k)])
+            else:
+                best.append(int(k))
+
+        out = []
+        for g in groups:
+            if len(g) < self.cfg.min_views:
+                continue
+            h = self._hypothesis(time, [dets[k] for k in g], R, t, gate_px)
+            if h is not None:
+                out.append(h)
+        self.created += len(out)
+        return out
+
+    def _hypothesis(self, time: float, dets: list[Detection], R: np.ndarray, t: np.ndarray,
+                    gate_px: np.ndarray | None) -> Hypothesis | None:
+        cams = np.array([d.cam for d in dets])
+        xy = np.stack([d.xy for d in dets])
+        sigma = np.stack([d.sigma / d.focal for d in dets])
+        centres = np.array([torso_centre(d.xy) for d in dets])
+        origins = t[cams]
+        dirs = np.einsum("vij,vj->vi", R[cams], np.c_[centres, np.ones(len(dets))])
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        com = intersect_rays(origins, dirs)
+        if gate_px is not None and np.any(np.isfinite(gate_px[cams])):
+            # Reprojection gate: drop views whose torso centre misses the joint estimate by
+            # more than the gate (in pixels), re-estimating after each removal.
+            focal = np.array([d.focal for d in dets])
+            keep = np.ones(len(dets), bool)
+            while keep.sum() >= self.cfg.min_views:
+                Xc = np.einsum("vji,vj->vi", R[cams], com - origins)  # R^T (X - t)
+                behind = Xc[:, 2] <= 0.1
+                proj = Xc[:, :2] / np.where(behind, 1.0, Xc[:, 2])[:, None]
+                err = np.linalg.norm(proj - centres, axis=1) * focal
+                err[behind] = np.inf
+                excess = err / gate_px[cams]
+                excess[~keep] = -1
+                worst = int(np.argmax(excess))
+                if excess[worst] <= 1.0:
+                    break
+                keep[worst] = False
+                self.rejected["reprojection_gate"] += 1
+                if keep.sum() >= 2:
+                    com = intersect_rays(origins[keep], dirs[keep])
+            if keep.sum() < self.cfg.min_views:
+                self.rejected["gate_too_few_views"] += 1
+                return None
+            cams, xy, sigma = cams[keep], xy[keep], sigma[keep]
+        # A centre behind any of its cameras is a wrong association, not a person.
+        Xc = np.einsum("vji,vj->vi", R[cams], com - t[cams])
+        if np.any(Xc[:, 2] <= 0):
+            self.rejected["behind_camera"] += 1
+            return None
+        return Hypothesis(time, cams, xy, sigma, com)
+
+
+def triangulate_torso(h: Hypothesis, R: np.ndarray, t: np.ndarray, focal: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """Torso joints of a hypothesis triangulated with poses R (C, 3, 3), t (C, 3), and
+    each view's mean torso reprojection error in px (V,); (None, []) if untriangulable."""
+    idx = list(TORSO)
+    X, _ = triangulate_views(R, t, h.cams, h.xy[:, idx])
+    if not np.all(np.isfinite(X)):
+        return None, np.zeros(0)
+    Rt = np.transpose(R[h.cams], (0, 2, 1))
+    Xc = np.einsum("vij,vkj->vki", Rt, X[None] - t[h.cams][:, None])  # (V, 4, 3)
+    proj = Xc[..., :2] / Xc[..., 2:3]
+    err = np.linalg.norm(proj - h.xy[:, idx], axis=2).mean(1) * focal[h.cams]
+    return X, np.where(np.all(Xc[..., 2] > 0, axis=1), err, np.inf)

@@ -1,0 +1,249 @@
+"""Framesets from free-running sensors.
+
+Sensors are not triggered together (10-30 Hz, random phases), so a frameset is a
+capture instant T on a regular grid of data time, not "one message per sensor within
+50 ms". For every sensor the two messages that bracket T are found; persons are
+matched between them and their keypoints interpolated to T. A sensor without a
+bracketing pair falls back to its nearest message within ``max_offset``; a sensor
+with neither sits this frameset out. The paper's span/std limits then apply to the
+stamps the frameset really uses.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections import Counter, deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from proto import KeypointMessage
+
+from .config import SyncConfig
+
+N_J = 17
+# Persons in consecutive frames of one sensor are the same person when their joints
+# moved less than this fraction of the image diagonal per second (a sprinter at 3 m
+# from a wide lens crosses ~0.8 diagonals/s).
+_MATCH_DIAG_PER_S = 1.0
+_MATCH_MIN_FRAC = 0.03
+
+
+@dataclass(frozen=True, eq=False)
+class View:
+    """One sensor's detections at the frameset time.
+
+    kp: (P, 17, 3) float64 raw pixels (u, v) and confidence; interpolated when
+        ``interpolated``.
+    boxes: (P, 4) float64 [x0, y0, x1, y1], NaN when the sensor sent none.
+    cov: (P, 17, 3) float64 pixel² [xx, xy, yy], or None.
+    offset: s between the stamp used and the frameset time (0 when interpolated).
+    speed: (P, 17) float64 px/s image speed of each joint where known, else 0.
+    """
+
+    sensor: str
+    stamp: float
+    offset: float
+    size: tuple[int, int]
+    kp: np.ndarray
+    boxes: np.ndarray
+    cov: np.ndarray | None
+    speed: np.ndarray
+    interpolated: bool
+
+    def __post_init__(self) -> None:
+        P = self.kp.shape[0]
+        assert self.kp.shape == (P, N_J, 3)
+        assert self.boxes.shape == (P, 4)
+        assert self.speed.shape == (P, N_J)
+        assert self.cov is None or self.cov.shape == (P, N_J, 3)
+
+
+@dataclass(frozen=True)
+class Frameset:
+    time: float
+    views: tuple[View, ...]
+
+
+def _boxes(msg: KeypointMessage) -> np.ndarray:
+    return np.array([p.bbox if p.bbox is not None else np.full(4, np.nan) for p in msg.persons]).reshape(-1, 4)
+
+
+def _cov(msg: KeypointMessage) -> np.ndarray | None:
+    if msg.persons and all(p.cov is not None for p in msg.persons):
+        return np.stack([p.cov for p in msg.persons])
+    return None
+
+
+def _match(a: np.ndarray, b: np.ndarray, max_dist: float) -> list[tuple[int, int]]:
+    """Greedy matching of persons a (P, 17, 3) and b (Q, 17, 3) by mean joint distance."""
+    if len(a) == 0 or len(b) == 0:
+        return []
+    both = (a[:, None, :, 2] > 0) & (b[None, :, :, 2] > 0)  # (P, Q, 17)
+    d = np.linalg.norm(a[:, None, :, :2] - b[None, :, :, :2], axis=-1)
+    n = both.sum(-1)
+    cost = np.where(n >= 4, np.where(both, d, 0).sum(-1) / np.maximum(n, 1), np.inf)
+    pairs = []
+    used_a, used_b = set(), set()
+    for flat in np.argsort(cost, axis=None):
+        i, j = divmod(int(flat), cost.shape[1])
+        if cost[i, j] > max_dist:
+            break
+        if i in used_a or j in used_b:
+            continue
+        pairs.append((i, j))
+        used_a.add(i)
+        used_b.add(j)
+    return pairs
+
+
+def _single(msg: KeypointMessage, T: float) -> View:
+    P = len(msg.persons)
+    return View(msg.sensor, msg.stamp, msg.stamp - T, msg.size, msg.keypoints(), _boxes(msg),
+                _cov(msg), np.zeros((P, N_J)), False)
+
+
+def interpolate(m0: KeypointMessage, m1: KeypointMessage, T: float) -> View:
+    """Keypoints of persons seen in both messages, linearly interpolated to T.
+
+    A joint missing in either message is missing. Persons seen in only one message are
+    dropped: their time offset is unknown to the frameset.
+    """
+    dt = m1.stamp - m0.stamp
+    assert dt > 0 and m0.stamp <= T <= m1.stamp
+    w = (T - m0.stamp) / dt
+    k0, k1 = m0.keypoints(), m1.keypoints()
+    diag = float(np.hypot(*m0.size))
+    pairs = _match(k0, k1, diag * max(_MATCH_MIN_FRAC, _MATCH_DIAG_PER_S * dt))
+    if not pairs:
+        return View(m0.sensor, T, 0.0, m0.size, np.zeros((0, N_J, 3)), np.zeros((0, 4)), None,
+                    np.zeros((0, N_J)), True)
+    i0 = [i for i, _ in pairs]
+    i1 = [j for _, j in pairs]
+    a, b = k0[i0], k1[i1]
+    kp = (1 - w) * a + w * b
+    ok = (a[..., 2] > 0) & (b[..., 2] > 0)
+    kp[..., 2] = np.where(ok, np.minimum(a[..., 2], b[..., 2]), 0.0)
+    speed = np.where(ok, np.linalg.norm(b[..., :2] - a[..., :2], axis=-1) / dt, 0.0)
+    bx0, bx1 = _boxes(m0)[i0], _boxes(m1)[i1]
+    boxes = (1 - w) * bx0 + w * bx1
+    c0, c1 = _cov(m0), _cov(m1)
+    cov = None if c0 is None or c1 is None else (1 - w) * c0[i0] + w * c1[i1]
+    return View(m0.sensor, T, 0.0, m0.size, kp, boxes, cov, speed, True)
+
+
+class Synchronizer:
+    """Per-sensor buffers → framesets on a regular grid of data time.
+
+    ``push`` takes messages in arrival order (stamps need not be sorted);
+    ``pop_ready(now)`` returns every frameset whose time is at least ``wait`` behind
+    ``now``. Rejections and dropped framesets are counted by reason.
+    """
+
+    def __init__(self, config: SyncConfig, sensors: list[str] | tuple[str, ...]):
+        self.cfg = config
+        self.sensors = tuple(sensors)
+        self._stamps: dict[str, list[float]] = {s: [] for s in self.sensors}
+        self._msgs: dict[str, list[KeypointMessage]] = {s: [] for s in self.sensors}
+        self._last_seq: dict[str, deque] = {s: deque(maxlen=64) for s in self.sensors}
+        self.next_time: float | None = None
+        self.rejected: Counter = Counter()
+        self.framesets = 0
+        self.framesets_rejected: Counter = Counter()
+        self.latest_stamp: float | None = None
+
+    def push(self, msg: KeypointMessage, now: float | None = None) -> str | None:
+        """Buffer one message; returns a rejection reason or None."""
+        s = msg.sensor
+        if s not in self._stamps:
+            return self._reject("unknown_sensor")
+        if now is not None:
+            if msg.stamp > now + self.cfg.max_stamp_future:
+                return self._reject("stamp_in_future")
+            if msg.stamp < now - self.cfg.max_stamp_past:
+                return self._reject("stamp_too_old")
+        if self.next_time is not None and msg.stamp < self.next_time - self.cfg.wait - 1.0:
+            return self._reject("late")
+        key = (msg.seq, msg.stamp)
+        if key in self._last_seq[s]:
+            return self._reject("duplicate")
+        self._last_seq[s].append(key)
+        stamps, msgs = self._stamps[s], self._msgs[s]
+        i = bisect.bisect_right(stamps, msg.stamp)
+        if i > 0 and stamps[i - 1] == msg.stamp:
+            return self._reject("duplicate")
+        stamps.insert(i, msg.stamp)
+        msgs.insert(i, msg)
+        if self.latest_stamp is None or msg.stamp > self.latest_stamp:
+            self.latest_stamp = msg.stamp
+        if self.next_time is None:
+            step = 1.0 / self.cfg.rate
+            self.next_time = np.ceil(msg.stamp / step) * step + step
+        return None
+
+    def _reject(self, reason: str) -> str:
+        self.rejected[reason] += 1
+        return reason
+
+    def pop_ready(self, now: float) -> list[Frameset]:
+        out: list[Frameset] = []
+        if self.next_time is None:
+            return out
+        step = 1.0 / self.cfg.rate
+        # After a long silence do not emit thousands of empty framesets: jump ahead.
+        if self.latest_stamp is not None and now - self.next_time > 10.0:
+            self.next_time = np.floor((now - self.cfg.wait) / step) * step
+        while self.next_time <= now - self.cfg.wait:
+            fs = self._build(self.next_time)
+            if fs is not None:
+                out.append(fs)
+            self.next_time += step
+            self._prune(self.next_time - 2.0)
+        return out
+
+    def _prune(self, before: float) -> None:
+        for s in self.sensors:
+            stamps = self._stamps[s]
+            # keep one message older than `before` so the next bracket still has its left side
+            k = bisect.bisect_left(stamps, before) - 1
+            if k > 0:
+                del stamps[:k]
+                del self._msgs[s][:k]
+
+    def _build(self, T: float) -> Frameset | None:
+        views = []
+        for s in self.sensors:
+            v = self._view(s, T)
+            if v is not None:
+                views.append(v)
+        used = [v for v in views if len(v.kp)]
+        if len(used) < self.cfg.min_views:
+            self.framesets_rejected["too_few_views"] += 1
+            return None
+        st = np.array([v.stamp for v in used])
+        if st.max() - st.min() > self.cfg.max_span:
+            self.framesets_rejected["stamp_span"] += 1
+            return None
+        if st.std() > self.cfg.max_std:
+            self.framesets_rejected["stamp_std"] += 1
+            return None
+        self.framesets += 1
+        return Frameset(float(T), tuple(views))
+
+    def _view(self, s: str, T: float) -> View | None:
+        stamps, msgs = self._stamps[s], self._msgs[s]
+        i = bisect.bisect_right(stamps, T)
+        m0 = msgs[i - 1] if i > 0 else None
+        m1 = msgs[i] if i < len(msgs) else None
+        if m0 is not None and m0.stamp == T:
+            return _single(m0, T)
+        if (
+            self.cfg.interpolate and m0 is not None and m1 is not None
+            and m1.stamp - m0.stamp <= 2 * self.cfg.max_offset + 1e-9
+            and m0.size == m1.size
+        ):
+            return interpolate(m0, m1, T)
+        best = min((m for m in (m0, m1) if m is not None), key=lambda m: abs(m.stamp - T), default=None)
+        if best is None or abs(best.stamp - T) > self.cfg.max_offset:
+            return None
+        return _single(best, T)
