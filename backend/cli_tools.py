@@ -12,6 +12,7 @@ from .cli import fail
 
 def register(app: typer.Typer) -> None:
     app.command("export")(export_cmd)
+    app.command("report")(report_cmd)
 
 
 def export_cmd(
@@ -80,6 +81,9 @@ def report_cmd(
     reference: Annotated[Optional[Path], typer.Option(
         help="reference extrinsics YAML, to plot and to measure the errors against",
         exists=True, dir_okay=False)] = None,
+    room: Annotated[Optional[Path], typer.Option(
+        help="room.yaml with the floor plane (floor.normal_up, floor.e1) for the top view",
+        exists=True, dir_okay=False)] = None,
     title: Annotated[Optional[str], typer.Option(help="report title")] = None,
 ) -> None:
     """Write a self-contained HTML report of a calibration session: camera plot, convergence
@@ -89,7 +93,7 @@ def report_cmd(
 
     try:
         data = load_session(session, intrinsics=intrinsics, initial=initial, result=result,
-                            reference=reference)
+                            reference=reference, room=room)
     except (ReportError, CameraFileError) as e:
         raise fail(str(e))
     for w in data.warnings:
