@@ -95,6 +95,8 @@ class SessionData:
     floor: tuple[np.ndarray, np.ndarray] | None = None  # (up, e1) unit vectors in the world
     reprojection_per_camera: dict[str, float] = field(default_factory=dict)
     reprojection_per_group: dict[str, float] = field(default_factory=dict)
+    config: dict[str, Any] = field(default_factory=dict)  # the engine config of the session
+    final_state: CycleRecord | None = None  # state.json: the latest per-camera detail
 
     @property
     def camera_names(self) -> list[str]:
@@ -139,15 +141,18 @@ def load_session(path: str | os.PathLike, *, intrinsics: str | os.PathLike | Non
     path = Path(path)
     warnings: list[str] = []
     meta: dict[str, Any] = {}
+    config: dict[str, Any] = {}
+    final_state: dict[str, Any] = {}
     files: dict[str, Path | None] = {k: None for k in (*_CAMERA_FILES, "history", "room", "reprojection")}
     if path.is_dir():
-        for mname in ("session.json", "meta.json", "config.json"):
+        for mname, target in (("session.json", meta), ("meta.json", meta), ("config.json", config),
+                              ("state.json", final_state)):
             p = path / mname
             if p.is_file():
                 try:
                     m = json.loads(p.read_text())
                     if isinstance(m, dict):
-                        meta.update(m)
+                        target.update(m)
                 except (OSError, json.JSONDecodeError) as e:
                     warnings.append(f"{p}: ignored, not valid JSON ({e})")
         named = meta.get("files") if isinstance(meta.get("files"), dict) else {}
@@ -202,9 +207,15 @@ def load_session(path: str | os.PathLike, *, intrinsics: str | os.PathLike | Non
         except (OSError, json.JSONDecodeError, AttributeError) as e:
             warnings.append(f"{files['reprojection']}: ignored ({e})")
 
+    final = None
+    if final_state:
+        try:
+            final = _parse_record({"cycle": 0, **final_state})
+        except (ValueError, TypeError, KeyError) as e:
+            warnings.append(f"state.json: ignored ({e})")
     title = str(meta.get("title") or meta.get("name") or meta.get("id") or path.stem)
     return SessionData(path, title, intr, cams["initial"], cams["result"], cams["reference"], cycles,
-                       meta, warnings, floor, rep_cam, rep_grp)
+                       meta, warnings, floor, rep_cam, rep_grp, config, final)
 
 
 def _open_text(path: Path):
@@ -289,6 +300,16 @@ def _parse_record(d: Any) -> CycleRecord | None:
                 conv[n] = c["converged"]
             if (v := _num(c.get("observations"))) is not None:
                 obs[n] = int(v)
+    pc = merged.get("per_camera")
+    if isinstance(pc, dict):  # the service's history: name → [std_t, std_r, change_t, change_r, converged]
+        for n, v in pc.items():
+            if isinstance(v, list) and len(v) >= 2:
+                if (x := _num(v[0])) is not None:
+                    std_t.setdefault(str(n), x)
+                if (x := _num(v[1])) is not None:
+                    std_r.setdefault(str(n), x)
+                if len(v) >= 5 and isinstance(v[4], bool):
+                    conv.setdefault(str(n), v[4])
     err = next((merged[k] for k in ("error", "accuracy", "reference_error") if isinstance(merged.get(k), dict)), {})
 
     def pick(*keys: str) -> float | None:
@@ -308,9 +329,9 @@ def _parse_record(d: Any) -> CycleRecord | None:
         change_rotation=pick("max_change_rotation", "change_rotation"),
         hypotheses=(int(h) if (h := pick("hypotheses")) is not None else None),
         accepted=accepted if isinstance(accepted, bool) else None,
-        error_position=_stat(err.get("position")),
-        error_orientation=_stat(err.get("orientation")),
-        error_shape_position=_stat(err.get("shape_position")),
+        error_position=_stat(err.get("position", err.get("position_mean"))),
+        error_orientation=_stat(err.get("orientation", err.get("orientation_mean"))),
+        error_shape_position=_stat(err.get("shape_position", err.get("shape_position_mean"))),
         reprojection_per_camera=_float_map(merged.get("reprojection_per_camera") or report.get("reprojection_per_camera")),
         reprojection_per_group=_float_map(merged.get("reprojection_per_group") or report.get("reprojection_per_group")),
     )
@@ -688,11 +709,14 @@ def render_html(data: SessionData, *, title: str | None = None) -> str:
             data.warnings.append(f"accuracy vs reference not computed: {e}")
     std_t = {n: e.std_translation for n, e in (data.result or {}).items() if e.std_translation is not None}
     std_r = {n: e.std_rotation for n, e in (data.result or {}).items() if e.std_rotation is not None}
-    if last:
-        std_t = {**last.std_translation, **std_t}
-        std_r = {**last.std_rotation, **std_r}
-    conv = dict(last.converged) if last else {}
-    obs = dict(last.observations) if last else {}
+    conv: dict[str, bool] = {}
+    obs: dict[str, int] = {}
+    for rec in (last, data.final_state):  # the later source wins
+        if rec is not None:
+            std_t = {**rec.std_translation, **std_t} if rec is last else {**std_t, **rec.std_translation}
+            std_r = {**rec.std_rotation, **std_r} if rec is last else {**std_r, **rec.std_rotation}
+            conv.update(rec.converged)
+            obs.update(rec.observations)
 
     h: list[str] = [
         "<!DOCTYPE html>",
@@ -727,9 +751,20 @@ def render_html(data: SessionData, *, title: str | None = None) -> str:
         k.append(_kpi(f"{last.reprojection_px:.2f} px", "reprojection error, last cycle (median)"))
     h.append('<div class="kpis">' + "".join(k) + "</div>")
     settings = {kk: v for kk, v in data.meta.items() if kk not in ("files",) and not isinstance(v, (dict, list))}
+    for kk in ("stop", "config_overrides", "sources"):
+        if isinstance(data.meta.get(kk), dict) and data.meta[kk]:
+            settings[kk] = json.dumps(data.meta[kk])
+    for kk in ("created_wall", "ended_wall"):
+        if isinstance(settings.get(kk), (int, float)):
+            settings[kk] = datetime.fromtimestamp(settings[kk], timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
     if settings:
-        h.append("<details><summary>session settings</summary><table>" + "".join(
+        h.append("<details open><summary>session</summary><table id=\"session\">" + "".join(
             f"<tr><td>{_e(kk)}</td><td>{_e(v)}</td></tr>" for kk, v in settings.items()) + "</table></details>")
+    if data.config:
+        rows = [(f"{sec}.{kk}", v) for sec, vals in data.config.items() if isinstance(vals, dict)
+                for kk, v in vals.items()]
+        h.append("<details><summary>engine configuration</summary><table>" + "".join(
+            f"<tr><td>{_e(kk)}</td><td>{_e(v)}</td></tr>" for kk, v in rows) + "</table></details>")
 
     # --- camera plot
     h.append("<h2>Cameras</h2>")

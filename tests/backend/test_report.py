@@ -265,3 +265,44 @@ def test_cli_report(session, tmp_path):
     (d / "cameras" / "intrinsics.yaml").write_text("cam_0: [1, 2\n")
     r = CliRunner().invoke(app, ["report", str(d), "--out", str(out)])
     assert r.exit_code == 2 and "intrinsics.yaml" in r.output and "not valid YAML" in r.output
+
+
+def test_service_session_layout(tmp_path, lab_dir):
+    """The service's session directory (backend/session.py): history lines are a flattened
+    CycleReport with `accuracy` and `per_camera`; state.json holds the latest detail."""
+    d = tmp_path / "20260101T000000-abcd"
+    d.mkdir()
+    for f in ("intrinsics.yaml", "reference.yaml"):
+        shutil.copy(lab_dir / f, d / f)
+    shutil.copy(lab_dir / "reference.yaml", d / "initial.yaml")
+    shutil.copy(lab_dir / "reference.yaml", d / "result.yaml")
+    ref = load_extrinsics(lab_dir / "reference.yaml")
+    lines = []
+    for k in (1, 2):
+        lines.append({"cycle": k, "data_time": 5.0 + k, "hypotheses": 50, "observations": 900, "cameras": list(ref)[:4],
+                      "initial_error": 2.0, "final_error": 1.0, "iterations": 4, "solve_seconds": 0.1, "moved": True,
+                      "accepted": True, "reason": "", "max_change_translation": 0.01 / k, "max_change_rotation": 0.5 / k,
+                      "reprojection_px": 3.0 / k, "wall": 1.7e9, "state": "calibrating", "converged": False,
+                      "cameras_converged": 0, "cameras_calibrated": 4, "max_std_translation": 0.02,
+                      "max_std_rotation": 0.5,
+                      "accuracy": {"position_mean": 0.2 / k, "position_max": 0.3, "orientation_mean": 2.0 / k,
+                                   "orientation_max": 3.0, "shape_position_mean": 0.1 / k, "shape_orientation_mean": 1.0,
+                                   "scale": 1.0},
+                      "per_camera": {n: [0.02 / k, 0.4 / k, None, None, k == 2 and n != "cam_1"] for n in ref}})
+    (d / "history.jsonl").write_text("".join(json.dumps(x) + "\n" for x in lines))
+    (d / "session.json").write_text(json.dumps({"id": d.name, "name": "morning run", "state": "stopped",
+                                                "reason": "stopped by request", "stop": {"converged": True},
+                                                "created_wall": 1.7e9, "cycles": 2}))
+    (d / "config.json").write_text(json.dumps({"select": {"scope": 50}, "sync": {"rate": 15.0}}))
+    (d / "state.json").write_text(json.dumps({"cycle": 2, "data_time": 7.0, "converged": False, "cameras": [
+        {"name": n, "observations": 100 + i, "converged": n != "cam_1", "std_translation": 0.01,
+         "std_rotation": 0.2} for i, n in enumerate(ref)]}))
+    data = load_session(d)
+    assert data.title == "morning run" and data.config["select"]["scope"] == 50
+    c1, c2 = data.cycles
+    assert c2.error_position == pytest.approx(0.1) and c2.error_shape_position == pytest.approx(0.05)
+    assert c1.std_translation["cam_5"] == pytest.approx(0.02) and c2.converged["cam_1"] is False
+    assert data.final_state.observations["cam_3"] == 103
+    html = render_html(data)
+    assert "19/20" in html and "morning run" in html and "select.scope" in html
+    assert "stopped by request" in html and "2023-11-14 22:13:20 UTC" in html
