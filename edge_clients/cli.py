@@ -200,6 +200,8 @@ def sensor_camera(
     max_fps: Annotated[Optional[float], typer.Option(help="capture at most this many frames per second")] = None,
     frames: Annotated[Optional[int], typer.Option(help="stop after this many frames")] = None,
     realtime: Annotated[bool, typer.Option(help="a video file plays at its own frame rate instead of as fast as possible")] = False,
+    capture_latency: Annotated[float, typer.Option(min=0.0, help="s from exposure to grab() returning, subtracted from stamps")] = 0.0,
+    wait_subscriber: Annotated[float, typer.Option(help="s to wait for a subscriber (backend, recorder) before capturing; 0: don't")] = 0.0,
     zenoh_listen: ZenohListen = None,
     zenoh_connect: ZenohConnect = None,
     zenoh_mode: ZenohMode = "peer",
@@ -228,8 +230,9 @@ def sensor_camera(
     try:
         with _clock(ntp_server, clock_correct, ntp_interval) as clock, _open(settings) as session:
             run_camera_cli(session, sensor=sensor, source=source, detector=det, site=site, clock=clock,
-                           max_fps=max_fps, frames=frames, realtime=realtime, quiet=quiet)
-    except CameraError as e:
+                           max_fps=max_fps, frames=frames, realtime=realtime, quiet=quiet,
+                           capture_latency=capture_latency, wait_subscriber=wait_subscriber)
+    except (CameraError, DetectorError) as e:
         raise _fail(str(e)) from None
     finally:
         close = getattr(det, "close", None)
