@@ -1,0 +1,88 @@
+"""The REST API of the live service: FastAPI app factory, routers per resource.
+
+``create_app(settings, service)`` builds the app around a running ``Service``; with no
+service it makes one and runs it with the app (``uvicorn --factory`` style use). The
+OpenAPI schema at /openapi.json (browsable at /docs) is the API's documentation.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from typing import TYPE_CHECKING, Any, AsyncIterator
+
+if TYPE_CHECKING:
+    from fastapi import FastAPI
+
+    from ..service import Service
+    from ..settings import ServiceSettings
+
+DESCRIPTION = """\
+Live, marker-free extrinsic calibration of a camera network from person keypoints.
+
+Sensors publish keypoint messages over Zenoh; a **session** turns them into camera poses.
+Start one with `POST /sessions`, watch it with `GET /sessions/{id}` or the event stream
+`GET /events`, stop it with `POST /sessions/{id}/stop`, fetch the result with
+`GET /sessions/{id}/result` or the current calibration with `GET /calibration`.
+
+**Convergence.** After every optimisation cycle each camera's estimate has a standard
+deviation (from the Kalman filter's covariance) and a recent change (the mean pose change
+per cycle over the last `refine.converged_cycles` cycles, default 10). A camera is
+*converged* when it took part in at least that many cycles and its translation std and
+change are both at most `refine.converged_translation` (default 0.002 m) and its rotation
+std and change at most `refine.converged_rotation` (default 0.05°). A session is
+*converged* when every camera that took part in a cycle is converged; cameras nobody was
+seen by are listed but do not hold convergence back. All thresholds are session `config`
+overrides.
+
+**Authentication.** When the service has a token, state-changing endpoints (POST) need
+`Authorization: Bearer <token>` (and read endpoints too with `protect_reads`).
+"""
+
+
+def create_app(settings: "ServiceSettings", service: "Service | None" = None) -> "FastAPI":
+    from fastapi import FastAPI
+
+    from . import errors
+    from .routers import calibration, events, health, sessions, status
+
+    lifespan = None
+    if service is None:
+        from ..service import Service
+
+        own = Service(settings)
+
+        @contextlib.asynccontextmanager
+        async def lifespan(app: Any) -> AsyncIterator[None]:
+            import asyncio
+
+            task = asyncio.create_task(own.run())
+            started = asyncio.ensure_future(own.started.wait())
+            await asyncio.wait({task, started}, return_when=asyncio.FIRST_COMPLETED)
+            if task.done():
+                task.result()  # raises what stopped it
+            try:
+                yield
+            finally:
+                own.request_stop()
+                await task
+
+        service = own
+
+    app = FastAPI(
+        title="extrcal service",
+        version="1",
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        openapi_tags=[
+            {"name": "sessions", "description": "calibration sessions: start, watch, stop, results"},
+            {"name": "calibration", "description": "the current calibration"},
+            {"name": "status", "description": "sensors, queues, cycles, health"},
+            {"name": "events", "description": "live progress as server-sent events"},
+        ],
+    )
+    app.state.service = service
+    app.state.settings = settings
+    errors.install(app)
+    for r in (sessions, calibration, status, events, health):
+        app.include_router(r.router)
+    return app

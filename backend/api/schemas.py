@@ -1,0 +1,149 @@
+"""Request and response models: the API's documentation (OpenAPI) and its validation."""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from ..session import StopCriteria
+
+MAX_YAML = 4_000_000  # characters; a 1000-camera file is ~200 kB
+
+
+class SessionCreate(BaseModel):
+    """A new session. Camera files come as text (`*_yaml`, the FORMATS.md layouts) or as
+    names of files the server was configured with (`camera_files` in service.toml); when
+    neither is given the server's `defaults` are used."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
+        "name": "lab, morning",
+        "intrinsics_yaml": "cam_0:\n  intrinsics: [610.0, 610.0, 424.0, 240.0]\n  distortion_coeffs: [0, 0, 0, 0, 0]\n  resolution: [848, 480]\n...",
+        "initial_yaml": "cam_0:\n  translation: [0, 0, 0]\n  rotation: [0, 0, 0, 1]\n  resolution: [848, 480]\n...",
+        "config": {"select": {"scope": 60}},
+        "stop": {"converged": True, "duration": 600},
+    }]})
+
+    name: str | None = Field(None, max_length=200, description="a label for people")
+    intrinsics_yaml: str | None = Field(None, max_length=MAX_YAML, description="intrinsics.yaml text")
+    initial_yaml: str | None = Field(None, max_length=MAX_YAML, description="initial extrinsics.yaml text")
+    reference_yaml: str | None = Field(None, max_length=MAX_YAML, description="reference extrinsics to report errors against")
+    intrinsics: str | None = Field(None, max_length=200, description="name of a configured intrinsics file")
+    initial: str | None = Field(None, max_length=200, description="name of a configured initial estimate")
+    reference: str | None = Field(None, max_length=200, description="name of a configured reference")
+    config: dict[str, Any] = Field(default_factory=dict, description="EngineConfig overrides by section, e.g. {\"select\": {\"scope\": 60}}")
+    stop: StopCriteria = Field(default_factory=StopCriteria, description="when the session ends by itself")
+    seed: int = Field(0, ge=0, le=2**32 - 1, description="seed of the hypothesis selection")
+
+
+class CameraOut(BaseModel):
+    name: str
+    translation: list[float] = Field(description="optical centre in the world, m")
+    rotation: list[float] = Field(description="world_R_cam quaternion [x, y, z, w]")
+    std_translation: float | None = Field(description="m, from the filter's covariance")
+    std_rotation: float | None = Field(description="deg")
+    observations: int = Field(description="keypoint projections of this camera used so far")
+    cycles: int = Field(description="cycles this camera took part in")
+    change_translation: float | None = Field(description="m, mean pose change per cycle over the last cycles (null before the first)")
+    change_rotation: float | None = Field(description="deg")
+    converged: bool
+    last_seen: float | None = Field(description="stamp of its last accepted message")
+
+
+SessionStateName = Literal["waiting_for_data", "calibrating", "converged", "stopped", "failed"]
+
+
+class SessionSummary(BaseModel):
+    id: str
+    name: str | None = None
+    state: SessionStateName
+    reason: str
+    created_wall: float | None = None
+    ended_wall: float | None = None
+    cycles: int | None = None
+    converged_cycle: int | None = None
+    stopped_by: str | None = None
+    resumed: int | None = None
+    accuracy: dict[str, float | None] | None = Field(None, description="latest errors against the reference (FORMATS.md figures)")
+
+
+class SessionDetail(SessionSummary):
+    """A session with its per-camera estimate. `state` is one of waiting_for_data →
+    calibrating ⇄ converged → stopped | failed; `reason` says why it is there."""
+
+    stop: StopCriteria
+    config_overrides: dict[str, Any]
+    sources: dict[str, str]
+    seed: int
+    first_data: float | None
+    final_batch: dict[str, Any] | None
+    live: bool = Field(description="the running session (else read from the state directory)")
+    stopping: bool = Field(description="a stop was asked; the final batch adjustment runs")
+    converged: bool
+    data_time: float | None
+    cameras: list[CameraOut]
+    counters: dict[str, Any] | None
+    last_cycle: dict[str, Any] | None
+
+
+class CalibrationCamera(BaseModel):
+    translation: list[float]
+    rotation: list[float]
+    resolution: list[int]
+    std_translation: float | None
+    std_rotation: float | None
+    observations: int
+    cycles: int
+    change_translation: float | None
+    change_rotation: float | None
+    converged: bool
+    last_seen: float | None
+
+
+class Calibration(BaseModel):
+    """A calibration as JSON: the FORMATS.md extrinsics per camera plus convergence."""
+
+    site: str
+    session: str
+    state: SessionStateName
+    cycle: int | None
+    data_time: float | None
+    converged: bool | None
+    accuracy: dict[str, float | None] | None
+    cameras: dict[str, CalibrationCamera]
+
+
+class SensorOut(BaseModel):
+    name: str
+    online: bool | None = Field(description="liveliness token present (null: the sensor declares none)")
+    messages: int
+    accepted: int
+    rejected: dict[str, int] = Field(description="rejected messages by reason")
+    last_seen_ago: float | None = Field(description="wall seconds since its last message")
+    last_stamp: float | None
+    last_seq: int | None
+    rate: float = Field(description="messages per second, recent")
+    latency: dict[str, float] | None = Field(description="arrival − stamp, s (median, p95, max over the recent window)")
+    clock_offset: float | None = Field(description="min(arrival − stamp) over the window: the sensor clock's lag behind ours plus the fastest transport delay")
+
+
+class Status(BaseModel):
+    site: str
+    uptime: float
+    clock: dict[str, Any] = Field(description="the pipeline's clock: mode (wall or data), speed, now")
+    zenoh: dict[str, Any]
+    sensors: dict[str, SensorOut]
+    messages: dict[str, Any] = Field(description="received, rejected by reason, ignored (no session)")
+    framesets: dict[str, Any] | None = Field(description="accepted, rejected by reason")
+    pipeline: dict[str, Any] | None = Field(description="the engine's counters")
+    queues: dict[str, Any] = Field(description="ingest hand-off (length, capacity, dropped), hypotheses, writer")
+    cycles: dict[str, Any] = Field(description="count and times (s) from problem to applied, and of the solve")
+    loop_lag: dict[str, float | None] = Field(description="s the event loop woke up late (max since start, p99 recent)")
+    storage: dict[str, Any]
+    session: dict[str, Any] | None
+
+
+class Health(BaseModel):
+    ok: bool
+    session: str | None
+    state: str | None

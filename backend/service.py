@@ -1,0 +1,1270 @@
+"""The live service: one asyncio process around the synchronous pipeline.
+
+    Zenoh threads ──call_soon_threadsafe──► HandOff (bounded, drops oldest, counted)
+        │                                        │
+        │ liveliness, queries                    ▼ ingest task: decode, pipeline.push
+        ▼                                   front-end task: pipeline.advance(clock)
+    loop callbacks                          optimizer task: next_problem → solve in a
+                                              worker *process* → apply → persist, publish
+                                            writer task: files, one at a time, in a thread
+                                            uvicorn: REST API and server-sent events
+
+Why a process for the solver: gtsam holds Python's GIL while it optimises, so a solve in
+a thread stalls the loop for about as long as the solve (0.32 s of a 0.37 s solve,
+measured); a ProcessPoolExecutor started with ``spawn`` takes a picklable
+``optimize.Problem`` and returns a ``Solution`` without touching the loop's GIL.
+
+One ``asyncio.TaskGroup`` owns every task. SIGTERM/SIGINT: the HTTP server and event
+streams close, the cycle in flight ends and is applied, the session's result, snapshot
+and record are written atomically, the Zenoh session is closed (in a thread). A session
+that was running when the service stopped (cleanly or not) resumes at the next start
+from its last snapshot.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import multiprocessing
+import signal
+import socket
+import time
+from collections import Counter, deque
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, AsyncIterator, Callable
+
+import numpy as np
+
+from proto import MessageError, decode, keys
+from proto.keys import sensor_of
+
+from .cameras import dump_extrinsics, natural_key, parse_extrinsics, parse_intrinsics
+from .config import ConfigError, EngineConfig
+from .ingest import HandOff, SensorTable, ServiceClock
+from .session import (
+    NotAvailable, SessionConflict, SessionInputError, SessionInputs, SessionNotFound, SessionRecord,
+    SessionState, SessionStore, StopCriteria, clean_json, dumps_json, new_session_id,
+)
+from .settings import ServiceSettings
+
+if TYPE_CHECKING:
+    from .pipeline import Pipeline
+    from .state import CalibrationState, CycleReport
+
+log = logging.getLogger("extrcal.service")
+
+MAX_CONSECUTIVE_FAILURES = 10  # failed solves in a row before a session is marked failed
+INGEST_BATCH = 512  # messages taken per turn of the ingest task before it yields
+ADVANCE_SLICE = 0.25  # s of data time per advance() call when catching up
+
+
+class UnknownFormat(Exception):
+    """A result format nobody can write (400)."""
+
+
+# ------------------------------------------------------------------ events
+
+
+class EventBus:
+    """Fan-out of progress events to server-sent-event clients.
+
+    Each subscriber has a bounded queue; a slow client loses its oldest events (and is
+    told how many in the next event's ``dropped``) instead of growing memory.
+    """
+
+    def __init__(self, maxlen: int = 256):
+        self._subs: set[asyncio.Queue] = set()
+        self._maxlen = maxlen
+        self._id = 0
+        self.closed = False
+
+    def publish(self, kind: str, data: dict[str, Any]) -> None:
+        if self.closed:
+            return
+        self._id += 1
+        item = (self._id, kind, data)
+        for q in self._subs:
+            if q.full():
+                q.get_nowait()
+                q.dropped += 1  # type: ignore[attr-defined]
+            q.put_nowait(item)
+
+    @contextlib.asynccontextmanager
+    async def subscribe(self) -> AsyncIterator[asyncio.Queue]:
+        q: asyncio.Queue = asyncio.Queue(self._maxlen)
+        q.dropped = 0  # type: ignore[attr-defined]
+        if self.closed:
+            q.put_nowait(None)
+        self._subs.add(q)
+        try:
+            yield q
+        finally:
+            self._subs.discard(q)
+
+    def close(self) -> None:
+        """End every stream (the server can then shut down without waiting on them)."""
+        self.closed = True
+        for q in self._subs:
+            if q.full():
+                q.get_nowait()
+            q.put_nowait(None)
+
+    @property
+    def subscribers(self) -> int:
+        return len(self._subs)
+
+
+# ------------------------------------------------------------------ solver process
+
+
+def _warm_up() -> int:
+    """Import the optimiser (and gtsam) in the worker before the first cycle needs it."""
+    from . import optimize  # noqa: F401
+
+    import os
+    return os.getpid()
+
+
+def _finish_pipeline(pipeline: "Pipeline") -> "Pipeline":
+    """Final batch adjustment, in the worker: it is a long GTSAM solve."""
+    pipeline.finish()
+    return pipeline
+
+
+class SolverCrashed(RuntimeError):
+    pass
+
+
+class Solver:
+    """One worker process for GTSAM; replaced if it dies."""
+
+    def __init__(self, start_method: str = "spawn"):
+        self._ctx = multiprocessing.get_context(start_method)
+        self._pool: ProcessPoolExecutor | None = None
+        self.restarts = 0
+        self.busy = False
+
+    def _ensure(self) -> ProcessPoolExecutor:
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=self._ctx)
+        return self._pool
+
+    async def run(self, fn: Callable, *args: Any) -> Any:
+        loop = asyncio.get_running_loop()
+        pool = self._ensure()
+        self.busy = True
+        try:
+            return await loop.run_in_executor(pool, fn, *args)
+        except BrokenProcessPool as e:
+            self.restarts += 1
+            self._pool = None
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise SolverCrashed(f"the solver process died ({e}); it was restarted") from None
+        finally:
+            self.busy = False
+
+    def shutdown(self) -> None:
+        """Blocking: from a thread."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+
+def failed_solution(problem: Any, reason: str) -> Any:
+    """A Solution that says the solve did not happen, so that apply() rejects the cycle."""
+    from .optimize import Solution
+
+    C, M = len(problem.R), len(problem.obs_cam)
+    return Solution(
+        ok=False, reason=reason, R=problem.R.copy(), t=problem.t.copy(), cov=np.full((C, 6, 6), np.nan),
+        landmarks=problem.landmarks.copy(), residual_px=np.full(M, np.nan),
+        initial_error=float("nan"), final_error=float("nan"), iterations=0, seconds=0.0,
+    )
+
+
+# ------------------------------------------------------------------ writer
+
+
+class Writer:
+    """File writes in order, one at a time, in a thread; failures are reported, not raised."""
+
+    def __init__(self) -> None:
+        self._q: asyncio.Queue = asyncio.Queue()
+        self.error: str | None = None
+        self.errors = 0
+        self.writes = 0
+
+    def submit(self, fn: Callable, *args: Any) -> None:
+        self._q.put_nowait((fn, args))
+
+    async def run(self) -> None:
+        while True:
+            item = await self._q.get()
+            try:
+                if item is None:
+                    return
+                fn, args = item
+                try:
+                    await asyncio.to_thread(fn, *args)
+                    self.writes += 1
+                    self.error = None
+                except (OSError, ValueError) as e:
+                    self.errors += 1
+                    self.error = f"{type(e).__name__}: {e}"
+                    log.error("state directory write failed: %s", self.error)
+            finally:
+                self._q.task_done()
+
+    async def flush(self) -> None:
+        await self._q.join()
+
+    def close(self) -> None:
+        self._q.put_nowait(None)
+
+    def __len__(self) -> int:
+        return self._q.qsize()
+
+
+# ------------------------------------------------------------------ the running session
+
+
+@dataclass
+class ActiveSession:
+    record: SessionRecord
+    inputs: SessionInputs
+    pipeline: "Pipeline"
+    state: "CalibrationState"
+    finishing: bool = False
+    in_cycle: bool = False
+    failures: int = 0
+    last_snapshot: float = 0.0
+    idle: asyncio.Event = field(default_factory=asyncio.Event)  # no cycle in flight
+    done: asyncio.Event = field(default_factory=asyncio.Event)  # stopped or failed, persisted
+
+    def __post_init__(self) -> None:
+        self.idle.set()
+
+    @property
+    def resolutions(self) -> dict[str, tuple[int, int]]:
+        return {n: self.inputs.cameras.extrinsics[n].resolution for n in self.inputs.cameras.names}
+
+
+# ------------------------------------------------------------------ the service
+
+
+class Service:
+    """Owns the Zenoh session, the active session's pipeline and the solver."""
+
+    def __init__(self, settings: ServiceSettings):
+        self.settings = settings
+        self.store = SessionStore(settings.state_dir / "sessions")
+        self.base_config = EngineConfig.load(settings.engine_config) if settings.engine_config else EngineConfig()
+        self.clock = self._new_clock(self.base_config)
+        self.sensors = SensorTable()
+        self.events = EventBus()
+        self.writer = Writer()
+        self.solver = Solver(settings.solver_start)
+        self.active: ActiveSession | None = None
+        self.ignored = Counter()  # decoded but not for any session, by reason
+        self.rejected = Counter()  # all rejections of messages, by reason
+        self.messages = 0
+        self.cycle_wall: deque[float] = deque(maxlen=200)  # s from problem to applied, per cycle
+        self.cycle_solve: deque[float] = deque(maxlen=200)
+        self.lag: deque[float] = deque(maxlen=1000)  # loop lag samples, s
+        self.lag_max = 0.0
+        self.started_wall = time.time()
+        self.started = asyncio.Event()
+        self.http_address: tuple[str, int] | None = None
+        self.zenoh_locators: list[str] = []
+        self.handoff: HandOff | None = None
+        self._closing = False
+        self._stop = asyncio.Event()
+        self._wake = asyncio.Event()  # front end advanced: the optimizer may find a problem
+        self._queries: asyncio.Queue = asyncio.Queue(maxsize=64)
+        self._tg: asyncio.TaskGroup | None = None
+        self._zenoh = None
+        self._publisher = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    def _new_clock(self, cfg: EngineConfig) -> ServiceClock:
+        return ServiceClock(self.settings.clock, speed=self.settings.speed,
+                            max_jump=cfg.sync.max_stamp_future)
+
+    # ------------------------------------------------------------ lifecycle
+
+    def request_stop(self) -> None:
+        """SIGTERM, SIGINT, tests. Idempotent; safe to call from the loop only."""
+        self._stop.set()
+
+    async def run(self, server: Any | None = None, *, install_signals: bool = False) -> None:
+        """Run until request_stop(); ``server`` is a uvicorn.Server to serve alongside."""
+        loop = self._loop = asyncio.get_running_loop()
+        self.handoff = HandOff(loop, self.settings.ingest_queue)
+        if install_signals:
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                loop.add_signal_handler(sig, self.request_stop)
+        self._resume()
+        from proto.transport import open_session
+
+        zs = await asyncio.to_thread(open_session, self.settings.zenoh.transport())
+        self._zenoh = zs
+        declared: list[Any] = []
+        try:
+            declared = await asyncio.to_thread(self._declare, zs)
+            async with asyncio.TaskGroup() as tg:
+                self._tg = tg
+                tg.create_task(self.writer.run(), name="writer")
+                tg.create_task(self._ingest_loop(), name="ingest")
+                tg.create_task(self._frontend_loop(), name="frontend")
+                tg.create_task(self._optimizer_loop(), name="optimizer")
+                tg.create_task(self._query_loop(), name="queries")
+                tg.create_task(self._status_loop(), name="status")
+                tg.create_task(self._lag_loop(), name="lag")
+                warm = tg.create_task(self._warm(), name="warm-up")
+                server_task = tg.create_task(server.serve(), name="http") if server is not None else None
+                if server is not None:
+                    while not server.started and not server_task.done() and not self._stop.is_set():
+                        await asyncio.sleep(0.01)
+                if server_task is not None and server_task.done():
+                    raise RuntimeError("the HTTP server did not start")
+                self.started.set()
+                self.events.publish("service", {"event": "started"})
+                await self._stop.wait()
+                await self._shutdown(server)
+                warm.cancel()
+        finally:
+            if install_signals:
+                for sig in (signal.SIGTERM, signal.SIGINT):
+                    loop.remove_signal_handler(sig)
+            await asyncio.to_thread(self._close_zenoh, zs, declared)
+            await asyncio.to_thread(self.solver.shutdown)
+
+    def _declare(self, zs: Any) -> list[Any]:
+        """Blocking Zenoh declarations (in a thread)."""
+        import zenoh
+
+        site = self.settings.site
+        assert self.handoff is not None and self._loop is not None
+        loop = self._loop  # this runs in a thread: the service's loop, captured in run()
+        sub = zs.declare_subscriber(keys.all_keypoints(site), self.handoff.on_sample)
+
+        def on_alive(sample: Any) -> None:  # Zenoh thread
+            alive = sample.kind == zenoh.SampleKind.PUT
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(self.sensors.liveliness, str(sample.key_expr), alive)
+
+        live = zs.liveliness().declare_subscriber(keys.all_alive(site), on_alive, history=True)
+
+        def on_query(query: Any) -> None:  # Zenoh thread: hand over, answer on the loop
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(self._enqueue_query, query)
+
+        qbl = zs.declare_queryable(keys.calibration(site), on_query)
+        self._publisher = zs.declare_publisher(keys.calibration(site), encoding=zenoh.Encoding("application/json"))
+        with contextlib.suppress(Exception):
+            self.zenoh_locators = [str(x) for x in zs.info.locators()] if hasattr(zs.info, "locators") else []
+        return [sub, live, qbl, self._publisher]
+
+    @staticmethod
+    def _close_zenoh(zs: Any, declared: list[Any]) -> None:
+        for d in reversed(declared):
+            with contextlib.suppress(Exception):
+                d.undeclare()
+        zs.close()
+
+    async def _warm(self) -> None:
+        try:
+            await self.solver.run(_warm_up)
+        except Exception as e:  # the first real cycle reports it again
+            log.warning("solver warm-up failed: %s", e)
+
+    async def _shutdown(self, server: Any | None) -> None:
+        self._closing = True
+        self.events.close()
+        if server is not None:
+            server.should_exit = True
+        s = self.active
+        if s is not None:
+            if s.finishing:
+                await s.done.wait()
+            else:
+                await s.idle.wait()  # the cycle in flight ends and is applied
+                if s.record.state.active:
+                    self._persist(s, snapshot=True, note="service stopped; resumes at the next start")
+        assert self.handoff is not None
+        self.handoff.close()
+        self._wake.set()
+        self._queries.put_nowait(None)
+        await self.writer.flush()
+        self.writer.close()
+
+    # ------------------------------------------------------------ resume
+
+    def _resume(self) -> None:
+        """Sessions that were running when the service stopped: newest resumes, others fail."""
+        running = []
+        for sid in self.store.ids():
+            try:
+                rec = self.store.load_record(sid)
+            except SessionInputError as e:
+                log.error("%s", e)
+                continue
+            if rec.state.active:
+                running.append(rec)
+        for rec in running[:-1]:
+            rec.state, rec.reason, rec.ended_wall = SessionState.failed, "interrupted: a newer session was running", time.time()
+            self.store.save_record(rec)
+        if not running:
+            return
+        rec = running[-1]
+        try:
+            inputs = self.store.load_inputs(rec)
+            snap = self.store.load_snapshot(rec.id)
+            from .pipeline import Pipeline
+
+            if snap is not None:
+                pipeline = Pipeline.restore(inputs.cameras, inputs.config, snap, seed=rec.seed + rec.resumed + 1)
+            else:
+                pipeline = Pipeline(inputs.cameras, inputs.config, seed=rec.seed)
+        except Exception as e:  # a snapshot or files that no longer load: say so, keep the files
+            rec.state, rec.reason, rec.ended_wall = SessionState.failed, f"could not resume: {e}", time.time()
+            self.store.save_record(rec)
+            log.error("session %s %s", rec.id, rec.reason)
+            return
+        kept = self.store.cut_history(rec.id, pipeline.cycle)
+        rec.resumed += 1
+        rec.cycles = pipeline.cycle
+        rec.reason = f"resumed at cycle {pipeline.cycle} after a restart ({kept} cycles of history kept)"
+        self.clock = self._new_clock(inputs.config)
+        self.active = ActiveSession(rec, inputs, pipeline, pipeline.state())
+        self.store.save_record(rec)
+        log.info("session %s %s", rec.id, rec.reason)
+
+    # ------------------------------------------------------------ ingest
+
+    def _enqueue_query(self, query: Any) -> None:
+        try:
+            self._queries.put_nowait(query)
+        except asyncio.QueueFull:  # answered by nobody: the querier times out
+            self.ignored["query_overflow"] += 1
+
+    async def _ingest_loop(self) -> None:
+        assert self.handoff is not None
+        while True:
+            batch = await self.handoff.get_batch(INGEST_BATCH)
+            if not batch:
+                return
+            for a in batch:
+                self._ingest_one(a.key, a.payload, a.wall)
+            await asyncio.sleep(0)
+
+    def _reject(self, stats: Any, reason: str) -> None:
+        self.rejected[reason] += 1
+        if stats is not None:
+            stats.reject(reason)
+        else:
+            self.sensors.unattributed[reason] += 1
+
+    def _ingest_one(self, key: str, payload: bytes, wall: float) -> None:
+        self.messages += 1
+        name = sensor_of(key)
+        stats = self.sensors.get(name)
+        if stats is not None:
+            stats.seen(wall)
+        try:
+            msg = decode(payload)
+        except MessageError as e:
+            self._reject(stats, f"malformed:{e.field.split('[')[0].split('.')[0] or 'payload'}")
+            return
+        if name is not None and msg.sensor != name:
+            self._reject(stats, "sensor_mismatch")
+            return
+        arrival = self.clock.observe(msg.stamp) if self.clock.mode == "data" else wall
+        if stats is not None:
+            stats.timing(msg.stamp, arrival, msg.seq)
+        s = self.active
+        if s is None or s.finishing:
+            self.ignored["no_session"] += 1
+            return
+        try:
+            reason = s.pipeline.push(msg, arrival)
+        except Exception as e:  # a bug must not take the service down with one message
+            log.exception("pipeline.push failed")
+            reason = f"internal:{type(e).__name__}"
+        if reason is not None:
+            self._reject(stats, reason)
+            return
+        if stats is not None:
+            stats.accepted += 1
+        if s.record.first_data is None:
+            s.record.first_data = arrival
+            self._save_record(s)
+
+    # ------------------------------------------------------------ front end
+
+    async def _frontend_loop(self) -> None:
+        advanced_to: float | None = None
+        while not self._closing:
+            await asyncio.sleep(self.settings.tick)
+            s = self.active
+            now = self.clock.now()
+            if s is None or s.finishing or now is None:
+                continue
+            # After a backlog (a restart, a stall), catch up in slices so that the loop
+            # keeps answering between them.
+            t = now if advanced_to is None or now - advanced_to <= ADVANCE_SLICE else advanced_to + ADVANCE_SLICE
+            while True:
+                try:
+                    s.pipeline.advance(t)
+                except Exception as e:
+                    log.exception("pipeline.advance failed")
+                    self._fail(s, f"the front end failed: {type(e).__name__}: {e}")
+                    break
+                advanced_to = t
+                if t >= now or self._closing or s is not self.active:
+                    break
+                await asyncio.sleep(0)
+                t = min(now, t + ADVANCE_SLICE)
+            self._wake.set()
+            self._check_duration(s, now)
+
+    # ------------------------------------------------------------ optimizer
+
+    async def _optimizer_loop(self) -> None:
+        while not self._closing:
+            await self._wake.wait()
+            self._wake.clear()
+            s = self.active
+            if s is None or s.finishing or self._closing or not s.record.state.active:
+                continue
+            now = self.clock.now()
+            if now is None:
+                continue
+            problem = s.pipeline.next_problem(now)
+            if problem is None:
+                continue
+            s.in_cycle = True
+            s.idle.clear()
+            t0 = time.monotonic()
+            try:
+                from .optimize import solve
+
+                try:
+                    solution = await self.solver.run(solve, problem)
+                except Exception as e:  # SolverCrashed, or solve raised in the worker
+                    log.warning("cycle %d: solve failed: %s", problem.cycle, e)
+                    solution = failed_solution(problem, f"solve failed: {type(e).__name__}: {e}")
+                report = s.pipeline.apply(problem, solution)
+                self.cycle_wall.append(time.monotonic() - t0)
+                self.cycle_solve.append(report.solve_seconds)
+                self._after_cycle(s, report)
+            finally:
+                s.in_cycle = False
+                s.idle.set()
+
+    def _after_cycle(self, s: ActiveSession, report: "CycleReport") -> None:
+        state = s.pipeline.state()
+        s.state = state
+        rec = s.record
+        rec.cycles = state.cycle
+        if report.accepted:
+            s.failures = 0
+        else:
+            s.failures += 1
+        acc = self._accuracy(s, state)
+        if acc is not None:
+            rec.accuracy = acc
+        if s.failures >= MAX_CONSECUTIVE_FAILURES:
+            self._fail(s, f"{s.failures} cycles in a row failed, last: {report.reason}")
+            return
+        if rec.state.active:
+            if state.converged:
+                if rec.converged_cycle is None:
+                    rec.converged_cycle = state.cycle
+                rec.state, rec.reason = SessionState.converged, _converged_reason(state)
+            elif any(c.cycles > 0 for c in state.cameras):
+                rec.state, rec.reason = SessionState.calibrating, _calibrating_reason(state)
+        line = _history_line(report, state, rec, acc)
+        self.writer.submit(self.store.append_history, rec.id, [line])
+        due = time.monotonic() - s.last_snapshot >= self.settings.snapshot_interval
+        self._persist(s, snapshot=due)
+        self._publish_calibration(s)
+        self.events.publish("cycle", {"session": rec.id, **line})
+        if rec.stop.max_cycles is not None and state.cycle >= rec.stop.max_cycles:
+            self._begin_stop(s, "max_cycles")
+        elif rec.stop.converged and state.converged:
+            self._begin_stop(s, "converged")
+
+    def _check_duration(self, s: ActiveSession, now: float) -> None:
+        rec = s.record
+        if rec.stop.duration is not None and rec.first_data is not None and not s.finishing \
+                and rec.state.active and now - rec.first_data >= rec.stop.duration:
+            self._begin_stop(s, "duration")
+
+    def _accuracy(self, s: ActiveSession, state: "CalibrationState") -> dict[str, Any] | None:
+        ref = s.inputs.reference
+        if ref is None or state.cycle == 0:
+            return None
+        from .evaluate import evaluate
+
+        try:
+            acc = evaluate(state.poses(), ref)
+        except ValueError:
+            return None
+        return {
+            "position_mean": acc.position.mean, "position_max": acc.position.max,
+            "orientation_mean": acc.orientation.mean, "orientation_max": acc.orientation.max,
+            "shape_position_mean": acc.shape_position.mean, "shape_orientation_mean": acc.shape_orientation.mean,
+            "scale": acc.scale,
+        }
+
+    # ------------------------------------------------------------ persistence and publication
+
+    def _save_record(self, s: ActiveSession) -> None:
+        self.writer.submit(self.store.save_record, _copy_record(s.record))
+
+    def _persist(self, s: ActiveSession, *, snapshot: bool, note: str | None = None) -> None:
+        rec = s.record
+        if note:
+            rec.reason = note
+        state = s.state
+        result = dump_extrinsics(
+            state.extrinsics(s.resolutions),
+            comment=f"extrcal session {rec.id}, cycle {state.cycle}, {rec.state.value}",
+        )
+        self.writer.submit(self.store.save_result, rec.id, result, state.to_dict())
+        if snapshot:
+            s.last_snapshot = time.monotonic()
+            self.writer.submit(self.store.save_snapshot, rec.id, s.pipeline.snapshot())
+        self._save_record(s)
+
+    def _publish_calibration(self, s: ActiveSession) -> None:
+        if self._publisher is None:
+            return
+        payload = dumps_json(self.calibration_dict(s)).encode()
+        pub = self._publisher
+
+        def put() -> None:
+            with contextlib.suppress(Exception):  # a closing session: the update is moot
+                pub.put(payload)
+
+        # put() can block on a congested link: not on the loop. Through the writer task
+        # so that updates go out in order.
+        self.writer.submit(put)
+
+    async def _query_loop(self) -> None:
+        while True:
+            query = await self._queries.get()
+            if query is None:
+                return
+            s = self.active
+            payload = dumps_json(self.calibration_dict(s)).encode() if s is not None else None
+            if payload is None:
+                last = self._latest_finished()
+                payload = dumps_json(last).encode() if last is not None else None
+            key = keys.calibration(self.settings.site)
+
+            def answer(q: Any = query, p: bytes | None = payload) -> None:
+                try:
+                    if p is None:
+                        q.reply_err(b"no calibration yet")
+                    else:
+                        q.reply(key, p)
+                finally:
+                    q.drop()
+
+            try:
+                await asyncio.to_thread(answer)
+            except Exception as e:
+                log.warning("answering a calibration query failed: %s", e)
+
+    # ------------------------------------------------------------ periodic
+
+    async def _status_loop(self) -> None:
+        while not self._closing:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), 1.0)
+            if self._closing:
+                return
+            s = self.active
+            if s is not None and s.record.state == SessionState.waiting_for_data:
+                reason = _waiting_reason(s.pipeline.counters(), s.inputs.config, self.sensors, s.inputs.cameras.names)
+                if reason != s.record.reason:
+                    s.record.reason = reason
+                    self._save_record(s)
+            if self.events.subscribers:
+                self.events.publish("status", self.status_brief())
+
+    async def _lag_loop(self) -> None:
+        """How late the loop wakes up: the number that says whether it ever stalls."""
+        period = 0.01
+        while not self._closing:
+            t = time.monotonic()
+            await asyncio.sleep(period)
+            lag = max(time.monotonic() - t - period, 0.0)
+            self.lag.append(lag)
+            self.lag_max = max(self.lag_max, lag)
+
+    # ------------------------------------------------------------ sessions (API)
+
+    def start_session(self, *, inputs: SessionInputs, name: str | None, stop: StopCriteria,
+                      overrides: dict[str, Any], sources: dict[str, str], seed: int = 0) -> dict[str, Any]:
+        if self._closing:
+            raise SessionConflict("the service is shutting down")
+        if self.active is not None:
+            raise SessionConflict(f"session {self.active.record.id} is {self.active.record.state.value}; "
+                                  f"stop it first (POST /sessions/{self.active.record.id}/stop)")
+        from .pipeline import Pipeline
+
+        pipeline = Pipeline(inputs.cameras, inputs.config, seed=seed)
+        rec = SessionRecord(
+            id=new_session_id(), name=name, state=SessionState.waiting_for_data,
+            reason="no messages from the session's cameras yet", stop=stop, config_overrides=overrides,
+            sources=sources, seed=seed,
+        )
+        self.store.create(rec, inputs)  # synchronous: the id must exist on disk before we answer
+        self.clock = self._new_clock(inputs.config)
+        self.active = ActiveSession(rec, inputs, pipeline, pipeline.state())
+        self.active.last_snapshot = time.monotonic()
+        self.events.publish("session", {"id": rec.id, "state": rec.state.value, "reason": rec.reason})
+        return self.session_dict(rec.id)
+
+    def make_inputs(self, *, texts: dict[str, str | None], names: dict[str, str | None],
+                    config: dict[str, Any]) -> tuple[SessionInputs, dict[str, str]]:
+        """Camera files from the request (text or configured names), config merged and validated."""
+        st = self.settings
+        resolved: dict[str, str | None] = {}
+        sources: dict[str, str] = {}
+        for what in ("intrinsics", "initial", "reference"):
+            text, name = texts.get(what), names.get(what)
+            if text is not None and name is not None:
+                raise SessionInputError(f"give either {what}_yaml or {what}, not both")
+            if text is None and name is None:
+                name = getattr(st.defaults, what)
+            if text is not None:
+                resolved[what], sources[what] = text, "upload"
+            elif name is not None:
+                path = st.camera_files.get(name)
+                if path is None:
+                    known = ", ".join(sorted(st.camera_files)) or "none configured"
+                    raise SessionInputError(f"{what}: no camera file named {name!r} on this server (known: {known})")
+                try:
+                    resolved[what] = path.read_text()
+                except OSError as e:
+                    raise SessionInputError(f"{what}: configured file {name!r} ({path}) cannot be read: {e}") from None
+                sources[what] = f"file:{name}"
+            else:
+                resolved[what] = None
+        for what in ("intrinsics", "initial"):
+            if resolved[what] is None:
+                raise SessionInputError(f"{what}: give {what}_yaml (the file's text) or {what} (a configured file name)")
+        try:
+            cfg = self.base_config.merged(config) if config else self.base_config
+        except ConfigError as e:
+            raise SessionInputError(f"config: {e}") from None
+        except (TypeError, AttributeError) as e:
+            raise SessionInputError(f"config: expected sections of objects, e.g. {{\"select\": {{\"scope\": 60}}}} ({e})") from None
+        inputs = SessionInputs.parse(resolved["intrinsics"], resolved["initial"], resolved["reference"], cfg,
+                                     {k: v if v != "upload" else "upload" for k, v in sources.items()})
+        return inputs, sources
+
+    async def stop_session(self, sid: str, *, wait: bool = True, by: str = "request") -> dict[str, Any]:
+        s = self.active
+        if s is None or s.record.id != sid:
+            return self.session_dict(sid)  # 404 if unknown; a finished one is already stopped
+        self._begin_stop(s, by)
+        if wait:
+            await asyncio.shield(s.done.wait())
+        return self.session_dict(sid)
+
+    def _begin_stop(self, s: ActiveSession, by: str) -> None:
+        if s.finishing or not s.record.state.active:
+            return
+        s.finishing = True
+        s.record.stopped_by = by
+        assert self._tg is not None
+        self._tg.create_task(self._finish(s), name=f"finish {s.record.id}")
+
+    async def _finish(self, s: ActiveSession) -> None:
+        """The cycle in flight ends; the final batch adjustment runs in the solver process."""
+        rec = s.record
+        try:
+            await s.idle.wait()
+            before = s.pipeline.cycle
+            t0 = time.monotonic()
+            try:
+                s.pipeline = await self.solver.run(_finish_pipeline, s.pipeline)
+                batch = s.pipeline.cycle > before
+                rec.final_batch = {"ran": batch, "seconds": time.monotonic() - t0,
+                                   "report": s.pipeline.last_report.to_dict() if batch and s.pipeline.last_report else None}
+            except Exception as e:
+                log.warning("final batch adjustment of %s failed: %s", rec.id, e)
+                rec.final_batch = {"ran": False, "error": f"{type(e).__name__}: {e}"}
+            s.state = s.pipeline.state()
+            rec.cycles = s.state.cycle
+            acc = self._accuracy(s, s.state)
+            if acc is not None:
+                rec.accuracy = acc
+            if rec.final_batch.get("ran") and s.pipeline.last_report is not None:
+                self.writer.submit(self.store.append_history, rec.id,
+                                   [{**_history_line(s.pipeline.last_report, s.state, rec, acc), "final_batch": True}])
+            rec.state = SessionState.stopped
+            rec.reason = {
+                "request": "stopped on request", "duration": f"stop criterion: duration {rec.stop.duration:g} s reached"
+                if rec.stop.duration else "duration", "converged": "stop criterion: converged",
+                "max_cycles": f"stop criterion: {rec.stop.max_cycles} cycles",
+            }.get(rec.stopped_by or "", f"stopped ({rec.stopped_by})")
+            rec.ended_wall = time.time()
+            self._persist(s, snapshot=True)
+            self._publish_calibration(s)
+        finally:
+            if self.active is s:
+                self.active = None
+            self.events.publish("session", {"id": rec.id, "state": rec.state.value, "reason": rec.reason})
+            await self.writer.flush()
+            s.done.set()
+
+    def _fail(self, s: ActiveSession, reason: str) -> None:
+        rec = s.record
+        rec.state, rec.reason, rec.ended_wall = SessionState.failed, reason, time.time()
+        log.error("session %s failed: %s", rec.id, reason)
+        self._persist(s, snapshot=True)
+        s.finishing = True
+        if self.active is s:
+            self.active = None
+        self.events.publish("session", {"id": rec.id, "state": rec.state.value, "reason": reason})
+        s.done.set()
+
+    # ------------------------------------------------------------ views (API)
+
+    def session_dict(self, sid: str) -> dict[str, Any]:
+        s = self.active
+        if s is not None and s.record.id == sid:
+            rec, state = s.record, s.state.to_dict()
+            live = True
+        else:
+            rec = self.store.load_record(sid)
+            state = self.store.load_state(sid)
+            live = False
+        d = rec.to_dict()
+        d["live"] = live
+        d["stopping"] = bool(live and s is not None and s.finishing)
+        d["cameras"] = state["cameras"] if state else []
+        d["counters"] = state.get("counters") if state else None
+        d["last_cycle"] = state.get("last_cycle") if state else None
+        d["data_time"] = state.get("data_time") if state else None
+        d["converged"] = bool(state.get("converged")) if state else False
+        return clean_json(d)
+
+    def list_sessions(self) -> list[dict[str, Any]]:
+        out = []
+        for sid in reversed(self.store.ids()):
+            s = self.active
+            rec = s.record if s is not None and s.record.id == sid else None
+            try:
+                rec = rec or self.store.load_record(sid)
+            except SessionInputError as e:
+                out.append({"id": sid, "state": "failed", "reason": str(e)})
+                continue
+            out.append(clean_json({k: v for k, v in rec.to_dict().items()
+                                   if k in ("id", "name", "state", "reason", "created_wall", "ended_wall", "cycles",
+                                            "converged_cycle", "stopped_by", "resumed", "accuracy")}))
+        return out
+
+    def history(self, sid: str, since: int = 0) -> list[dict[str, Any]]:
+        self.store.load_record(sid)  # 404
+        return self.store.history(sid, since)
+
+    def calibration_dict(self, s: ActiveSession) -> dict[str, Any]:
+        state = s.state
+        cams = {}
+        res = s.resolutions
+        for c in state.cameras:
+            d = c.to_dict()
+            d.pop("name")
+            d["resolution"] = list(res[c.name])
+            cams[c.name] = d
+        return clean_json({
+            "site": self.settings.site, "session": s.record.id, "state": s.record.state.value,
+            "cycle": state.cycle, "data_time": state.data_time, "converged": state.converged,
+            "accuracy": s.record.accuracy, "cameras": cams,
+        })
+
+    def _latest_finished(self) -> dict[str, Any] | None:
+        for sid in reversed(self.store.ids()):
+            try:
+                return self._stored_calibration(sid)
+            except NotAvailable:
+                continue
+        return None
+
+    def _stored_calibration(self, sid: str) -> dict[str, Any]:
+        rec = self.store.load_record(sid)
+        state = self.store.load_state(sid)
+        result = self.store.result_yaml(sid)
+        if state is None or result is None:
+            raise NotAvailable(f"session {sid} has no calibration yet")
+        ext = parse_extrinsics(result, f"session {sid} result.yaml")
+        cams = {}
+        for c in state["cameras"]:
+            d = dict(c)
+            d.pop("name", None)
+            d["resolution"] = list(ext[c["name"]].resolution)
+            cams[c["name"]] = d
+        return clean_json({
+            "site": self.settings.site, "session": sid, "state": rec.state.value, "cycle": state.get("cycle"),
+            "data_time": state.get("data_time"), "converged": state.get("converged"),
+            "accuracy": rec.accuracy, "cameras": cams,
+        })
+
+    def calibration(self, sid: str | None, fmt: str) -> tuple[str | bytes | dict, str]:
+        """The calibration of session ``sid`` (None: the current or latest) in ``fmt``."""
+        s = self.active
+        if sid is None:
+            if s is None:
+                ids = self.store.ids()
+                sid = next((i for i in reversed(ids) if self.store.result_yaml(i) is not None), None)
+                if sid is None:
+                    raise NotAvailable("no calibration yet: start a session (POST /sessions)")
+            else:
+                sid = s.record.id
+        live = s is not None and s.record.id == sid
+        if not live:
+            self.store.load_record(sid)  # 404 for unknown ids
+        if fmt == "json":
+            return (self.calibration_dict(s) if live else self._stored_calibration(sid)), "application/json"
+        if live:
+            ext = s.state.extrinsics(s.resolutions)
+            text = dump_extrinsics(ext, comment=f"extrcal session {sid}, cycle {s.state.cycle}, {s.record.state.value}")
+            intr_text = s.inputs.intrinsics_yaml
+        else:
+            text = self.store.result_yaml(sid)
+            if text is None:
+                raise NotAvailable(f"session {sid} has no calibration yet")
+            ext = parse_extrinsics(text, f"session {sid} result.yaml")
+            intr_text = (self.store.dir(sid) / "intrinsics.yaml").read_text()
+        if fmt == "yaml":
+            return text, "application/yaml"
+        try:
+            from . import export as exporter
+        except ModuleNotFoundError:
+            raise UnknownFormat(f"unknown format {fmt!r}: this build writes json and yaml") from None
+        intr = parse_intrinsics(intr_text, f"session {sid} intrinsics.yaml")
+        try:
+            return exporter.export(ext, intr, fmt)
+        except ValueError as e:  # ExportError: unknown format, or the cameras do not fit it
+            raise UnknownFormat(str(e)) from None
+
+    def formats(self) -> list[str]:
+        out = ["json", "yaml"]
+        try:
+            from . import export as exporter
+
+            out += [f for f in exporter.FORMATS if f not in out]
+        except ModuleNotFoundError:
+            pass
+        return out
+
+    # ------------------------------------------------------------ status (API)
+
+    def status_brief(self) -> dict[str, Any]:
+        s = self.active
+        now_wall = time.time()
+        sensors = self.sensors.to_dict(now_wall)
+        return clean_json({
+            "clock": self.clock.now(),
+            "sensors_online": sum(1 for x in sensors.values() if x["online"]),
+            "sensors_active": sum(1 for x in sensors.values() if x["rate"] > 0),
+            "messages": self.messages,
+            "session": None if s is None else {
+                "id": s.record.id, "state": s.record.state.value, "reason": s.record.reason,
+                "cycle": s.state.cycle, "converged": s.state.converged,
+                "cameras_converged": sum(1 for c in s.state.cameras if c.converged),
+                "cameras": len(s.state.cameras), "accuracy": s.record.accuracy,
+            },
+        })
+
+    def status(self) -> dict[str, Any]:
+        s = self.active
+        now_wall = time.time()
+        lag = sorted(self.lag)
+        counters = s.pipeline.counters() if s is not None else None
+        from dataclasses import asdict
+
+        def stats(x: deque) -> dict[str, float] | None:
+            if not x:
+                return None
+            a = np.asarray(x)
+            return {"last": float(a[-1]), "mean": float(a.mean()), "p95": float(np.percentile(a, 95)), "max": float(a.max())}
+
+        assert self.handoff is not None
+        return clean_json({
+            "site": self.settings.site,
+            "uptime": now_wall - self.started_wall,
+            "clock": self.clock.to_dict(),
+            "zenoh": {"mode": self.settings.zenoh.mode, "listen": list(self.settings.zenoh.listen),
+                      "connect": list(self.settings.zenoh.connect)},
+            "sensors": self.sensors.to_dict(now_wall),
+            "messages": {
+                "received": self.messages,
+                "rejected": dict(self.rejected),
+                "rejected_unattributed": dict(self.sensors.unattributed),
+                "ignored": dict(self.ignored),
+            },
+            "framesets": None if counters is None else {
+                "accepted": counters.framesets, "rejected": counters.framesets_rejected,
+            },
+            "pipeline": None if counters is None else asdict(counters),
+            "queues": {
+                "ingest": {"length": len(self.handoff), "capacity": self.handoff.capacity,
+                           "received": self.handoff.received, "dropped": self.handoff.dropped},
+                "hypotheses": None if counters is None else {"length": counters.queue_length, "dropped": counters.queue_dropped},
+                "writer": len(self.writer),
+                "event_subscribers": self.events.subscribers,
+            },
+            "cycles": {
+                "count": None if s is None else s.state.cycle,
+                "rejected": None if counters is None else counters.cycles_rejected,
+                "wall_seconds": stats(self.cycle_wall), "solve_seconds": stats(self.cycle_solve),
+                "solver_busy": self.solver.busy, "solver_restarts": self.solver.restarts,
+            },
+            "loop_lag": {"max": self.lag_max, "p99": lag[int(0.99 * (len(lag) - 1))] if lag else None},
+            "storage": {"state_dir": str(self.settings.state_dir), "error": self.writer.error,
+                        "errors": self.writer.errors},
+            "session": None if s is None else {"id": s.record.id, "state": s.record.state.value,
+                                               "reason": s.record.reason},
+        })
+
+
+# ------------------------------------------------------------------ helpers
+
+
+def _copy_record(rec: SessionRecord) -> SessionRecord:
+    return SessionRecord.from_dict(rec.to_dict())
+
+
+def _converged_reason(state: "CalibrationState") -> str:
+    n = sum(1 for c in state.cameras if c.cycles > 0)
+    idle = [c.name for c in state.cameras if c.cycles == 0]
+    msg = f"all {n} calibrated cameras converged"
+    if idle:
+        msg += f"; never observed: {', '.join(idle[:8])}{' ...' if len(idle) > 8 else ''}"
+    return msg
+
+
+def _calibrating_reason(state: "CalibrationState") -> str:
+    calibrated = [c for c in state.cameras if c.cycles > 0]
+    done = sum(1 for c in calibrated if c.converged)
+    pending = sorted((c for c in calibrated if not c.converged), key=lambda c: -c.std_translation)
+    worst = pending[0].name if pending else "-"
+    return f"{done}/{len(calibrated)} cameras converged; least certain: {worst}"
+
+
+def _waiting_reason(counters: Any, cfg: EngineConfig, sensors: SensorTable, names: tuple[str, ...]) -> str:
+    if counters.messages == 0:
+        online = [n for n in names if (x := sensors.get(n)) is not None and x.messages]
+        return "no messages from the session's cameras yet" if not online else \
+            f"messages from {len(online)} sensors, none accepted yet"
+    if counters.framesets == 0:
+        return f"{counters.messages} messages, no frameset yet (needs {cfg.sync.min_views} sensors at one instant)"
+    need = 2 * cfg.select.scope
+    return (f"{counters.framesets} framesets, {counters.hypotheses} person hypotheses; the first cycle "
+            f"needs {need} waiting")
+
+
+def _history_line(report: "CycleReport", state: "CalibrationState", rec: SessionRecord,
+                  acc: dict[str, Any] | None) -> dict[str, Any]:
+    cams = state.cameras
+    return {
+        **report.to_dict(),
+        "wall": time.time(),
+        "state": rec.state.value,
+        "converged": state.converged,
+        "cameras_converged": sum(1 for c in cams if c.converged),
+        "cameras_calibrated": sum(1 for c in cams if c.cycles > 0),
+        "max_std_translation": max((c.std_translation for c in cams), default=None),
+        "max_std_rotation": max((c.std_rotation for c in cams), default=None),
+        "accuracy": acc,
+        "per_camera": {c.name: [c.std_translation, c.std_rotation, _finite(c.change_translation),
+                                _finite(c.change_rotation), c.converged] for c in cams},
+    }
+
+
+def _finite(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
+# ------------------------------------------------------------------ running it
+
+
+def bind_socket(host: str, port: int) -> socket.socket:
+    """The HTTP listening socket, bound before anything else starts: a clear error if taken."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as e:
+        sock.close()
+        raise OSError(f"cannot listen on {host}:{port}: {e.strerror or e}") from None
+    sock.listen(128)
+    sock.setblocking(False)
+    return sock
+
+
+def make_server(app: Any, sock: socket.socket, *, log_level: str = "warning") -> Any:
+    """A uvicorn server on a bound socket that leaves signals to the service."""
+    import uvicorn
+
+    class _Server(uvicorn.Server):
+        @contextlib.contextmanager
+        def capture_signals(self):  # the service handles SIGTERM/SIGINT itself
+            yield
+
+    host, port = sock.getsockname()[:2]
+    config = uvicorn.Config(app, host=host, port=port, log_level=log_level, lifespan="off",
+                            timeout_graceful_shutdown=3, access_log=False)
+    server = _Server(config)
+    return server
+
+
+async def serve(settings: ServiceSettings, *, install_signals: bool = True,
+                on_started: Callable[[Service], None] | None = None, log_level: str = "warning",
+                service: Service | None = None) -> Service:
+    """Run the whole service (Zenoh, pipeline, REST) until SIGTERM/SIGINT or request_stop()."""
+    from .api import create_app
+
+    service = service or Service(settings)
+    sock = bind_socket(settings.http.host, settings.http.port)
+    service.http_address = sock.getsockname()[:2]
+    app = create_app(settings, service)
+    server = make_server(app, sock, log_level=log_level)
+
+    server_proxy = _ServerWithSocket(server, sock)
+    if on_started is not None:
+        async def notify() -> None:
+            await service.started.wait()
+            on_started(service)
+        waiter = asyncio.ensure_future(notify())
+    try:
+        await service.run(server_proxy, install_signals=install_signals)
+    finally:
+        if on_started is not None:
+            waiter.cancel()
+        sock.close()
+    return service
+
+
+class _ServerWithSocket:
+    """uvicorn.Server serving a socket we bound, as the service's ``server``."""
+
+    def __init__(self, server: Any, sock: socket.socket):
+        self._server, self._sock = server, sock
+
+    async def serve(self) -> None:
+        await self._server.serve(sockets=[self._sock])
+
+    @property
+    def started(self) -> bool:
+        return self._server.started
+
+    @property
+    def should_exit(self) -> bool:
+        return self._server.should_exit
+
+    @should_exit.setter
+    def should_exit(self, value: bool) -> None:
+        self._server.should_exit = value
+
+
+class ServiceThread:
+    """The whole service on its own event loop in a background thread.
+
+    For tests, benchmarks and tools that drive the service from synchronous code::
+
+        with ServiceThread(settings) as st:
+            httpx.get(st.url + "/status")
+
+    ``start`` returns once the service is ``started`` (Zenoh declared, HTTP listening).
+    """
+
+    def __init__(self, settings: ServiceSettings, *, timeout: float = 60.0):
+        import threading
+
+        self.settings = settings
+        self.timeout = timeout
+        self.service: Service | None = None
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.error: BaseException | None = None
+        self._started = threading.Event()
+        self._thread = threading.Thread(target=self._main, name="extrcal-service", daemon=True)
+
+    def _main(self) -> None:
+        async def main() -> None:
+            self.loop = asyncio.get_running_loop()
+            self.service = Service(self.settings)
+            await serve(self.settings, service=self.service, install_signals=False,
+                        on_started=lambda _: self._started.set())
+
+        try:
+            asyncio.run(main())
+        except BaseException as e:  # handed to the caller by start()/stop()
+            self.error = e
+        finally:
+            self._started.set()
+
+    def start(self) -> "ServiceThread":
+        self._thread.start()
+        if not self._started.wait(self.timeout):
+            raise TimeoutError(f"the service did not start within {self.timeout} s")
+        if self.error is not None:
+            raise RuntimeError(f"the service failed to start: {self.error!r}") from self.error
+        return self
+
+    @property
+    def url(self) -> str:
+        assert self.service is not None and self.service.http_address is not None
+        host, port = self.service.http_address
+        return f"http://{'[' + host + ']' if ':' in host else host}:{port}"
+
+    def call(self, fn: Callable[[], Any], timeout: float = 30.0) -> Any:
+        """Run ``fn`` on the service's loop and return its result (a coroutine is awaited)."""
+        import concurrent.futures
+
+        assert self.loop is not None
+
+        async def wrap() -> Any:
+            r = fn()
+            if asyncio.iscoroutine(r):
+                r = await r
+            return r
+
+        fut: concurrent.futures.Future = asyncio.run_coroutine_threadsafe(wrap(), self.loop)
+        return fut.result(timeout)
+
+    def stop(self, timeout: float = 60.0) -> None:
+        if self.loop is not None and self._thread.is_alive():
+            with contextlib.suppress(RuntimeError):
+                self.loop.call_soon_threadsafe(self.service.request_stop)
+        self._thread.join(timeout)
+        if self._thread.is_alive():
+            raise TimeoutError(f"the service did not stop within {timeout} s")
+        if self.error is not None:
+            raise RuntimeError(f"the service failed: {self.error!r}") from self.error
+
+    def __enter__(self) -> "ServiceThread":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (for Zenoh endpoints in tests)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
