@@ -175,15 +175,22 @@ class Solver:
 
 
 def failed_solution(problem: Any, reason: str) -> Any:
-    """A Solution that says the solve did not happen, so that apply() rejects the cycle."""
+    """A Solution that says the solve did not happen, so that apply() rejects the cycle
+    (and the pipeline has no cycle in flight any more)."""
+    import dataclasses
+
     from .optimize import Solution
 
-    C, M = len(problem.R), len(problem.obs_cam)
-    return Solution(
-        ok=False, reason=reason, R=problem.R.copy(), t=problem.t.copy(), cov=np.full((C, 6, 6), np.nan),
-        landmarks=problem.landmarks.copy(), residual_px=np.full(M, np.nan),
-        initial_error=float("nan"), final_error=float("nan"), iterations=0, seconds=0.0,
-    )
+    C = len(problem.R)
+    known = {
+        "ok": False, "reason": reason, "R": problem.R.copy(), "t": problem.t.copy(),
+        "cov": np.full((C, 6, 6), np.nan), "active": np.zeros(C, dtype=bool),
+        "obs_per_camera": np.zeros(C, dtype=np.int64), "hypotheses": 0,
+        "landmarks": np.zeros((0, 3)), "residual_px": np.zeros(0),
+        "initial_error": float("nan"), "final_error": float("nan"), "iterations": 0, "seconds": 0.0,
+    }
+    return Solution(**{f.name: known[f.name] for f in dataclasses.fields(Solution) if f.name in known
+                       or f.default is dataclasses.MISSING})
 
 
 # ------------------------------------------------------------------ writer

@@ -1,0 +1,95 @@
+"""Hand-off from Zenoh threads, the service clock, per-sensor statistics."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+from backend.ingest import Arrival, HandOff, SensorStats, ServiceClock
+
+
+class _Sample:
+    def __init__(self, key: str, data: bytes):
+        self.key_expr = key
+
+        class P:
+            def to_bytes(self_inner) -> bytes:
+                return data
+
+        self.payload = P()
+
+
+def test_handoff_from_threads_is_bounded_and_counts_drops():
+    async def main():
+        loop = asyncio.get_running_loop()
+        h = HandOff(loop, capacity=100)
+
+        def produce(k: int) -> None:
+            for i in range(250):
+                h.on_sample(_Sample(f"extrcal/default/sensors/cam_{k}/keypoints", bytes([k, i % 256])))
+
+        threads = [threading.Thread(target=produce, args=(k,)) for k in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        # let the loop run the scheduled hand-overs
+        while h.received < 1000:
+            await asyncio.sleep(0.001)
+        assert len(h) == 100 and h.dropped == 900
+        batch = await h.get_batch(1000)
+        assert len(batch) == 100 and all(isinstance(a, Arrival) for a in batch)
+        # the newest are kept: per producer, the last items it sent are among them
+        assert max(a.wall for a in batch) <= time.time()
+        h.close()
+        assert await h.get_batch(10) == []
+
+    asyncio.run(main())
+
+
+def test_handoff_wakes_a_waiting_consumer():
+    async def main():
+        h = HandOff(asyncio.get_running_loop(), capacity=10)
+        consumer = asyncio.create_task(h.get_batch(5))
+        await asyncio.sleep(0.01)
+        assert not consumer.done()
+        threading.Thread(target=h.on_sample, args=(_Sample("k", b"x"),)).start()
+        batch = await asyncio.wait_for(consumer, 5)
+        assert [a.payload for a in batch] == [b"x"]
+
+    asyncio.run(main())
+
+
+def test_data_clock_follows_the_newest_stamp():
+    c = ServiceClock("data", speed=10.0, grace=0.05, max_jump=5.0)
+    assert c.now() is None
+    assert c.observe(1000.0) == 1000.0
+    assert c.observe(1000.5) == 1000.5 and c.now() == 1000.5
+    # older stamps arrive at the clock's time (their latency is measured against it)
+    assert c.observe(1000.2) == 1000.5
+    # a stamp far ahead does not drag the clock
+    assert c.observe(2000.0) == 1000.5 and c.now() == 1000.5
+    # without data beyond the grace period the clock runs on at `speed`
+    time.sleep(0.15)
+    now = c.now()
+    assert 1000.5 + 10 * 0.09 <= now <= 1000.5 + 10 * 0.5
+
+
+def test_wall_clock_is_the_host_clock():
+    c = ServiceClock("wall")
+    t = time.time()
+    assert abs(c.now() - t) < 0.5 and abs(c.observe(1.0) - t) < 0.5
+
+
+def test_sensor_stats_rate_latency_offset():
+    s = SensorStats("cam_1")
+    t0 = 1000.0
+    for i in range(31):
+        s.seen(t0 + i / 30)
+        s.timing(t0 + i / 30 - 0.02 - 0.01 * (i % 3), t0 + i / 30, i)
+    d = s.to_dict(t0 + 1.0)
+    assert abs(d["rate"] - 30.0) < 0.5
+    assert abs(d["latency"]["median"] - 0.03) < 1e-9 and abs(d["latency"]["max"] - 0.04) < 1e-9
+    assert abs(d["clock_offset"] - 0.02) < 1e-9
+    assert s.to_dict(t0 + 60)["rate"] == 0.0  # went quiet
