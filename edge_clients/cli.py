@@ -11,6 +11,7 @@ runs sim, replay and record.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from contextlib import contextmanager
 from pathlib import Path
@@ -120,6 +121,7 @@ def sensor_sim(
     duration: Annotated[Optional[float], typer.Option(help="s of simulated time (default: until stopped)")] = None,
     start_at: Annotated[Optional[float], typer.Option(
         help="epoch s at which simulated time starts (default: now); give all processes of one run the same value")] = None,
+    wait_subscriber: Annotated[float, typer.Option(help="s to wait for a subscriber (backend, recorder) before starting; 0: don't")] = 0.0,
     zenoh_listen: ZenohListen = None,
     zenoh_connect: ZenohConnect = None,
     zenoh_mode: ZenohMode = "peer",
@@ -155,6 +157,11 @@ def sensor_sim(
             raise _fail(str(e)) from None
         for n in names:
             pub.declare(n)  # liveliness from the start, not from the first frame
+        if wait_subscriber > 0 and not pub.wait_matched(names, wait_subscriber, stop):
+            typer.echo(f"no subscriber after {wait_subscriber} s; publishing anyway", err=True)
+        if start_at is None:
+            origin = clock.now()  # after the wait: simulated time 0 is now
+            config = dataclasses.replace(config, start_time=origin)
         status = StatusLine(lambda: f"sim: {pub.total} sent — {format_rate_summary(pub.stats)}; {clock.status()}",
                             enabled=not quiet)
         with status:

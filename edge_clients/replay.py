@@ -59,6 +59,7 @@ class _Sensor:
     min_seq: int
     max_seq: int
     count: int = 0
+    first_anchor: float = 0.0  # where the sensor first appeared: every loop starts from it
 
 
 @dataclass
@@ -78,7 +79,7 @@ class Schedule:
         if s is None:
             s = self.sensors[msg.sensor] = _Sensor(
                 anchor=rel - self.clock, first_stamp=msg.stamp, last_stamp=msg.stamp,
-                min_seq=msg.seq, max_seq=msg.seq,
+                min_seq=msg.seq, max_seq=msg.seq, first_anchor=rel - self.clock,
             )
         due = rel - s.anchor
         if due - self.clock > self.max_gap:
@@ -134,6 +135,8 @@ def planned(
         # Later loops skip what loop 0 skipped (and counted) without stopping again.
         source = itertools.chain(head, first) if n == 0 else read_recording(path, skip_bad=True)
         sched.clock = 0.0
+        for st in sched.sensors.values():
+            st.anchor = st.first_anchor  # undo the re-anchoring of clock steps in the last loop
         for msg in source:
             if keep is not None and msg.sensor not in keep:
                 continue

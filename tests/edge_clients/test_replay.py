@@ -224,3 +224,15 @@ def test_replay_record_round_trip_changes_nothing_but_the_time_shift(tmp_path, z
             assert (h.seq, h.size, h.layout, h.persons) == (w.seq, w.size, w.layout, w.persons)
     assert np.ptp(shifts) < 1e-6, "one stamp shift for all sensors and messages"
     assert shifts[0] == pytest.approx(report.shift, abs=1e-6)
+
+
+def test_loops_replay_a_clock_step_the_same_way_each_time(tmp_path):
+    rng = np.random.default_rng(2)
+    msgs = [make_msg(rng, "cam_0", k, 1.7e9 + k * 0.1, 0) for k in range(5)]
+    msgs += [make_msg(rng, "cam_0", 5 + k, 1.7e9 + 500 + k * 0.1, 0) for k in range(5)]
+    path = tmp_path / "step.jsonl"
+    write_recording(path, msgs)
+    out = list(planned(path, origin=2e9, loop=2, max_gap=5.0))
+    dues = np.array([d for d, _, _ in out])
+    first, second = dues[:10], dues[10:]
+    np.testing.assert_allclose(second - second[0], first - first[0], atol=1e-9)
