@@ -22,6 +22,7 @@ import typer
 from proto.keys import DEFAULT_SITE
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+SIM_START_DELAY = 2.0  # s between `extrcal sensor sim` starting and simulated time 0
 
 # ---------------------------------------------------------------- shared flags
 
@@ -120,7 +121,7 @@ def sensor_sim(
     speed: Annotated[float, typer.Option(help="K: publish K× faster than real time (stamps keep the simulated spacing)")] = 1.0,
     duration: Annotated[Optional[float], typer.Option(help="s of simulated time (default: until stopped)")] = None,
     start_at: Annotated[Optional[float], typer.Option(
-        help="epoch s at which simulated time starts (default: now); give all processes of one run the same value")] = None,
+        help=f"epoch s at which simulated time starts (default: in {SIM_START_DELAY:.0f} s); give all processes of one run the same value")] = None,
     wait_subscriber: Annotated[float, typer.Option(help="s to wait for a subscriber (backend, recorder) before starting; 0: don't")] = 0.0,
     zenoh_listen: ZenohListen = None,
     zenoh_connect: ZenohConnect = None,
@@ -160,7 +161,9 @@ def sensor_sim(
         if wait_subscriber > 0 and not pub.wait_matched(names, wait_subscriber, stop):
             typer.echo(f"no subscriber after {wait_subscriber} s; publishing anyway", err=True)
         if start_at is None:
-            origin = clock.now()  # after the wait: simulated time 0 is now
+            # After the wait, and leaving the simulator time to warm up: simulated time 0
+            # is just ahead, so the first messages are not late.
+            origin = clock.now() + SIM_START_DELAY
             config = dataclasses.replace(config, start_time=origin)
         status = StatusLine(lambda: f"sim: {pub.total} sent — {format_rate_summary(pub.stats)}; {clock.status()}",
                             enabled=not quiet)
@@ -186,12 +189,16 @@ def run_sim(publisher, simulator, sensors: list[str] | None, *, origin: float, s
             now=None, stop=None, on_message=None):
     """Publish the simulator's messages of ``sensors`` when they arrive: the simulator's
     arrival times are epoch s from ``origin`` (its start_time); ``now`` is the sensor's clock."""
+    import itertools
     import time
 
     from .publisher import publish_paced
 
     now = now or time.time
-    items = ((arrival - origin, msg) for arrival, msg in simulator.messages(sensors))
+    it = simulator.messages(sensors)
+    first = next(it, None)  # the simulator warms up (world, first frames) before the clock runs
+    head = [] if first is None else [first]
+    items = ((arrival - origin, msg) for arrival, msg in itertools.chain(head, it))
     return publish_paced(publisher, items, speed=speed, start_mono=time.monotonic() + (origin - now()),
                          stop=stop, on_message=on_message)
 

@@ -49,8 +49,8 @@ def test_sensor_sim_publishes_what_the_simulator_yields(lab_dir, sensors):
     got: queue.Queue = queue.Queue()
     sub = session.declare_subscriber(keys.all_keypoints("simsite"),
                                      lambda s: got.put((time.monotonic(), s.payload.to_bytes())))
-    start_at = time.time() + 0.5
-    duration, speed = 1.5, 3.0
+    start_at = time.time() + 3.0  # the CLI starts, loads the scene and warms the simulator up
+    duration, speed = 1.0, 2.0
     try:
         args = ["sensor", "sim", "--cameras", str(lab_dir), "--persons", "2", "--seed", "4",
                 "--duration", str(duration), "--speed", str(speed), "--start-at", repr(start_at),
