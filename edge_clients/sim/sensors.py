@@ -1,0 +1,416 @@
+"""One simulated edge sensor: a free-running camera with an NTP clock and a 2D pose
+detector with realistic errors.
+
+Timing: capture rate drawn in ``rates``, a random phase, jitter, dropped frames and
+stalls; stamp = true capture + constant clock offset + drift x elapsed; arrival = true
+capture + base delay + gamma jitter, in order per sensor (one TCP stream).
+
+Detector, per person in view: joints outside the image are dropped; joints hidden by
+walls, by other people (capsule body model) or by the person's own torso (arms) and a
+face seen from behind are dropped or guessed with large noise and low confidence;
+visible joints get pixel noise (per joint group, scaled with resolution and person
+size, half of it correlated over time), confidences that follow visibility, size and
+the error actually made; rare gross errors (left/right swaps, a joint snapping to a
+neighbour); missed detections (more for small or truncated people); false detections
+(random low-score skeletons and, on some sensors, a persistent "ghost").
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from backend.cameras import Intrinsics, Pose, project
+from backend.geometry import closest_points_segments
+from proto import KeypointMessage, Person
+
+from .area import WallMap
+from .body import pose_joints, Body
+from .config import SimConfig
+from .seeding import rng_for
+
+GROUP = np.array([0, 0, 0, 0, 0, 1, 1, 2, 2, 3, 3, 1, 1, 2, 2, 3, 3])  # head, torso, limb, extremity
+GROUP_NAMES = ("head", "torso", "elbow/knee", "wrist/ankle")
+FLIP = np.array([0, 2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11, 14, 13, 16, 15])
+CONF_BASE = np.array([2.3, 2.6, 2.0, 1.6])[GROUP]
+LIMB_PAIRS = ((7, 8), (9, 10), (13, 14), (15, 16))
+# Capsules of the body model: (joint a, joint b, radius × height); -1 = mid-hip, -2 = mid-shoulder,
+# -3 = head centre.
+CAPSULES = ((-1, -2, 0.085), (-3, -3, 0.062), (11, 13, 0.045), (12, 14, 0.045), (13, 15, 0.035),
+            (14, 16, 0.035), (5, 7, 0.03), (6, 8, 0.03), (7, 9, 0.026), (8, 10, 0.026))
+ARMS = np.zeros(17, bool)
+ARMS[7:11] = True
+
+# detection flags (Truth.det_flags)
+FLAG_SWAP = 1  # left/right swapped (whole body or a limb pair)
+FLAG_SNAP = 2  # a joint reported on another person
+FLAG_HIDDEN_GUESS = 4  # a hidden joint was guessed
+FLAG_GHOST = 8  # persistent false detection
+
+
+@dataclass
+class Frame:
+    """One captured frame of one sensor (true capture time, epoch s)."""
+
+    seq: int
+    capture: float
+    stamp: float
+    arrival: float
+
+
+@dataclass
+class Detection:
+    person: int  # -1 = false detection
+    flags: int
+    kp: np.ndarray  # (17, 3) u, v, confidence
+    bbox: np.ndarray  # (4,)
+    score: float
+
+
+def _sigmoid(x):
+    return 1.0 / (1.0 + np.exp(-x))
+
+
+class SensorSim:
+    def __init__(self, name: str, index: int, intr: Intrinsics, pose: Pose, cfg: SimConfig,
+                 walls: WallMap | None, floor_R: np.ndarray, floor_origin: np.ndarray):
+        self.name, self.index, self.intr, self.pose, self.cfg = name, index, intr, pose, cfg
+        self.walls, self.floor_R, self.floor_origin = walls, floor_R, floor_origin
+        self.size = (int(intr.resolution[0]), int(intr.resolution[1]))
+        w, h = self.size
+        self.res_scale = math.sqrt(w * h / (848.0 * 480.0))
+        t = rng_for(cfg.seed, "timing", name)
+        self.timing = t
+        rates = dict(cfg.sensor_rates)
+        drawn = t.uniform(*cfg.rates)
+        self.rate = float(rates.get(name, drawn))
+        self.phase = t.uniform(0, 1 / self.rate)
+        self.offset = t.normal(0, cfg.clock_std)
+        self.drift = t.normal(0, cfg.drift_std)
+        self.delay_base = t.uniform(*cfg.delay)
+        self.seq0 = int(t.integers(0, 100000))
+        self.k = 0  # next nominal frame
+        self.last_arrival = -math.inf
+        self.stall_until = -math.inf
+        self.det = rng_for(cfg.seed, "detector", name)
+        g = rng_for(cfg.seed, "ghost", name)
+        self.ghost = None
+        if g.random() < cfg.ghost_prob:
+            hpx = g.uniform(0.2, 0.5) * h
+            self.ghost = (g.uniform(0.15 * w, 0.85 * w), g.uniform(0.3 * h, 0.7 * h), hpx,
+                          _template(g, hpx))
+        self.ar_t, self.ar_e = -math.inf, None  # correlated noise state (P, 17, 2)
+        self.counters: Counter = Counter()
+        self.sigma = np.array([cfg.sigma_head, cfg.sigma_torso, cfg.sigma_limb, cfg.sigma_extremity])[GROUP]
+
+    # ------------------------------------------------------------------ timing
+
+    def frames_until(self, t_rel_end: float) -> list[Frame]:
+        """Frames with true capture time (relative to start) < t_rel_end, dropped ones
+        consumed and left out."""
+        cfg = self.cfg
+        out = []
+        while True:
+            nominal = self.phase + self.k / self.rate
+            if nominal >= t_rel_end or nominal >= cfg.duration:
+                return out
+            r = self.timing.random(4)
+            jitter = float(np.clip(self.timing.normal(0, 1) * cfg.frame_jitter, -0.3 / self.rate, 0.3 / self.rate))
+            extra = self.timing.gamma(2.0, 1.0) * cfg.delay_jitter / 2.0
+            seq = self.seq0 + self.k
+            self.k += 1
+            t_rel = max(0.0, nominal + jitter)
+            if r[1] < cfg.stall_prob:
+                self.stall_until = t_rel + cfg.stall[0] + r[2] * (cfg.stall[1] - cfg.stall[0])
+            if r[0] < cfg.drop_prob or t_rel < self.stall_until:
+                continue
+            capture = cfg.start_time + t_rel
+            stamp = capture + self.offset + self.drift * t_rel
+            arrival = max(capture + self.delay_base + extra, self.last_arrival + 1e-4)
+            self.last_arrival = arrival
+            out.append(Frame(seq, capture, stamp, arrival))
+
+    # ------------------------------------------------------------------ detector
+
+    def detect(self, frames: list[Frame], J: np.ndarray) -> list[list[Detection]]:
+        """Detections of each frame, sorted by score. J: (n, P, 17, 3) true world joints
+        at the frames' capture times. Vectorised over the frames of a chunk; the random
+        draws depend only on this sensor's stream, the frames and the world."""
+        n, P = J.shape[:2]
+        if n == 0:
+            return []
+        cfg, (w, h) = self.cfg, self.size
+        rng = self.det
+        uv, depth = project(J.reshape(-1, 3), self.intr, self.pose)
+        uv = uv.reshape(n, P, 17, 2)
+        depth = depth.reshape(n, P, 17)
+        with np.errstate(invalid="ignore"):
+            in_img = (depth > 0.2) & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
+        uv = np.where(np.isfinite(uv), uv, 0.0)
+        hidden = np.zeros((n, P, 17), bool)
+        if self.walls is not None and P:
+            fxy = ((J.reshape(-1, 3) - self.floor_origin) @ self.floor_R)[:, :2]
+            hidden |= self.walls.blocked(self.index, fxy).reshape(n, P, 17)
+        if P:
+            hidden |= self._occluded(J, uv, depth, in_img)
+            face = self._face_away(J)
+            hidden |= face
+        visible = in_img & ~hidden
+        guessable = in_img & hidden
+        front = depth > 0.2
+        vmax = np.max(np.where(front, uv[..., 1], -np.inf), -1, initial=-np.inf)
+        vmin = np.min(np.where(front, uv[..., 1], np.inf), -1, initial=np.inf)
+        size_px = np.where(np.isfinite(vmax) & np.isfinite(vmin), vmax - vmin, 0.0)
+        size = np.maximum(size_px, 10.0)
+        n_vis = visible.sum(-1)
+        lo = np.min(np.where(visible[..., None], uv, np.inf), 2)
+        hi = np.max(np.where(visible[..., None], uv, -np.inf), 2)
+        ext = np.where(n_vis[..., None] > 0, hi - lo, 0.0)
+        p_det = _sigmoid((np.maximum(ext[..., 1], 0.6 * ext[..., 0]) - cfg.min_person_px) / 6.0) \
+            * np.clip((n_vis - 3) / 5.0, 0.0, 1.0)
+        size_term = 0.8 * np.log(np.clip(size / 150.0, 0.3, 3.0))
+        kp = np.zeros((n, P, 17, 3))
+        flags = np.zeros((n, P), np.int64)
+        if not cfg.noise:
+            detected = (p_det >= 0.5) & (n_vis > 0)
+            kp[..., :2] = np.where(visible[..., None], uv, 0.0)
+            kp[..., 2] = np.where(visible, _sigmoid(CONF_BASE + size_term[..., None]), 0.0)
+            noise = np.where(visible[..., None], 0.0, np.nan)
+        else:
+            z1 = rng.standard_normal((n, P, 17, 2))
+            z2 = rng.standard_normal((n, P, 17, 2))
+            zc = rng.standard_normal((n, P, 17))
+            uj = rng.random((n, P, 17, 3))
+            up = rng.random((n, P, 4))
+            detected = (up[..., 0] < p_det * (1 - cfg.miss_prob)) & (n_vis > 0)
+            self.counters["missed"] += int(np.sum(~detected & (p_det >= 0.5)))
+            sf = np.clip(np.sqrt(size / 150.0), 0.6, 1.6)
+            sig = self.sigma * (cfg.noise_scale * self.res_scale) * sf[..., None]  # (n, P, 17)
+            # half of the variance follows an AR(1) process per person and joint over frames
+            e = np.empty((n, P, 17, 2))
+            t_prev, e_prev = self.ar_t, self.ar_e if self.ar_e is not None else np.zeros((P, 17, 2))
+            for i, fr in enumerate(frames):
+                rho = math.exp(-(fr.capture - t_prev) / cfg.noise_tau) if cfg.noise_tau > 0 else 0.0
+                e_prev = rho * e_prev + math.sqrt(1 - rho * rho) * z1[i]
+                e[i] = e_prev
+                t_prev = fr.capture
+            self.ar_t, self.ar_e = t_prev, e_prev
+            err = sig[..., None] * (math.sqrt(0.5) * e + math.sqrt(0.5) * z2)
+            nrm = np.sum(err**2, -1) / np.maximum(sig, 1e-9) ** 2
+            logit = CONF_BASE + size_term[..., None] - 0.25 * nrm + 0.8 * zc
+            kp[..., :2] = np.where(visible[..., None], uv + err, 0.0)
+            kp[..., 2] = np.where(visible, _sigmoid(logit), 0.0)
+            noise = np.where(visible[..., None], err, np.nan)
+            # hidden joints: dropped, or guessed badly with low (rarely high) confidence
+            g = guessable & (uj[..., 0] >= cfg.hidden_drop)
+            big = (15.0 * self.res_scale) * sf[..., None, None]
+            kp[..., :2] = np.where(g[..., None], uv + big * z2, kp[..., :2])
+            conf_g = np.where(uj[..., 2] < 0.05, 0.6 + 0.2 * uj[..., 1], 0.05 + 0.4 * uj[..., 1])
+            kp[..., 2] = np.where(g, conf_g, kp[..., 2])
+            flags |= np.where(g.any(-1), FLAG_HIDDEN_GUESS, 0)
+            self.counters["guessed"] += int(np.sum(g & detected[..., None]))
+            # left/right swaps, four times as likely for a person seen from behind
+            away = face[..., 0] if P else np.zeros((n, P), bool)
+            sw = detected & (up[..., 1] < cfg.swap_prob * np.where(away, 4.0, 1.0))
+            whole = sw & (up[..., 2] < 0.6)
+            kp[whole] = kp[whole][:, FLIP]
+            noise[whole] = np.nan
+            pair = np.minimum((up[..., 3] * len(LIMB_PAIRS)).astype(int), len(LIMB_PAIRS) - 1)
+            for k, (ja, jb) in enumerate(LIMB_PAIRS):
+                m = sw & ~whole & (pair == k)
+                if m.any():
+                    kp[m, ja], kp[m, jb] = kp[m, jb].copy(), kp[m, ja].copy()
+                    noise[m, ja] = noise[m, jb] = np.nan
+            flags |= np.where(sw, FLAG_SWAP, 0)
+            rep = kp[..., 2] > 0
+            kp[..., 0] = np.where(rep, np.clip(kp[..., 0], 0, w - 1e-3), 0.0)
+            kp[..., 1] = np.where(rep, np.clip(kp[..., 1], 0, h - 1e-3), 0.0)
+            if P >= 2:
+                self._snap(kp, noise, flags, uv, visible, detected, lo, hi, rng)
+            if cfg.pixel_decimals is not None:
+                kp[..., :2] = np.round(kp[..., :2], cfg.pixel_decimals)
+                kp[..., 2] = np.where(rep, np.clip(np.round(kp[..., 2], 4), 1e-4, 1.0), 0.0)
+        bbox, score = self._boxes(kp)
+        if cfg.noise:
+            score = np.clip(np.round(score + 0.05 * (up[..., 3] - 0.5), 4), 0.01, 0.999)
+        # figures of the correctly detected persons
+        c = self.counters
+        dk = kp[detected]
+        c["detections"] += int(detected.sum())
+        c["joints"] += int(np.sum(dk[..., 2] > 0))
+        c["confident"] += int(np.sum(dk[..., 2] >= 0.6))
+        nz = noise[detected]
+        ok = ~np.isnan(nz[..., 0])
+        sq = np.where(ok, np.sum(np.nan_to_num(nz) ** 2, -1) / 2, 0.0)
+        for gi in range(4):
+            c[f"sq{gi}"] += float(sq[:, GROUP == gi].sum())
+            c[f"n{gi}"] += int(ok[:, GROUP == gi].sum())
+        out = []
+        if cfg.noise:
+            n_false = rng.poisson(cfg.false_rate, n)
+            ghost_fire = rng.random(n) < cfg.ghost_rate
+        for i in range(n):
+            dets = [Detection(int(p), int(flags[i, p]), kp[i, p].copy(), bbox[i, p].copy(), float(score[i, p]))
+                    for p in np.flatnonzero(detected[i])]
+            if cfg.noise:
+                dets.extend(self._false(rng, int(n_false[i]), bool(ghost_fire[i])))
+            dets.sort(key=lambda d: -d.score)
+            out.append(dets)
+        return out
+
+    def _boxes(self, kp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """bbox (..., 4) around the reported joints (padded; the head top and feet lie
+        beyond the keypoints) and a score (...,) from their confidences."""
+        w, h = self.size
+        rep = kp[..., 2] > 0
+        lo = np.min(np.where(rep[..., None], kp[..., :2], np.inf), -2)
+        hi = np.max(np.where(rep[..., None], kp[..., :2], -np.inf), -2)
+        any_rep = rep.any(-1)[..., None]
+        lo = np.where(any_rep, lo, 0.0)
+        hi = np.where(any_rep, hi, 0.0)
+        bw, bh = (hi - lo)[..., 0], (hi - lo)[..., 1]
+        bbox = np.stack([np.maximum(0.0, lo[..., 0] - 0.1 * bw), np.maximum(0.0, lo[..., 1] - 0.12 * bh),
+                         np.minimum(float(w), hi[..., 0] + 0.1 * bw), np.minimum(float(h), hi[..., 1] + 0.05 * bh)], -1)
+        nrep = rep.sum(-1)
+        mean_c = np.where(nrep > 0, np.sum(kp[..., 2], -1) / np.maximum(nrep, 1), 0.0)
+        score = np.round(np.clip(0.25 + 0.7 * mean_c * np.sqrt(nrep / 17.0), 0.01, 0.999), 4)
+        return np.round(bbox, 1), score
+
+    def _occluded(self, J: np.ndarray, uv: np.ndarray, depth: np.ndarray, in_img: np.ndarray) -> np.ndarray:
+        """(n, P, 17) joints behind another person's body, or an arm behind the own torso.
+
+        Capsule body model; a joint is tested only against people whose image box
+        (padded) holds it and who are nearer the camera somewhere."""
+        n, P = J.shape[:2]
+        Hgt = np.linalg.norm(J[:, :, 0] - 0.5 * (J[:, :, 15] + J[:, :, 16]), axis=-1) * 1.05 + 0.1  # (n, P)
+        mid_hip = 0.5 * (J[:, :, 11] + J[:, :, 12])
+        mid_sh = 0.5 * (J[:, :, 5] + J[:, :, 6])
+        head = 0.5 * (J[:, :, 3] + J[:, :, 4])
+        ext = {-1: mid_hip, -2: mid_sh, -3: head}
+        A = np.stack([ext[a] if a < 0 else J[:, :, a] for a, _, _ in CAPSULES], 2)  # (n, P, K, 3)
+        B = np.stack([ext[b] if b < 0 else J[:, :, b] for _, b, _ in CAPSULES], 2)
+        R = np.array([r for _, _, r in CAPSULES])[None, None, :] * Hgt[:, :, None]  # (n, P, K)
+        C = self.pose.t
+        out = np.zeros((n, P, 17), bool)
+        # candidates: (frame, target, joint, occluder)
+        front = depth > 0.2
+        lo = np.min(np.where(front[..., None], uv, np.inf), 2)  # (n, P, 2)
+        hi = np.max(np.where(front[..., None], uv, -np.inf), 2)
+        dmin = np.min(np.where(front, depth, np.inf), -1)  # (n, P)
+        fx = self.intr.fx
+        pad = 0.12 * Hgt * fx / np.maximum(dmin, 0.2)  # px
+        u, v = uv[..., 0], uv[..., 1]
+        inside = ((u[:, :, :, None] >= lo[:, None, None, :, 0] - pad[:, None, None, :])
+                  & (u[:, :, :, None] <= hi[:, None, None, :, 0] + pad[:, None, None, :])
+                  & (v[:, :, :, None] >= lo[:, None, None, :, 1] - pad[:, None, None, :])
+                  & (v[:, :, :, None] <= hi[:, None, None, :, 1] + pad[:, None, None, :]))
+        nearer = dmin[:, None, None, :] < depth[:, :, :, None]
+        cand = inside & nearer & in_img[..., None] & ~np.eye(P, dtype=bool)[None, :, None, :]
+        fi, pi, ji, qi = np.nonzero(cand)
+        if len(fi):
+            X = J[fi, pi, ji]
+            d = X - C
+            L = np.linalg.norm(d, axis=-1, keepdims=True)
+            end = C + d * np.clip((L - 0.08) / L, 0, 1)  # stop 8 cm short of the joint
+            dist, _, _ = closest_points_segments(np.broadcast_to(C, (len(fi), len(CAPSULES), 3)),
+                                                 np.broadcast_to(end[:, None], (len(fi), len(CAPSULES), 3)),
+                                                 A[fi, qi], B[fi, qi])
+            hit = np.any(dist < R[fi, qi], axis=1)
+            out[fi[hit], pi[hit], ji[hit]] = True
+        # arms behind the own torso
+        fi, pi, ji = np.nonzero(in_img & ARMS[None, None, :])
+        if len(fi):
+            X = J[fi, pi, ji]
+            d = X - C
+            L = np.linalg.norm(d, axis=-1, keepdims=True)
+            end = C + d * np.clip((L - 0.08) / L, 0, 1)
+            dist, _, _ = closest_points_segments(np.broadcast_to(C, X.shape), end, A[fi, pi, 0], B[fi, pi, 0])
+            hit = dist < R[fi, pi, 0]
+            out[fi[hit], pi[hit], ji[hit]] = True
+        return out
+
+    def _face_away(self, J: np.ndarray) -> np.ndarray:
+        """(n, P, 17): nose and eyes of a face seen from behind, the far ear in profile."""
+        ears = 0.5 * (J[:, :, 3] + J[:, :, 4])
+        fwd = J[:, :, 0] - ears
+        fwd /= np.linalg.norm(fwd, axis=-1, keepdims=True)
+        lat = J[:, :, 3] - J[:, :, 4]
+        lat /= np.linalg.norm(lat, axis=-1, keepdims=True)
+        to_cam = self.pose.t - ears
+        to_cam /= np.linalg.norm(to_cam, axis=-1, keepdims=True)
+        c = np.sum(fwd * to_cam, -1)
+        s = np.sum(lat * to_cam, -1)
+        out = np.zeros(J.shape[:3], bool)
+        out[:, :, 0:3] = (c < -0.15)[..., None]
+        out[:, :, 3] = s < -0.6
+        out[:, :, 4] = s > 0.6
+        return out
+
+    def _snap(self, kp, noise, flags, uv, visible, detected, lo, hi, rng) -> None:
+        """A joint of a detected person reported on an overlapping other person."""
+        n, P = detected.shape
+        overlap = (np.all(np.minimum(hi[:, :, None], hi[:, None, :]) > np.maximum(lo[:, :, None], lo[:, None, :]), -1)
+                   & ~np.eye(P, dtype=bool)[None])
+        u = rng.random((n, P, P, 3))
+        fi, pi, qi = np.nonzero(overlap & detected[:, :, None] & (u[..., 0] < self.cfg.snap_prob))
+        for f, p, q in zip(fi, pi, qi):
+            cand = np.flatnonzero(visible[f, q] & (kp[f, p, :, 2] > 0) & (GROUP >= 2))
+            if not len(cand):
+                continue
+            j = int(cand[min(int(u[f, p, q, 1] * len(cand)), len(cand) - 1)])
+            kp[f, p, j, :2] = uv[f, q, j]
+            kp[f, p, j, 2] = 0.4 + 0.4 * u[f, p, q, 2]
+            noise[f, p, j] = np.nan
+            flags[f, p] |= FLAG_SNAP
+
+    def _false(self, rng, count: int, ghost: bool) -> list[Detection]:
+        w, h = self.size
+        out = []
+        for _ in range(count):
+            hpx = rng.uniform(0.12, 0.6) * h
+            tpl = _template(rng, hpx)
+            cx, cy = rng.uniform(0, w), rng.uniform(0.2 * h, h)
+            out.append(self._fake(rng, tpl, cx, cy, 0.06 * hpx, 0))
+        if ghost and self.ghost is not None:
+            cx, cy, hpx, tpl = self.ghost
+            out.append(self._fake(rng, tpl, cx, cy, 2.0 * self.res_scale, FLAG_GHOST))
+        return out
+
+    def _fake(self, rng, tpl, cx, cy, sigma, flags) -> Detection:
+        w, h = self.size
+        kp = np.zeros((17, 3))
+        keep = rng.random(17) < 0.65
+        pts = tpl + np.array([cx, cy]) + rng.normal(0, sigma, (17, 2))
+        conf = 0.05 + 0.5 * rng.random(17)
+        conf = np.where(rng.random(17) < 0.1, 0.6 + 0.15 * rng.random(17), conf)
+        keep &= (pts[:, 0] >= 0) & (pts[:, 0] < w) & (pts[:, 1] >= 0) & (pts[:, 1] < h)
+        if keep.sum() < 2:
+            pts = np.clip(pts, 0, [w - 1, h - 1])
+            keep[5] = keep[6] = True
+        kp[keep, :2] = pts[keep]
+        kp[keep, 2] = conf[keep]
+        if self.cfg.pixel_decimals is not None:
+            kp[:, :2] = np.round(kp[:, :2], self.cfg.pixel_decimals)
+            kp[:, 2] = np.round(kp[:, 2], 4)
+        bbox, score = self._boxes(kp)
+        score = float(round(min(float(score), 0.2 + 0.3 * rng.random()), 4))
+        return Detection(-1, flags, kp, bbox, score)
+
+
+def _template(rng: np.random.Generator, hpx: float) -> np.ndarray:
+    """(17, 2) pixel offsets of a standing person seen from the front, about its centre."""
+    body = Body(height=1.75, hips_w=0.27, shoulders_w=0.31, arm_swing=0.3, lean=0.0, foot_w=0.1, bob=0.0)
+    z = np.zeros(1)
+    J = pose_joints(body, np.zeros((1, 2)), z + rng.uniform(-0.6, 0.6), z + rng.uniform(0, 6.28), z + 1, z + 1.3,
+                    z + 0.9, z, z, z + 1, z, z)[0]
+    s = hpx / 1.75
+    uvt = np.stack([-J[:, 1] * s, -(J[:, 2] - 0.9) * s], 1)
+    return uvt
+
+
+def to_message(sensor: str, fr: Frame, size: tuple[int, int], dets: list[Detection]) -> KeypointMessage:
+    persons = tuple(Person(kp=d.kp, bbox=d.bbox, score=d.score) for d in dets)
+    return KeypointMessage(sensor=sensor, seq=fr.seq, stamp=fr.stamp, size=size, persons=persons)
