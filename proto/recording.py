@@ -50,9 +50,10 @@ def is_msgpack(path: str | os.PathLike) -> bool:
 
 
 def _open(path: str | os.PathLike, mode: str) -> IO:
+    enc = {"encoding": "utf-8"} if "t" in mode else {}
     if str(path).endswith(".gz"):
-        return gzip.open(path, mode)
-    return open(path, mode)
+        return gzip.open(path, mode, **enc)
+    return open(path, mode, **enc)
 
 
 def read_recording(
@@ -127,12 +128,18 @@ class RecordingWriter:
         self.path = Path(path)
         self.count = 0
         self._msgpack = is_msgpack(self.path)
-        mode = ("a" if append else "w") + ("b" if self._msgpack else "t")
+        self._gz: gzip.GzipFile | None = None
+        self._raw: IO | None = None
         if str(self.path).endswith(".gz"):
             # gzip members can be flushed independently; a crash loses only the open member.
-            self._f: IO = gzip.open(self.path, mode)
+            # No name and no time in the header: the same messages give the same bytes.
+            self._raw = open(self.path, "ab" if append else "wb")
+            self._gz = gzip.GzipFile(filename="", mode="wb", fileobj=self._raw, compresslevel=6, mtime=0)
+            self._f: IO = self._gz if self._msgpack else io.TextIOWrapper(self._gz, encoding="utf-8")
         else:
-            self._f = open(self.path, mode, buffering=io.DEFAULT_BUFFER_SIZE)
+            mode = ("a" if append else "w") + ("b" if self._msgpack else "t")
+            self._f = open(self.path, mode, buffering=io.DEFAULT_BUFFER_SIZE,
+                           **({} if self._msgpack else {"encoding": "utf-8"}))
 
     def write(self, msg: KeypointMessage) -> None:
         d = to_dict(msg, packed=False)
@@ -143,17 +150,21 @@ class RecordingWriter:
         self.count += 1
 
     def flush(self) -> None:
-        if isinstance(self._f, gzip.GzipFile):
-            self._f.flush(zlib.Z_SYNC_FLUSH)  # readable up to here after a crash
-        else:
-            self._f.flush()
+        self._f.flush()
+        if self._gz is not None:
+            self._gz.flush(zlib.Z_SYNC_FLUSH)  # readable up to here after a crash
+        target = self._raw if self._raw is not None else self._f
         try:
-            os.fsync(self._f.fileno())
+            os.fsync(target.fileno())
         except (OSError, AttributeError, io.UnsupportedOperation):
             pass
 
     def close(self) -> None:
-        self._f.close()
+        try:
+            self._f.close()
+        finally:
+            if self._raw is not None:
+                self._raw.close()
 
     def __enter__(self) -> "RecordingWriter":
         return self

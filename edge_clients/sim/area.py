@@ -103,11 +103,17 @@ def build_area(scene: Scene, coverage_range: float) -> Area:
     if hit is not None and hit[0] is scene:
         return hit[1]
     area = _build_area(scene, coverage_range)
-    _CACHE[key] = (scene, area)
+    _remember(key, scene, area)
     return area
 
 
 _CACHE: dict = {}
+
+
+def _remember(key, scene, value) -> None:
+    if len(_CACHE) >= 16:  # a handful of scenes per process; don't pin them all
+        _CACHE.clear()
+    _CACHE[key] = (scene, value)
 
 
 def _build_area(scene: Scene, coverage_range: float) -> Area:
@@ -205,7 +211,7 @@ def wall_map(scene: Scene, bearings: int = 720, max_range: float = 20.0) -> Wall
         first = np.argmax(hit_w, axis=1)
         dist[k] = np.where(hit_w.any(axis=1), r[first], np.inf)
     wm = WallMap(cxy, dist)
-    _CACHE[key] = (scene, wm)
+    _remember(key, scene, wm)
     return wm
 
 

@@ -55,9 +55,10 @@ class SimConfig:
 
     Detector
       sigma_torso, sigma_head, sigma_limb, sigma_extremity: px pixel noise std at
-        848x480 for shoulders/hips, nose/eyes/ears, elbows/knees, wrists/ankles. Scaled
-        with the image size and mildly with the person's size in the image; half of the
-        variance is correlated over time (``noise_tau``).
+        848x480 for shoulders/hips, nose/eyes/ears, elbows/knees, wrists/ankles, per
+        axis, for a person 150 px tall. Scaled with the image size (square root of the
+        pixel count) and with the square root of the person's size in the image (clipped
+        to x0.6..x1.6); half of the variance is correlated over time (``noise_tau``).
       noise_tau: s, correlation time of the correlated part of the pixel noise.
       swap_prob: chance that a detection has its left and right swapped (whole body or
         one limb pair; four times as likely when the person is seen from behind).
@@ -107,10 +108,10 @@ class SimConfig:
     delay: tuple[float, float] = (0.02, 0.08)
     delay_jitter: float = 0.008
     # detector
-    sigma_torso: float = 1.7
-    sigma_head: float = 2.0
-    sigma_limb: float = 3.0
-    sigma_extremity: float = 4.5
+    sigma_torso: float = 2.0
+    sigma_head: float = 2.3
+    sigma_limb: float = 3.3
+    sigma_extremity: float = 4.8
     noise_tau: float = 0.3
     swap_prob: float = 0.005
     snap_prob: float = 0.1

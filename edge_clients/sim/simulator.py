@@ -136,7 +136,10 @@ class Simulator:
         world = World(self.scene, cfg, self.area) if cfg.persons else None
         self._heights = world.heights if world is not None else np.zeros(0)
         rate = cfg.world_rate
-        margin = max([0.3 / s.rate for s in sensors] + [0.0]) + 0.05
+        # Capture jitter moves a frame at most 0.3 periods; the margin depends on the
+        # configuration only, so that any subset of sensors sees the same world chunks.
+        slowest = min([cfg.rates[0]] + [r for _, r in cfg.sensor_rates])
+        margin = 0.3 / slowest + 0.05
         heap: list = []
         c = 0
         while True:
