@@ -91,10 +91,191 @@ def demo(
     """The 20-camera lab end to end on this machine: simulated sensors publish over Zenoh
     (loopback), the service calibrates from a perturbed initial estimate, and a table
     compares the result with the simulator's truth."""
-    from .demo import run_demo
-
     try:
         run_demo(speed=speed, duration=duration, http=http, persons=persons, translation=translation,
                  rotation=rotation, seed=seed, state_dir=state_dir, until_converged=until_converged)
     except (OSError, ValueError) as e:
         raise fail(str(e))
+
+
+# ------------------------------------------------------------------ the demo
+
+def lab_dir() -> Path:
+    """The 20-camera lab shipped with the package (edge_clients/data/ais_lab20)."""
+    import edge_clients
+
+    return Path(edge_clients.__file__).parent / "data" / "ais_lab20"
+
+
+def publish_simulation(endpoint: str, site: str, persons: int, duration: float, seed: int, speed: float,
+                       sensors: list[str] | None, ready, stop, lab: str, rate: tuple[float, float] | None = None) -> None:
+    """Simulated sensors of the lab on their own Zenoh peer, paced at ``speed`` × real time.
+
+    Runs in its own process: simulating 20 cameras takes most of a core, which the
+    service's loop must not share. ``ready``/``stop`` are multiprocessing events.
+    """
+    import time as _time
+
+    from edge_clients.publisher import SensorPublisher, zenoh_session
+    from edge_clients.sim import Scene, SimConfig, Simulator
+    from proto.transport import ZenohSettings
+
+    kw = {"rates": rate} if rate else {}
+    sim = Simulator(Scene.load(lab), SimConfig(persons=persons, duration=duration, seed=seed, **kw))
+    names = list(sensors or sim.scene.names)
+    with zenoh_session(ZenohSettings(mode="peer", connect=(endpoint,))) as zs, \
+            SensorPublisher(zs, site, block=True) as pub:
+        pub.wait_matched(names, timeout=30.0, stop=stop)
+        ready.set()
+        t0 = a0 = None
+        for arrival, msg in sim.messages(sensors):
+            if stop.is_set():
+                break
+            if t0 is None:
+                t0, a0 = _time.monotonic(), arrival
+            delay = t0 + (arrival - a0) / speed - _time.monotonic()
+            if delay > 0:
+                if stop.wait(delay):
+                    break
+            pub.publish(msg)
+
+
+def run_demo(*, speed: float, duration: float, http: str, persons: int, translation: float, rotation: float,
+             seed: int, state_dir: Path | None, until_converged: bool, out=None) -> dict:
+    """Service + simulated lab + a session from a perturbed start; returns the final session."""
+    import multiprocessing
+    import sys
+    import tempfile
+    import time
+
+    import httpx
+
+    from .cameras import dump_extrinsics, load_extrinsics
+    from .evaluate import evaluate
+    from .perturb import perturb_extrinsics
+    from .service import ServiceThread, free_port
+    from .settings import ServiceSettings, parse_hostport
+
+    out = out or sys.stdout
+    if speed <= 0 or duration <= 0:
+        raise ValueError("--speed and --duration must be positive")
+    lab = lab_dir()
+    host, port = parse_hostport(http)
+    zport = free_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    state = Path(state_dir) if state_dir else Path(tempfile.mkdtemp(prefix="extrcal-demo-"))
+    settings = ServiceSettings.load(None, http={"host": host, "port": port}, zenoh={"listen": (endpoint,)},
+                                    state_dir=state, site="demo", clock="data", speed=speed)
+    ref = load_extrinsics(lab / "reference.yaml")
+    initial = perturb_extrinsics(ref, translation, rotation, seed=seed)
+    truth = {k: v.pose for k, v in ref.items()}
+
+    ctx = multiprocessing.get_context("spawn")
+    ready, stop = ctx.Event(), ctx.Event()
+    with ServiceThread(settings) as st:
+        url = st.url
+        print(f"extrcal demo: 20-camera lab, {persons} people, {speed:g}x real time, at most {duration:g} s "
+              f"of simulated time", file=out)
+        print(f"service: {url}/status  (API docs {url}/docs, live events {url}/events)", file=out)
+        print(f"state directory: {state}", file=out)
+        proc = ctx.Process(target=publish_simulation, name="simulated-sensors",
+                           args=(endpoint, "demo", persons, duration + 5.0, seed, speed, None, ready, stop, str(lab)))
+        proc.start()
+        client = httpx.Client(base_url=url, timeout=60)
+        try:
+            if not ready.wait(120):
+                raise OSError("the simulated sensors did not connect to the service")
+            init_err = evaluate({k: v.pose for k, v in initial.items()}, truth)
+            r = client.post("/sessions", json={
+                "name": "demo", "intrinsics_yaml": (lab / "intrinsics.yaml").read_text(),
+                "initial_yaml": dump_extrinsics(initial), "reference_yaml": (lab / "reference.yaml").read_text(),
+                "stop": {"duration": duration, "converged": until_converged}, "seed": seed,
+            })
+            r.raise_for_status()
+            sid = r.json()["id"]
+            print(f"session {sid}: {url}/sessions/{sid}", file=out)
+            session = _follow(client, sid, proc, out)
+            if session["state"] not in ("stopped", "failed"):
+                session = client.post(f"/sessions/{sid}/stop").json()
+        except KeyboardInterrupt:
+            print("\ninterrupted: stopping the session", file=out)
+            session = client.post(f"/sessions/{sid}/stop").json() if "sid" in locals() else {}
+        finally:
+            stop.set()
+            proc.join(30)
+            if proc.is_alive():
+                proc.terminate()
+            client.close()
+    if session:
+        _result_table(session, truth, init_err, out)
+    return session
+
+
+def _follow(client, sid: str, proc, out) -> dict:
+    """A live progress line until the session ends or the simulation runs out."""
+    import time
+
+    tty = hasattr(out, "isatty") and out.isatty()
+    last_print = 0.0
+    while True:
+        s = client.get(f"/sessions/{sid}").json()
+        st = client.get("/status").json()
+        if s["state"] in ("stopped", "failed"):
+            break
+        if not proc.is_alive() and not st["queues"]["ingest"]["length"]:
+            # the simulation is over: give the pipeline a moment for the last framesets
+            time.sleep(1.0)
+            s = client.get(f"/sessions/{sid}").json()
+            break
+        line = _progress(s, st)
+        now = time.monotonic()
+        if tty:
+            print("\r" + line[:150].ljust(150), end="", file=out, flush=True)
+        elif now - last_print > 5:
+            print(line, file=out, flush=True)
+            last_print = now
+        time.sleep(0.5)
+    if tty:
+        print(file=out)
+    return s
+
+
+def _progress(s: dict, st: dict) -> str:
+    cams = s.get("cameras") or []
+    conv = sum(1 for c in cams if c["converged"])
+    first = s.get("first_data")
+    clock = st["clock"]["now"]
+    t = (clock - first) if first and clock else 0.0
+    acc = s.get("accuracy") or {}
+    rate = sum(x["rate"] for x in st["sensors"].values())
+    err = (f"error {acc['position_mean']:.3f} m / {acc['orientation_mean']:.2f}°"
+           if acc.get("position_mean") is not None else "error -")
+    return (f"t {t:6.1f} s  {s['state']:<16} cycle {s.get('cycles') or 0:4d}  converged {conv:2d}/{len(cams)}  "
+            f"{err}  {rate:5.0f} msg/s")
+
+
+def _result_table(session: dict, truth: dict, init_err, out) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    from .cameras import Pose, natural_key
+    from .evaluate import evaluate
+
+    cams = {c["name"]: c for c in session.get("cameras", [])}
+    if not cams:
+        print(f"session {session.get('id')}: {session.get('state')} ({session.get('reason')})", file=out)
+        return
+    res = {n: Pose.from_quat(c["translation"], c["rotation"]) for n, c in cams.items()}
+    acc = evaluate(res, truth)
+    t = Table(title=f"session {session['id']}: {session['state']} ({session['reason']})")
+    for col in ("camera", "position error m", "orientation error °", "std m", "std °", "observations", "converged"):
+        t.add_column(col, justify="right")
+    for n in sorted(cams, key=natural_key):
+        c = cams[n]
+        p, o, _, _ = acc.per_camera[n]
+        t.add_row(n, f"{p:.4f}", f"{o:.3f}", f"{c['std_translation'] or 0:.4f}", f"{c['std_rotation'] or 0:.3f}",
+                  str(c["observations"]), "yes" if c["converged"] else "no")
+    Console(file=out, width=120).print(t)
+    print(f"initial estimate: {init_err.summary()}", file=out)
+    print(f"result:           {acc.summary()}", file=out)
+    print(f"cycles: {session.get('cycles')}, converged at cycle {session.get('converged_cycle')}", file=out)

@@ -593,8 +593,8 @@ class Service:
                 if rec.converged_cycle is None:
                     rec.converged_cycle = state.cycle
                 rec.state, rec.reason = SessionState.converged, _converged_reason(state)
-            elif any(c.cycles > 0 for c in state.cameras):
-                rec.state, rec.reason = SessionState.calibrating, _calibrating_reason(state)
+            else:
+                rec.state, rec.reason = SessionState.calibrating, _calibrating_reason(state, report)
         line = _history_line(report, state, rec, acc)
         self.writer.submit(self.store.append_history, rec.id, [line])
         due = time.monotonic() - s.last_snapshot >= self.settings.snapshot_interval
@@ -1063,12 +1063,14 @@ def _converged_reason(state: "CalibrationState") -> str:
     return msg
 
 
-def _calibrating_reason(state: "CalibrationState") -> str:
+def _calibrating_reason(state: "CalibrationState", report: "CycleReport") -> str:
     calibrated = [c for c in state.cameras if c.cycles > 0]
+    if not calibrated:
+        return f"cycle {report.cycle}: no camera has an update yet" + (f" ({report.reason})" if report.reason else "")
     done = sum(1 for c in calibrated if c.converged)
     pending = sorted((c for c in calibrated if not c.converged), key=lambda c: -c.std_translation)
-    worst = pending[0].name if pending else "-"
-    return f"{done}/{len(calibrated)} cameras converged; least certain: {worst}"
+    worst = f"; least certain: {pending[0].name}" if pending else ""
+    return f"{done}/{len(calibrated)} cameras converged{worst}"
 
 
 def _waiting_reason(counters: Any, cfg: EngineConfig, sensors: SensorTable, names: tuple[str, ...]) -> str:

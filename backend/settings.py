@@ -104,7 +104,7 @@ class ServiceSettings(BaseSettings):
     camera_files: dict[str, Path] = Field(default_factory=dict, description="camera files sessions may name")
     defaults: CameraDefaults = CameraDefaults()
     ingest_queue: int = Field(20000, ge=10, description="messages waiting for the loop; the oldest are dropped beyond")
-    snapshot_interval: float = Field(2.0, ge=0, description="s of wall time between pipeline snapshots (0: every cycle)")
+    snapshot_interval: float = Field(0.0, ge=0, description="s of wall time between pipeline snapshots (0: after every cycle)")
     tick: float = Field(0.02, gt=0, le=1, description="s between front-end advances on the loop")
     solver_start: Literal["spawn", "forkserver"] = Field("spawn", description="how the solver process starts")
 
