@@ -342,6 +342,23 @@ def dump_extrinsics(cams: Mapping[str, Extrinsics], *, comment: str | None = Non
     return text
 
 
+def dump_intrinsics(cams: Mapping[str, Intrinsics]) -> str:
+    """Intrinsics YAML text (FORMATS.md), cameras in the given order."""
+    doc = {
+        cam: {
+            "intrinsics": [float(i.fx), float(i.fy), float(i.cx), float(i.cy)],
+            "distortion_coeffs": [float(x) for x in i.dist],
+            "resolution": [int(i.resolution[0]), int(i.resolution[1])],
+        }
+        for cam, i in cams.items()
+    }
+    return yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120)
+
+
+def save_intrinsics(path: str | os.PathLike, cams: Mapping[str, Intrinsics]) -> None:
+    write_atomic(path, dump_intrinsics(cams))
+
+
 def write_atomic(path: str | os.PathLike, text: str | bytes) -> None:
     """Write a file so that readers see the old or the new content, never a part."""
     path = Path(path)
