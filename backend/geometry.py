@@ -179,6 +179,8 @@ def closest_points_segments(p0, p1, q0, q1) -> tuple[np.ndarray, np.ndarray, np.
     denom = a * e - b * b
     with np.errstate(divide="ignore", invalid="ignore"):
         s = np.where(denom > 1e-12, np.clip((b * f - c * e) / denom, 0, 1), 0.0)
+        # q is a point: the closest point of p to it (t = 0 below)
+        s = np.where((e <= 1e-12) & (a > 1e-12), np.clip(-c / a, 0, 1), s)
         t = np.where(e > 1e-12, (b * s + f) / e, 0.0)
         # Re-clamp t and recompute s for the clamped t (Ericson, Real-Time Collision Detection).
         t_c = np.clip(t, 0, 1)

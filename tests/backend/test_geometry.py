@@ -1,0 +1,167 @@
+"""Rotations, SE(3) in GTSAM's conventions, Umeyama alignment, triangulation, segments."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from backend.geometry import (
+    R_to_quat,
+    closest_points_segments,
+    pose_compose,
+    pose_inverse,
+    pose_local,
+    pose_retract,
+    quat_to_R,
+    rotation_angle_deg,
+    se3_exp,
+    se3_log,
+    so3_exp,
+    so3_log,
+    triangulate_dlt,
+    umeyama,
+)
+
+
+def _random_rotations(n, rng):
+    out = [np.eye(3), so3_exp([np.pi, 0, 0]), so3_exp([0, np.pi - 1e-6, 0]), so3_exp([1e-9, 0, 0])]
+    for _ in range(n):
+        out.append(so3_exp(rng.normal(size=3) * rng.uniform(0, 3)))
+    return out
+
+
+def test_quaternion_round_trip_and_convention():
+    rng = np.random.default_rng(0)
+    for R in _random_rotations(50, rng):
+        q = R_to_quat(R)
+        assert q[3] >= 0 and np.isclose(np.linalg.norm(q), 1)
+        np.testing.assert_allclose(quat_to_R(q), R, atol=1e-12)
+        assert np.isclose(np.linalg.det(R), 1) and np.allclose(R.T @ R, np.eye(3))
+    # (x, y, z, w): 90° about z maps x to y
+    R = quat_to_R([0, 0, np.sqrt(0.5), np.sqrt(0.5)])
+    np.testing.assert_allclose(R @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+    # not normalised on input: normalised here
+    np.testing.assert_allclose(quat_to_R([0, 0, 2, 2]), R, atol=1e-12)
+
+
+def test_so3_exp_log_inverse_including_near_pi():
+    rng = np.random.default_rng(1)
+    for R in _random_rotations(100, rng):
+        np.testing.assert_allclose(so3_exp(so3_log(R)), R, atol=1e-9)
+    w = np.array([0.3, -0.4, 1.2])
+    np.testing.assert_allclose(so3_log(so3_exp(w)), w, atol=1e-12)
+    assert rotation_angle_deg(np.eye(3), so3_exp([0, 0, np.radians(33)])) == pytest.approx(33)
+    assert rotation_angle_deg(np.eye(3), so3_exp([np.pi, 0, 0])) == pytest.approx(180)
+
+
+def test_se3_exp_log_retract_local():
+    rng = np.random.default_rng(2)
+    for _ in range(50):
+        axis = rng.normal(size=3)
+        w = axis / np.linalg.norm(axis) * rng.uniform(0, 3.0)  # |ω| < π: log is unique
+        xi = np.concatenate([w, rng.normal(size=3) * 3])
+        R, t = se3_exp(xi)
+        np.testing.assert_allclose(se3_log(R, t), xi, atol=1e-9)
+        Ra, ta = so3_exp(rng.normal(size=3)), rng.normal(size=3)
+        Rb, tb = pose_retract(Ra, ta, xi)
+        np.testing.assert_allclose(pose_local(Ra, ta, Rb, tb), xi, atol=1e-9)
+    Ri, ti = pose_inverse(Ra, ta)
+    Rc, tc = pose_compose(Ra, ta, Ri, ti)
+    np.testing.assert_allclose(Rc, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(tc, 0, atol=1e-12)
+
+
+def test_se3_matches_gtsam():
+    gtsam = pytest.importorskip("gtsam")
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        xi = np.concatenate([rng.normal(size=3), rng.normal(size=3) * 2])
+        R, t = se3_exp(xi)
+        P = gtsam.Pose3.Expmap(xi)
+        np.testing.assert_allclose(R, P.rotation().matrix(), atol=1e-12)
+        np.testing.assert_allclose(t, P.translation(), atol=1e-12)
+        A = gtsam.Pose3(gtsam.Rot3(so3_exp(rng.normal(size=3))), rng.normal(size=3))
+        B = A.retract(xi)
+        Rb, tb = pose_retract(A.rotation().matrix(), A.translation(), xi)
+        np.testing.assert_allclose(Rb, B.rotation().matrix(), atol=1e-9)
+        np.testing.assert_allclose(tb, B.translation(), atol=1e-9)
+        np.testing.assert_allclose(pose_local(A.rotation().matrix(), A.translation(), Rb, tb),
+                                   A.localCoordinates(B), atol=1e-7)
+
+
+@pytest.mark.parametrize("with_scale", [False, True])
+def test_umeyama_recovers_a_known_transform(with_scale):
+    rng = np.random.default_rng(4)
+    src = rng.normal(size=(20, 3)) * [5, 4, 1]
+    R = so3_exp([0.4, -1.1, 2.0])
+    s = 1.37 if with_scale else 1.0
+    t = np.array([3.0, -2.0, 0.5])
+    dst = s * src @ R.T + t
+    s2, R2, t2 = umeyama(src, dst, with_scale=with_scale)
+    assert s2 == pytest.approx(s, abs=1e-12)
+    np.testing.assert_allclose(R2, R, atol=1e-12)
+    np.testing.assert_allclose(t2, t, atol=1e-12)
+
+
+def test_umeyama_never_returns_a_reflection():
+    rng = np.random.default_rng(5)
+    src = rng.normal(size=(10, 3))
+    dst = src * [1, 1, -1]  # a mirror image
+    _, R, _ = umeyama(src, dst, with_scale=True)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_umeyama_is_least_squares():
+    """Against a numerical minimiser of the same cost."""
+    scipy_opt = pytest.importorskip("scipy.optimize")
+    rng = np.random.default_rng(6)
+    src = rng.normal(size=(12, 3)) * 3
+    dst = src @ so3_exp([0.2, 0.1, -0.3]).T + [1, 2, 3] + rng.normal(size=(12, 3)) * 0.2
+
+    def cost(x):
+        return np.sum((src @ so3_exp(x[:3]).T + x[3:] - dst) ** 2)
+
+    best = scipy_opt.minimize(cost, np.zeros(6), method="BFGS", options={"gtol": 1e-10})
+    s, R, t = umeyama(src, dst, with_scale=False)
+    assert s == 1.0
+    assert np.sum((src @ R.T + t - dst) ** 2) <= best.fun + 1e-9
+    np.testing.assert_allclose(R, so3_exp(best.x[:3]), atol=1e-5)
+
+
+def test_triangulate_dlt_exact():
+    rng = np.random.default_rng(7)
+    X = np.array([0.5, -0.3, 4.0])
+    P, xy = [], []
+    for _ in range(4):
+        R = so3_exp(rng.normal(size=3) * 0.2)  # world_R_cam
+        c = rng.normal(size=3)
+        Rt = R.T
+        P.append(np.concatenate([Rt, (-Rt @ c)[:, None]], axis=1))
+        Xc = Rt @ (X - c)
+        xy.append(Xc[:2] / Xc[2])
+    np.testing.assert_allclose(triangulate_dlt(np.array(P), np.array(xy)), X, atol=1e-9)
+
+
+def _brute_force(p0, p1, q0, q1, n=801):
+    s = np.linspace(0, 1, n)
+    a = p0 + s[:, None] * (p1 - p0)
+    b = q0 + s[:, None] * (q1 - q0)
+    return np.min(np.linalg.norm(a[:, None] - b[None], axis=-1))
+
+
+def test_closest_points_segments_against_brute_force():
+    rng = np.random.default_rng(8)
+    cases = [rng.normal(size=(4, 3)) for _ in range(30)]
+    cases.append(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float))  # parallel
+    cases.append(np.array([[0, 0, 0], [1, 0, 0], [2, 1, 0], [3, 1, 0]], float))  # parallel, disjoint
+    cases.append(np.array([[0, 0, 0], [0, 0, 0], [1, 1, 0], [1, -1, 0]], float))  # a point
+    cases.append(np.array([[0, 0, 0], [1, 0, 0], [2, 2, 2], [2, 2, 2]], float))  # a point
+    p0, p1, q0, q1 = (np.array([c[i] for c in cases]) for i in range(4))
+    d, cp, cq = closest_points_segments(p0, p1, q0, q1)
+    np.testing.assert_allclose(d, np.linalg.norm(cp - cq, axis=1), atol=1e-12)
+    for i, c in enumerate(cases):
+        bf = _brute_force(*c)
+        assert d[i] <= bf + 1e-9 and d[i] >= bf - 5e-3, (i, d[i], bf)
+    # broadcasting over leading axes
+    d2, _, _ = closest_points_segments(p0[:, None], p1[:, None], q0[None, :3], q1[None, :3])
+    assert d2.shape == (len(cases), 3)
