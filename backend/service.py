@@ -281,6 +281,8 @@ class Service:
         self.messages = 0
         self.cycle_wall: deque[float] = deque(maxlen=200)  # s from problem to applied, per cycle
         self.cycle_solve: deque[float] = deque(maxlen=200)
+        self.frameset_delay: deque[float] = deque(maxlen=500)
+        self._framesets_seen = 0
         self.lag: deque[float] = deque(maxlen=1000)  # loop lag samples, s
         self.lag_max = 0.0
         self.started_wall = time.time()
@@ -536,8 +538,22 @@ class Service:
                     break
                 await asyncio.sleep(0)
                 t = min(now, t + ADVANCE_SLICE)
+            self._frameset_delay(s, now)
             self._wake.set()
             self._check_duration(s, now)
+
+    def _frameset_delay(self, s: ActiveSession, now: float) -> None:
+        """Clock time from a frameset's instant to its emission: with sensors stamping at
+        capture, this is the publish → frameset latency (mostly the sync stage's wait)."""
+        sync = getattr(s.pipeline, "sync", None)
+        try:
+            total = sync.framesets + sum(sync.framesets_rejected.values())
+            latest = sync.next_time - 1.0 / s.inputs.config.sync.rate
+        except (AttributeError, TypeError):  # an engine without these: no figure
+            return
+        if total > self._framesets_seen:
+            self.frameset_delay.append(now - latest)
+        self._framesets_seen = total
 
     # ------------------------------------------------------------ optimizer
 
@@ -735,6 +751,7 @@ class Service:
         )
         self.store.create(rec, inputs)  # synchronous: the id must exist on disk before we answer
         self.clock = self._new_clock(inputs.config)
+        self._framesets_seen = 0
         self.active = ActiveSession(rec, inputs, pipeline, pipeline.state())
         self.active.last_snapshot = time.monotonic()
         self.events.publish("session", {"id": rec.id, "state": rec.state.value, "reason": rec.reason})
@@ -1039,6 +1056,7 @@ class Service:
                 "wall_seconds": stats(self.cycle_wall), "solve_seconds": stats(self.cycle_solve),
                 "solver_busy": self.solver.busy, "solver_restarts": self.solver.restarts,
             },
+            "frameset_delay": stats(self.frameset_delay),
             "loop_lag": {"max": self.lag_max, "p99": lag[int(0.99 * (len(lag) - 1))] if lag else None},
             "storage": {"state_dir": str(self.settings.state_dir), "error": self.writer.error,
                         "errors": self.writer.errors},

@@ -138,6 +138,7 @@ class Status(BaseModel):
     pipeline: dict[str, Any] | None = Field(description="the engine's counters")
     queues: dict[str, Any] = Field(description="ingest hand-off (length, capacity, dropped), hypotheses, writer")
     cycles: dict[str, Any] = Field(description="count and times (s) from problem to applied, and of the solve")
+    frameset_delay: dict[str, float] | None = Field(description="s from a frameset's instant to its emission on the service clock (last, mean, p95, max)")
     loop_lag: dict[str, float | None] = Field(description="s the event loop woke up late (max since start, p99 recent)")
     storage: dict[str, Any]
     session: dict[str, Any] | None
