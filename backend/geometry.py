@@ -79,9 +79,14 @@ def so3_log(R: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    """Shortest-arc angle between two rotations, degrees."""
-    c = (np.trace(Ra.T @ Rb) - 1) / 2
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    """Shortest-arc angle between two rotations, degrees.
+
+    atan2(sin, cos) of the relative rotation: arccos of the trace alone loses half the
+    digits near 0 (identical rotations came out ~1e-6° apart)."""
+    R = np.asarray(Ra).T @ np.asarray(Rb)
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    c = (np.trace(R) - 1) / 2
+    return float(np.degrees(np.arctan2(s, c)))
 
 
 def _left_jacobian_so3(w: np.ndarray) -> np.ndarray:

@@ -165,3 +165,13 @@ def test_closest_points_segments_against_brute_force():
     # broadcasting over leading axes
     d2, _, _ = closest_points_segments(p0[:, None], p1[:, None], q0[None, :3], q1[None, :3])
     assert d2.shape == (len(cases), 3)
+
+
+def test_rotation_angle_is_precise_near_zero_and_pi():
+    rng = np.random.default_rng(9)
+    for R in _random_rotations(20, rng):
+        assert rotation_angle_deg(R, R) < 1e-12
+        tiny = so3_exp(rng.normal(size=3) * 1e-3)
+        axis = so3_log(tiny)
+        assert rotation_angle_deg(R, R @ tiny) == pytest.approx(np.degrees(np.linalg.norm(axis)), rel=1e-9)
+    assert rotation_angle_deg(np.eye(3), so3_exp([0, 0, np.pi - 1e-9])) == pytest.approx(180.0)
