@@ -61,10 +61,16 @@ class Body:
         )
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (n, 3) arrays (np.cross is slow on small arrays)."""
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+
+
 def _rot(v: np.ndarray, axis: np.ndarray, ang: np.ndarray) -> np.ndarray:
     """Rodrigues, row-wise: rotate v (n, 3) about unit axes (n, 3) by angles (n,)."""
     c, s = np.cos(ang)[:, None], np.sin(ang)[:, None]
-    return v * c + np.cross(axis, v) * s + axis * np.sum(axis * v, 1, keepdims=True) * (1 - c)
+    return v * c + _cross(axis, v) * s + axis * np.sum(axis * v, 1, keepdims=True) * (1 - c)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -148,7 +154,7 @@ def pose_joints(body: Body, pos: np.ndarray, heading: np.ndarray, phase: np.ndar
     neck = pelvis + spine * (TORSO * H) + left * (-0.5 * sway)[:, None]
     ls = _rot(left, spine, -0.8 * pelvis_yaw)
     shoulders = [neck + ls * (0.5 * body.shoulders_w), neck - ls * (0.5 * body.shoulders_w)]
-    tf = np.cross(ls, spine)  # torso forward
+    tf = _cross(ls, spine)  # torso forward
 
     # Arms: pitch about the body's left axis measured from hanging straight down (world),
     # swinging opposite to the legs; bending lets them hang towards the floor; reaching

@@ -28,7 +28,7 @@ from backend.geometry import closest_points_segments
 from proto import KeypointMessage, Person
 
 from .area import WallMap
-from .body import pose_joints, Body
+from .body import HIPS_W as HIPS, SHOULDERS_W as SHOULDERS, Body, pose_joints
 from .config import SimConfig
 from .seeding import rng_for
 
@@ -109,29 +109,38 @@ class SensorSim:
     # ------------------------------------------------------------------ timing
 
     def frames_until(self, t_rel_end: float) -> list[Frame]:
-        """Frames with true capture time (relative to start) < t_rel_end, dropped ones
-        consumed and left out."""
+        """Frames with nominal capture time (relative to start) < t_rel_end, dropped ones
+        consumed and left out. The draws for a call's frames come in one block."""
         cfg = self.cfg
+        end = min(t_rel_end, cfg.duration)
+        k_end = max(self.k, int(math.ceil((end - self.phase) * self.rate)))
+        while self.phase + k_end / self.rate < end:  # guard against rounding
+            k_end += 1
+        while k_end > self.k and self.phase + (k_end - 1) / self.rate >= end:
+            k_end -= 1
+        n = k_end - self.k
+        if n <= 0:
+            return []
+        r = self.timing.random((n, 3))
+        jit = self.timing.standard_normal(n) * cfg.frame_jitter
+        extra = self.timing.gamma(2.0, 1.0, n) * (cfg.delay_jitter / 2.0)
+        lim = 0.3 / self.rate
         out = []
-        while True:
-            nominal = self.phase + self.k / self.rate
-            if nominal >= t_rel_end or nominal >= cfg.duration:
-                return out
-            r = self.timing.random(4)
-            jitter = float(np.clip(self.timing.normal(0, 1) * cfg.frame_jitter, -0.3 / self.rate, 0.3 / self.rate))
-            extra = self.timing.gamma(2.0, 1.0) * cfg.delay_jitter / 2.0
-            seq = self.seq0 + self.k
-            self.k += 1
-            t_rel = max(0.0, nominal + jitter)
-            if r[1] < cfg.stall_prob:
-                self.stall_until = t_rel + cfg.stall[0] + r[2] * (cfg.stall[1] - cfg.stall[0])
-            if r[0] < cfg.drop_prob or t_rel < self.stall_until:
+        for i in range(n):
+            k = self.k + i
+            nominal = self.phase + k / self.rate
+            t_rel = max(0.0, nominal + max(-lim, min(lim, float(jit[i]))))
+            if r[i, 1] < cfg.stall_prob:
+                self.stall_until = t_rel + cfg.stall[0] + r[i, 2] * (cfg.stall[1] - cfg.stall[0])
+            if r[i, 0] < cfg.drop_prob or t_rel < self.stall_until:
                 continue
             capture = cfg.start_time + t_rel
             stamp = capture + self.offset + self.drift * t_rel
-            arrival = max(capture + self.delay_base + extra, self.last_arrival + 1e-4)
+            arrival = max(capture + self.delay_base + float(extra[i]), self.last_arrival + 1e-4)
             self.last_arrival = arrival
-            out.append(Frame(seq, capture, stamp, arrival))
+            out.append(Frame(self.seq0 + k, capture, stamp, arrival))
+        self.k = k_end
+        return out
 
     # ------------------------------------------------------------------ detector
 
@@ -244,7 +253,7 @@ class SensorSim:
         c["confident"] += int(np.sum(dk[..., 2] >= 0.6))
         nz = noise[detected]
         ok = ~np.isnan(nz[..., 0])
-        sq = np.where(ok, np.sum(np.nan_to_num(nz) ** 2, -1) / 2, 0.0)
+        sq = np.where(ok, np.sum(np.where(ok[..., None], nz, 0.0) ** 2, -1) / 2, 0.0)
         for gi in range(4):
             c[f"sq{gi}"] += float(sq[:, GROUP == gi].sum())
             c[f"n{gi}"] += int(ok[:, GROUP == gi].sum())
@@ -400,15 +409,25 @@ class SensorSim:
         return Detection(-1, flags, kp, bbox, score)
 
 
+_TEMPLATES: np.ndarray | None = None
+
+
 def _template(rng: np.random.Generator, hpx: float) -> np.ndarray:
-    """(17, 2) pixel offsets of a standing person seen from the front, about its centre."""
-    body = Body(height=1.75, hips_w=0.27, shoulders_w=0.31, arm_swing=0.3, lean=0.0, foot_w=0.1, bob=0.0)
-    z = np.zeros(1)
-    J = pose_joints(body, np.zeros((1, 2)), z + rng.uniform(-0.6, 0.6), z + rng.uniform(0, 6.28), z + 1, z + 1.3,
-                    z + 0.9, z, z, z + 1, z, z)[0]
-    s = hpx / 1.75
-    uvt = np.stack([-J[:, 1] * s, -(J[:, 2] - 0.9) * s], 1)
-    return uvt
+    """(17, 2) pixel offsets of a person-like shape about its centre, ``hpx`` tall: one of
+    a bank of walking poses seen from various sides, maybe mirrored."""
+    global _TEMPLATES
+    if _TEMPLATES is None:
+        body = Body(height=1.0, hips_w=HIPS, shoulders_w=SHOULDERS, arm_swing=0.35, lean=0.05, foot_w=0.06, bob=0.0)
+        k = np.arange(24)
+        J = pose_joints(body, np.zeros((24, 2)), (k % 8) * (np.pi / 4), (k // 8) * 2.1, np.full(24, 1.0),
+                        np.full(24, 1.3 / 1.75), np.full(24, 0.9), np.zeros(24), np.zeros(24), np.ones(24),
+                        np.zeros(24), np.zeros(24))
+        # seen from the front at eye level: image u = -y, v = -z
+        _TEMPLATES = np.stack([-J[..., 1], -(J[..., 2] - 0.5)], -1)
+    tpl = _TEMPLATES[int(rng.integers(len(_TEMPLATES)))] * hpx
+    if rng.random() < 0.5:
+        tpl = tpl * [-1.0, 1.0]
+    return tpl
 
 
 def to_message(sensor: str, fr: Frame, size: tuple[int, int], dets: list[Detection]) -> KeypointMessage:

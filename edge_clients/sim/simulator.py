@@ -1,6 +1,6 @@
 """The simulator: walkers in a scene seen by free-running, imperfect sensors.
 
-The run advances in chunks of one second of true time: the world computes its ticks,
+The run advances in chunks of two seconds of true time: the world computes its ticks,
 each sensor captures its frames and detects, and messages leave in arrival order
 through a small heap (only messages that may still be overtaken wait). Memory stays
 bounded however long the run; ``duration`` may be ``math.inf``.
@@ -28,7 +28,7 @@ from .stats import SimStats, StatsCollector
 from .truth import STATE_NAMES, Truth, interpolate
 from .world import World
 
-CHUNK = 1.0  # s of true time per step of the run
+CHUNK = 2.0  # s of true time per step of the run
 
 
 @dataclass
