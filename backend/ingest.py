@@ -106,7 +106,9 @@ class ServiceClock:
     time, or a loop that falls behind under load, sees consistent data time and no
     message ages on the way. When no data came for ``grace`` wall seconds, the clock
     runs on at ``speed`` data seconds per wall second, so that framesets waiting for
-    late messages are closed and stop criteria by duration still fire. A stamp more
+    late messages are closed and stop criteria by duration still fire; data arriving
+    slower than ``speed`` (a simulator that cannot keep up) never lets the clock run
+    ahead of it. A stamp more
     than ``max_jump`` seconds ahead does not move the clock (the pipeline rejects it as
     from the future), so one sensor with a wrong clock cannot drag everyone along.
     """
@@ -118,8 +120,8 @@ class ServiceClock:
         self.speed = speed
         self.grace = grace
         self.max_jump = max_jump
-        self._high: float | None = None  # newest stamp taken (data mode)
-        self._high_mono = 0.0
+        self._high: float | None = None  # the clock's value at the last message (data mode)
+        self._last = 0.0  # monotonic time of the last message
 
     def now(self) -> float | None:
         """Current clock time, or None before the data clock has seen any message."""
@@ -127,17 +129,19 @@ class ServiceClock:
             return time.time()
         if self._high is None:
             return None
-        idle = time.monotonic() - self._high_mono - self.grace
-        return self._high + self.speed * max(idle, 0.0)
+        idle = time.monotonic() - self._last - self.grace
+        return self._high + self.speed * idle if idle > 0 else self._high
 
     def observe(self, stamp: float) -> float:
         """A message with ``stamp`` arrives; returns its arrival time on this clock."""
         if self.mode == "wall":
             return time.time()
         now = self.now()
+        # Data flows again: the run-on time (if any) is kept, so the clock never goes back.
+        self._high = now
+        self._last = time.monotonic()
         if now is None or (stamp > now and stamp - now <= self.max_jump):
             self._high = stamp
-            self._high_mono = time.monotonic()
             return stamp
         return now
 

@@ -298,6 +298,9 @@ class Service:
         self._zenoh = None
         self._publisher = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        # Called on the loop after every applied cycle with (session id, report, wall s);
+        # metrics and other observers hook in here. They must be quick.
+        self.cycle_listeners: list[Callable[[str, "CycleReport", float], None]] = []
 
     def _new_clock(self, cfg: EngineConfig) -> ServiceClock:
         return ServiceClock(self.settings.clock, speed=self.settings.speed,
@@ -582,9 +585,15 @@ class Service:
                     log.warning("cycle %d: solve failed: %s", problem.cycle, e)
                     solution = failed_solution(problem, f"solve failed: {type(e).__name__}: {e}")
                 report = s.pipeline.apply(problem, solution)
-                self.cycle_wall.append(time.monotonic() - t0)
+                wall = time.monotonic() - t0
+                self.cycle_wall.append(wall)
                 self.cycle_solve.append(report.solve_seconds)
                 self._after_cycle(s, report)
+                for listener in self.cycle_listeners:
+                    try:
+                        listener(s.record.id, report, wall)
+                    except Exception:  # an observer's bug must not stop calibrating
+                        log.exception("cycle listener failed")
             finally:
                 s.in_cycle = False
                 s.idle.set()
@@ -864,6 +873,10 @@ class Service:
         s.done.set()
 
     # ------------------------------------------------------------ views (API)
+
+    def active_state(self) -> "CalibrationState | None":
+        """The running session's current CalibrationState, or None."""
+        return self.active.state if self.active is not None else None
 
     def session_dict(self, sid: str) -> dict[str, Any]:
         s = self.active

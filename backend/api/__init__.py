@@ -85,4 +85,31 @@ def create_app(settings: "ServiceSettings", service: "Service | None" = None) ->
     errors.install(app)
     for r in (sessions, calibration, status, events, health):
         app.include_router(r.router)
+    _optional_parts(app, service)
     return app
+
+
+def _optional_parts(app: "FastAPI", service: "Service") -> None:
+    """The dashboard and Prometheus metrics, when this build has them."""
+    import importlib
+
+    def have(mod: str) -> bool:
+        try:
+            importlib.import_module(mod)
+            return True
+        except ModuleNotFoundError as e:
+            if e.name != mod:
+                raise  # the module is there but one of its imports is not: say so
+            return False
+
+    if have("backend.api.dashboard"):
+        from . import dashboard
+
+        app.include_router(dashboard.router)
+    if have("backend.metrics"):
+        from .. import metrics
+
+        m = metrics.Metrics()
+        metrics.mount(app, m, refresh=lambda: metrics.update_from_state(m, service.active_state(), service.status()))
+        service.cycle_listeners.append(lambda sid, report, wall: metrics.observe_cycle(m, report, wall, session=sid))
+        app.state.metrics = m

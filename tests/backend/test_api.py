@@ -249,3 +249,12 @@ def test_resume_after_restart(tmp_path, lab_body):
     with ServiceThread(settings) as st, httpx.Client(base_url=st.url, timeout=30) as c:
         s = c.get(f"/sessions/{sid}").json()
         assert not s["live"] and s["state"] == "stopped" and c.get("/status").json()["session"] is None
+
+
+def test_optional_parts_are_wired(client):
+    """Metrics and dashboard come with create_app when this build has them."""
+    pytest.importorskip("backend.metrics")
+    r = client.get("/metrics")
+    assert r.status_code == 200 and "extrcal_" in r.text
+    pytest.importorskip("backend.api.dashboard")
+    assert client.get("/").status_code == 200

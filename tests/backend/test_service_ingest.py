@@ -93,3 +93,20 @@ def test_sensor_stats_rate_latency_offset():
     assert abs(d["latency"]["median"] - 0.03) < 1e-9 and abs(d["latency"]["max"] - 0.04) < 1e-9
     assert abs(d["clock_offset"] - 0.02) < 1e-9
     assert s.to_dict(t0 + 60)["rate"] == 0.0  # went quiet
+
+
+def test_data_clock_never_runs_ahead_of_slow_data_nor_back():
+    # data comes at 1 data-s per 0.1 wall-s (10x), the clock's run-on speed is 100x:
+    # as long as messages flow, the clock is the newest stamp, not an extrapolation
+    c = ServiceClock("data", speed=100.0, grace=0.05, max_jump=5.0)
+    stamp = 1000.0
+    for _ in range(5):
+        c.observe(stamp)
+        time.sleep(0.03)
+        assert c.now() == stamp
+        stamp += 0.3
+    # silence: it runs on; when data resumes behind it, it does not step back
+    time.sleep(0.2)
+    ran_on = c.now()
+    assert ran_on > stamp - 0.3 + 5
+    assert c.observe(stamp) >= ran_on and c.now() >= ran_on
