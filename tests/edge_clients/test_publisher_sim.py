@@ -92,4 +92,4 @@ def test_sensor_sim_publishes_what_the_simulator_yields(lab_dir):
     # Paced: arrivals spread over the simulated arrival span divided by --speed.
     span_sim = (want[-1][0] - want[0][0]) / speed
     span_got = arrivals[-1] - arrivals[0]
-    assert span_sim * 0.8 - 0.05 < span_got < span_sim + 0.3
+    assert span_sim * 0.8 - 0.05 < span_got < span_sim + 1.5
