@@ -83,6 +83,8 @@ class Area:
         if cells is None:
             return []
         pts = [self.centre(i, j) for i, j in cells[1:-1]] + [np.asarray(b, float)]
+        if not self.line_clear(a, pts[0]):
+            pts.insert(0, self.centre(*start))  # off-centre in the start cell: go to its centre first
         # String pulling: keep a waypoint only where the straight line would leave the area.
         out, cur, k = [], np.asarray(a, float), 0
         while k < len(pts):

@@ -209,7 +209,7 @@ class SensorSim:
             self.ar_t, self.ar_e = t_prev, e_prev
             err = sig[..., None] * (math.sqrt(0.5) * e + math.sqrt(0.5) * z2)
             nrm = np.sum(err**2, -1) / np.maximum(sig, 1e-9) ** 2
-            logit = CONF_BASE + size_term[..., None] - 0.25 * nrm + 0.8 * zc
+            logit = CONF_BASE + size_term[..., None] - 0.25 * (nrm - 2.0) + 0.8 * zc  # E[nrm] = 2
             kp[..., :2] = np.where(visible[..., None], uv + err, 0.0)
             kp[..., 2] = np.where(visible, _sigmoid(logit), 0.0)
             noise = np.where(visible[..., None], err, np.nan)

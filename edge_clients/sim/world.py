@@ -145,8 +145,14 @@ class Walker:
         acc = 1.0 if v_des > self.speed else 1.5
         self.speed += max(-acc * dt, min(acc * dt, v_des - self.speed))
         step = self.speed * dt
-        new = self.p + step * np.array([math.cos(self.heading), math.sin(self.heading)])
+        move = step * np.array([math.cos(self.heading), math.sin(self.heading)])
+        new = self.p + move
         blocked = not self.area.walkable(new)
+        if blocked and step > 0:  # slide along the wall instead of sticking to it
+            for cand in (self.p + [move[0], 0.0], self.p + [0.0, move[1]]):
+                if self.area.walkable(cand):
+                    new, blocked = cand, False
+                    break
         for o in others:
             if o is not self and np.linalg.norm(new - o.p) < cfg.min_separation:
                 if np.linalg.norm(new - o.p) < np.linalg.norm(self.p - o.p):
