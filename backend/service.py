@@ -58,12 +58,16 @@ if TYPE_CHECKING:
 log = logging.getLogger("extrcal.service")
 
 MAX_CONSECUTIVE_FAILURES = 10  # failed solves in a row before a session is marked failed
-INGEST_BATCH = 512  # messages taken per turn of the ingest task before it yields
+INGEST_BATCH = 32  # messages taken per turn of the ingest task before it yields (~5 ms)
 ADVANCE_SLICE = 0.25  # s of data time per advance() call when catching up
 
 
 class UnknownFormat(Exception):
     """A result format nobody can write (400)."""
+
+
+class StorageError(Exception):
+    """The state directory cannot be written (503): the service runs on, the request failed."""
 
 
 # ------------------------------------------------------------------ events
@@ -116,6 +120,32 @@ class EventBus:
     @property
     def subscribers(self) -> int:
         return len(self._subs)
+
+
+# ------------------------------------------------------------------ loop work
+
+
+class WorkTimes:
+    """How long the synchronous steps on the loop take (advance, push, apply...): the
+    first place to look when the loop lags."""
+
+    def __init__(self) -> None:
+        self._d: dict[str, list[float]] = {}  # name → [count, total, max]
+
+    @contextlib.contextmanager
+    def measure(self, name: str):
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            dt = time.perf_counter() - t
+            x = self._d.setdefault(name, [0, 0.0, 0.0])
+            x[0] += 1
+            x[1] += dt
+            x[2] = max(x[2], dt)
+
+    def to_dict(self) -> dict[str, dict[str, float]]:
+        return {k: {"count": v[0], "mean": v[1] / v[0], "max": v[2]} for k, v in self._d.items() if v[0]}
 
 
 # ------------------------------------------------------------------ solver process
@@ -285,6 +315,8 @@ class Service:
         self._framesets_seen = 0
         self.lag: deque[float] = deque(maxlen=1000)  # loop lag samples, s
         self.lag_max = 0.0
+        self.work = WorkTimes()
+        self._starting = False
         self.started_wall = time.time()
         self.started = asyncio.Event()
         self.http_address: tuple[str, int] | None = None
@@ -470,8 +502,9 @@ class Service:
             batch = await self.handoff.get_batch(INGEST_BATCH)
             if not batch:
                 return
-            for a in batch:
-                self._ingest_one(a.key, a.payload, a.wall)
+            with self.work.measure("ingest"):
+                for a in batch:
+                    self._ingest_one(a.key, a.payload, a.wall)
             await asyncio.sleep(0)
 
     def _reject(self, stats: Any, reason: str) -> None:
@@ -531,7 +564,8 @@ class Service:
             t = now if advanced_to is None or now - advanced_to <= ADVANCE_SLICE else advanced_to + ADVANCE_SLICE
             while True:
                 try:
-                    s.pipeline.advance(t)
+                    with self.work.measure("advance"):
+                        s.pipeline.advance(t)
                 except Exception as e:
                     log.exception("pipeline.advance failed")
                     self._fail(s, f"the front end failed: {type(e).__name__}: {e}")
@@ -570,7 +604,8 @@ class Service:
             now = self.clock.now()
             if now is None:
                 continue
-            problem = s.pipeline.next_problem(now)
+            with self.work.measure("next_problem"):
+                problem = s.pipeline.next_problem(now)
             if problem is None:
                 continue
             s.in_cycle = True
@@ -584,11 +619,13 @@ class Service:
                 except Exception as e:  # SolverCrashed, or solve raised in the worker
                     log.warning("cycle %d: solve failed: %s", problem.cycle, e)
                     solution = failed_solution(problem, f"solve failed: {type(e).__name__}: {e}")
-                report = s.pipeline.apply(problem, solution)
+                with self.work.measure("apply"):
+                    report = s.pipeline.apply(problem, solution)
                 wall = time.monotonic() - t0
                 self.cycle_wall.append(wall)
                 self.cycle_solve.append(report.solve_seconds)
-                self._after_cycle(s, report)
+                with self.work.measure("after_cycle"):
+                    self._after_cycle(s, report)
                 for listener in self.cycle_listeners:
                     try:
                         listener(s.record.id, report, wall)
@@ -743,22 +780,36 @@ class Service:
 
     # ------------------------------------------------------------ sessions (API)
 
-    def start_session(self, *, inputs: SessionInputs, name: str | None, stop: StopCriteria,
-                      overrides: dict[str, Any], sources: dict[str, str], seed: int = 0) -> dict[str, Any]:
-        if self._closing:
-            raise SessionConflict("the service is shutting down")
-        if self.active is not None:
-            raise SessionConflict(f"session {self.active.record.id} is {self.active.record.state.value}; "
-                                  f"stop it first (POST /sessions/{self.active.record.id}/stop)")
-        from .pipeline import Pipeline
+    async def start_session(self, *, inputs: SessionInputs, name: str | None, stop: StopCriteria,
+                            overrides: dict[str, Any], sources: dict[str, str], seed: int = 0) -> dict[str, Any]:
+        def check() -> None:
+            if self._closing:
+                raise SessionConflict("the service is shutting down")
+            if self.active is not None:
+                raise SessionConflict(f"session {self.active.record.id} is {self.active.record.state.value}; "
+                                      f"stop it first (POST /sessions/{self.active.record.id}/stop)")
+            if self._starting:
+                raise SessionConflict("another session is being started")
 
-        pipeline = Pipeline(inputs.cameras, inputs.config, seed=seed)
-        rec = SessionRecord(
-            id=new_session_id(), name=name, state=SessionState.waiting_for_data,
-            reason="no messages from the session's cameras yet", stop=stop, config_overrides=overrides,
-            sources=sources, seed=seed,
-        )
-        self.store.create(rec, inputs)  # synchronous: the id must exist on disk before we answer
+        check()
+        self._starting = True
+        try:
+            from .pipeline import Pipeline
+
+            with self.work.measure("new_pipeline"):
+                pipeline = Pipeline(inputs.cameras, inputs.config, seed=seed)
+            rec = SessionRecord(
+                id=new_session_id(), name=name, state=SessionState.waiting_for_data,
+                reason="no messages from the session's cameras yet", stop=stop, config_overrides=overrides,
+                sources=sources, seed=seed,
+            )
+            try:  # on disk before we answer with its id; fsyncs, so not on the loop
+                await asyncio.to_thread(self.store.create, rec, inputs)
+            except OSError as e:
+                raise StorageError(f"cannot write the session to {self.store.root}: {e}") from None
+        finally:
+            self._starting = False
+        check()
         self.clock = self._new_clock(inputs.config)
         self._framesets_seen = 0
         self.active = ActiveSession(rec, inputs, pipeline, pipeline.state())
@@ -808,11 +859,11 @@ class Service:
     async def stop_session(self, sid: str, *, wait: bool = True, by: str = "request") -> dict[str, Any]:
         s = self.active
         if s is None or s.record.id != sid:
-            return self.session_dict(sid)  # 404 if unknown; a finished one is already stopped
+            return await self.session_view(sid)  # 404 if unknown; a finished one is already stopped
         self._begin_stop(s, by)
         if wait:
             await asyncio.shield(s.done.wait())
-        return self.session_dict(sid)
+        return await self.session_view(sid)
 
     def _begin_stop(self, s: ActiveSession, by: str) -> None:
         if s.finishing or not s.record.state.active:
@@ -897,11 +948,22 @@ class Service:
         d["converged"] = bool(state.get("converged")) if state else False
         return clean_json(d)
 
-    def list_sessions(self) -> list[dict[str, Any]]:
+    async def session_view(self, sid: str) -> dict[str, Any]:
+        """session_dict, with the files of a finished session read in a thread."""
+        s = self.active
+        if s is not None and s.record.id == sid:
+            return self.session_dict(sid)
+        return await asyncio.to_thread(self.session_dict, sid)
+
+    async def list_sessions(self) -> list[dict[str, Any]]:
+        s = self.active
+        live = _copy_record(s.record) if s is not None else None
+        return await asyncio.to_thread(self._list_sessions, live)
+
+    def _list_sessions(self, live: SessionRecord | None) -> list[dict[str, Any]]:
         out = []
         for sid in reversed(self.store.ids()):
-            s = self.active
-            rec = s.record if s is not None and s.record.id == sid else None
+            rec = live if live is not None and live.id == sid else None
             try:
                 rec = rec or self.store.load_record(sid)
             except SessionInputError as e:
@@ -912,9 +974,12 @@ class Service:
                                             "converged_cycle", "stopped_by", "resumed", "accuracy")}))
         return out
 
-    def history(self, sid: str, since: int = 0) -> list[dict[str, Any]]:
-        self.store.load_record(sid)  # 404
-        return self.store.history(sid, since)
+    async def history(self, sid: str, since: int = 0) -> list[dict[str, Any]]:
+        def read() -> list[dict[str, Any]]:
+            self.store.load_record(sid)  # 404
+            return self.store.history(sid, since)
+
+        return await asyncio.to_thread(read)
 
     def calibration_dict(self, s: ActiveSession) -> dict[str, Any]:
         state = s.state
@@ -957,6 +1022,13 @@ class Service:
             "data_time": state.get("data_time"), "converged": state.get("converged"),
             "accuracy": rec.accuracy, "cameras": cams,
         })
+
+    async def calibration_view(self, sid: str | None, fmt: str) -> tuple[str | bytes | dict, str]:
+        """calibration(); a finished session's files are read in a thread."""
+        s = self.active
+        if s is not None and sid in (None, s.record.id):
+            return self.calibration(sid, fmt)
+        return await asyncio.to_thread(self.calibration, sid, fmt)
 
     def calibration(self, sid: str | None, fmt: str) -> tuple[str | bytes | dict, str]:
         """The calibration of session ``sid`` (None: the current or latest) in ``fmt``."""
@@ -1071,6 +1143,7 @@ class Service:
             },
             "frameset_delay": stats(self.frameset_delay),
             "loop_lag": {"max": self.lag_max, "p99": lag[int(0.99 * (len(lag) - 1))] if lag else None},
+            "loop_work": self.work.to_dict(),
             "storage": {"state_dir": str(self.settings.state_dir), "error": self.writer.error,
                         "errors": self.writer.errors},
             "session": None if s is None else {"id": s.record.id, "state": s.record.state.value,

@@ -9,7 +9,7 @@ from fastapi.responses import JSONResponse
 from ..cameras import CameraFileError
 from ..config import ConfigError
 from ..session import NotAvailable, SessionConflict, SessionInputError, SessionNotFound
-from ..service import UnknownFormat
+from ..service import StorageError, UnknownFormat
 
 STATUS: dict[type[Exception], int] = {
     SessionNotFound: 404,
@@ -19,6 +19,7 @@ STATUS: dict[type[Exception], int] = {
     CameraFileError: 422,
     ConfigError: 422,
     UnknownFormat: 400,
+    StorageError: 503,
 }
 
 

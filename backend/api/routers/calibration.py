@@ -31,5 +31,5 @@ def file_name(stem: str, fmt: str, media_type: str) -> str | None:
             responses={200: {"content": {"application/yaml": {}}}})
 async def calibration(service: ServiceDep, format: str = Query("json", description=FORMAT_HELP)) -> Response:
     """The running session's latest estimate, or the last finished session's result."""
-    body, media = service.calibration(None, format)
+    body, media = await service.calibration_view(None, format)
     return respond(body, media, file_name("calibration", format, media))

@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import asyncio
+
 from fastapi import APIRouter, Query, Response
 from fastapi.responses import JSONResponse
 
@@ -22,12 +24,13 @@ _ERRORS = {
 async def create(body: SessionCreate, service: ServiceDep, response: Response) -> dict:
     """Start a calibration session; 409 while another one runs. Answers with the new
     session (its `id`), in state `waiting_for_data`."""
-    inputs, sources = service.make_inputs(
+    inputs, sources = await asyncio.to_thread(
+        service.make_inputs,
         texts={"intrinsics": body.intrinsics_yaml, "initial": body.initial_yaml, "reference": body.reference_yaml},
         names={"intrinsics": body.intrinsics, "initial": body.initial, "reference": body.reference},
         config=body.config,
     )
-    d = service.start_session(inputs=inputs, name=body.name, stop=body.stop, overrides=body.config,
+    d = await service.start_session(inputs=inputs, name=body.name, stop=body.stop, overrides=body.config,
                               sources=sources, seed=body.seed)
     response.headers["Location"] = f"/sessions/{d['id']}"
     return d
@@ -35,7 +38,7 @@ async def create(body: SessionCreate, service: ServiceDep, response: Response) -
 
 @router.get("", response_model=list[SessionSummary], dependencies=[ReadAuth], summary="all sessions, newest first")
 async def list_sessions(service: ServiceDep) -> list[dict]:
-    return service.list_sessions()
+    return await service.list_sessions()
 
 
 @router.get("/{sid}", response_model=SessionDetail, dependencies=[ReadAuth], summary="one session",
@@ -44,7 +47,7 @@ async def get(sid: str, service: ServiceDep) -> dict:
     """State (waiting_for_data → calibrating ⇄ converged → stopped | failed) with its
     reason, and per camera: observations, pose, std, change over the last cycles,
     converged flag."""
-    return service.session_dict(sid)
+    return await service.session_view(sid)
 
 
 @router.post("/{sid}/stop", response_model=SessionDetail, dependencies=[WriteAuth], summary="stop a session",
@@ -65,7 +68,7 @@ async def stop(sid: str, service: ServiceDep,
                        404: _ERRORS[404]})
 async def result(sid: str, service: ServiceDep, format: str = Query("json", description=FORMAT_HELP)) -> Response:
     """The session's latest (or final) calibration."""
-    body, media = service.calibration(sid, format)
+    body, media = await service.calibration_view(sid, format)
     return respond(body, media, file_name(f"extrcal-{sid}", format, media))
 
 
@@ -75,4 +78,4 @@ async def history(sid: str, service: ServiceDep,
                   since: int = Query(0, ge=0, description="only cycles after this one")) -> list[dict]:
     """One object per cycle: the cycle report, per-camera std/change/converged, accuracy
     against the reference when one was given."""
-    return service.history(sid, since)
+    return await service.history(sid, since)
