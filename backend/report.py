@@ -140,6 +140,13 @@ def load_session(path: str | os.PathLike, *, intrinsics: str | os.PathLike | Non
     """
     path = Path(path)
     warnings: list[str] = []
+    sessions = path / "sessions"
+    if path.is_dir() and sessions.is_dir() and not (path / "history.jsonl").exists():
+        # the service's state directory: report its newest session (ids sort by time)
+        ids = sorted(p.name for p in sessions.iterdir() if (p / "session.json").is_file())
+        if not ids:
+            raise ReportError(f"{path}: a state directory without sessions")
+        path = sessions / ids[-1]
     meta: dict[str, Any] = {}
     config: dict[str, Any] = {}
     final_state: dict[str, Any] = {}

@@ -201,6 +201,20 @@ def test_dashboard_in_chromium_while_a_simulated_session_runs(svc, session_body,
         js("document.getElementById('token').dispatchEvent(new Event('change'))")
         driver.find_element(by.ID, "stop").click()
         _wait(lambda: client.get(f"/sessions/{sid}").json()["state"] == "stopped", 120, "the session to stop")
+        # the report reads what the live service wrote for this session
+        from backend.report import load_session, render_html
+
+        data = load_session(svc.service.store.dir(sid))
+        assert data.title == "dashboard test" and len(data.camera_names) == 20
+        assert data.cycles and data.cycles[-1].cycle >= first + 1
+        assert data.result and data.initial and data.reference and data.config
+        assert any(c.error_position is not None for c in data.cycles)
+        assert all(c.std_translation for c in data.cycles)
+        html = render_html(data)
+        assert 'id="camera-plot"' in html and "Error vs reference" in html
+        (tmp_path / "report.html").write_text(html)
+        latest = load_session(svc.settings.state_dir)  # a state directory: its latest session
+        assert latest.source == svc.service.store.dir(sid) and latest.cycles == data.cycles
         _wait(lambda: driver.find_element(by.ID, "start").is_enabled(), 30, "Start to be enabled again")
         driver.find_element(by.ID, "name").send_keys("from the page")
         driver.find_element(by.ID, "start").click()
