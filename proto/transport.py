@@ -8,7 +8,7 @@ by default: sensors find the backend (or a router) through explicit endpoints.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"

@@ -40,6 +40,8 @@ class _Record:
     ticks_S: list = field(default_factory=list)
     msg: list = field(default_factory=list)  # (sensor idx, seq, capture, stamp, arrival)
     det: list = field(default_factory=list)  # (msg idx, index, person, flags)
+    sensors: list = field(default_factory=list)  # the run's SensorSim objects (their counters)
+    heights: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
         self.stats = StatsCollector(self.names)
@@ -132,9 +134,10 @@ class Simulator:
     def _run(self, names: list[str], rec: _Record | None) -> Iterator[tuple[float, KeypointMessage, list[Detection]]]:
         cfg = self.config
         sensors = self._make_sensors(names)
-        self._sensors = sensors
         world = World(self.scene, cfg, self.area) if cfg.persons else None
-        self._heights = world.heights if world is not None else np.zeros(0)
+        if rec is not None:
+            rec.sensors = sensors
+            rec.heights = world.heights if world is not None else np.zeros(0)
         rate = cfg.world_rate
         # Capture jitter moves a frame at most 0.3 periods; the margin depends on the
         # configuration only, so that any subset of sensors sees the same world chunks.
@@ -197,13 +200,12 @@ class Simulator:
             T = int(math.ceil(cfg.duration * cfg.world_rate)) + 2
             J, S = np.zeros((0, T, 17, 3)), np.zeros((0, T, len(STATE_NAMES)))
         times = cfg.start_time + np.arange(T, dtype=np.float64) * (1.0 / cfg.world_rate)
-        msg = np.array(rec.msg, dtype=np.float64).reshape(-1, 5)
         det = np.array(rec.det, dtype=np.int64).reshape(-1, 4)
-        msg_sensor = msg[:, 0].astype(np.int32)
+        msg_sensor = np.array([m[0] for m in rec.msg], dtype=np.int32)
         msg_seq = np.array([m[1] for m in rec.msg], dtype=np.int64)
         msg_capture = np.array([m[2] for m in rec.msg], dtype=np.float64)
         det_msg = det[:, 0]
-        sensors = self._sensors
+        sensors = rec.sensors
         truth = Truth(
             sensors=tuple(scene.names),
             start_time=float(cfg.start_time),
@@ -211,7 +213,7 @@ class Simulator:
             config=cfg.to_dict(),
             times=times,
             joints=J,
-            heights=np.asarray(self._heights, float),
+            heights=np.asarray(rec.heights, float),
             states=S,
             msg_sensor=msg_sensor,
             msg_seq=msg_seq,
@@ -255,7 +257,7 @@ class Simulator:
             hist += np.bincount(counts, minlength=S + 1)[: S + 1]
         share = hist / hist.sum() if hist.sum() else hist
         flags = truth.det_flags
-        tot = sum((s.counters for s in self._sensors), Counter())
+        tot = sum((s.counters for s in rec.sensors), Counter())
         rms = {g: float(np.sqrt(tot[f"sq{i}"] / tot[f"n{i}"])) if tot[f"n{i}"] else float("nan")
                for i, g in enumerate(GROUP_NAMES)}
         det = max(tot["detections"], 1)
@@ -265,7 +267,7 @@ class Simulator:
             heights=tuple(float(h) for h in truth.heights),
             messages=dict(st.messages),
             with_person={n: st.with_person[n] / st.messages[n] if st.messages[n] else 0.0 for n in names},
-            rates={s.name: s.rate for s in self._sensors},
+            rates={s.name: s.rate for s in rec.sensors},
             detections=int(tot["detections"]),
             false_detections=st.false,
             missed=int(tot["missed"]),
@@ -276,6 +278,6 @@ class Simulator:
             confident_joints=tot["confident"] / det,
             cameras_seeing={k: float(share[k]) for k in range(S + 1)},
             noise_rms=rms,
-            clock_offset_ms={s.name: 1000 * s.offset for s in self._sensors},
-            delay_ms={s.name: 1000 * s.delay_base for s in self._sensors},
+            clock_offset_ms={s.name: 1000 * s.offset for s in rec.sensors},
+            delay_ms={s.name: 1000 * s.delay_base for s in rec.sensors},
         )
