@@ -636,7 +636,8 @@ class Service:
                 s.idle.set()
 
     def _after_cycle(self, s: ActiveSession, report: "CycleReport") -> None:
-        state = s.pipeline.state()
+        with self.work.measure("state"):
+            state = s.pipeline.state()
         s.state = state
         rec = s.record
         rec.cycles = state.cycle
@@ -701,25 +702,30 @@ class Service:
         if note:
             rec.reason = note
         state = s.state
-        result = dump_extrinsics(
-            state.extrinsics(s.resolutions),
-            comment=f"extrcal session {rec.id}, cycle {state.cycle}, {rec.state.value}",
-        )
-        self.writer.submit(self.store.save_result, rec.id, result, state.to_dict())
+        ext = state.extrinsics(s.resolutions)
+        comment = f"extrcal session {rec.id}, cycle {state.cycle}, {rec.state.value}"
+        store = self.store
+
+        def write_result() -> None:  # in the writer thread: YAML and JSON take their time
+            store.save_result(rec.id, dump_extrinsics(ext, comment=comment), state.to_dict())
+
+        self.writer.submit(write_result)
         if snapshot:
             s.last_snapshot = time.monotonic()
-            self.writer.submit(self.store.save_snapshot, rec.id, s.pipeline.snapshot())
+            with self.work.measure("snapshot"):
+                snap = s.pipeline.snapshot()
+            self.writer.submit(self.store.save_snapshot, rec.id, snap)
         self._save_record(s)
 
     def _publish_calibration(self, s: ActiveSession) -> None:
         if self._publisher is None:
             return
-        payload = dumps_json(self.calibration_dict(s)).encode()
+        d = self.calibration_dict(s)
         pub = self._publisher
 
         def put() -> None:
             with contextlib.suppress(Exception):  # a closing session: the update is moot
-                pub.put(payload)
+                pub.put(dumps_json(d).encode())
 
         # put() can block on a congested link: not on the loop. Through the writer task
         # so that updates go out in order.
