@@ -98,6 +98,32 @@ class Area:
         return out
 
 
+def fov_limit(intr) -> float:
+    """Largest tan(angle off the optical axis) a camera sees, in undistorted normalised
+    coordinates: 15 % beyond the image corners, and short of where the lens polynomial
+    folds back (OpenCV's model maps directions far outside the view into the image)."""
+    w, h = intr.resolution
+    corners = np.array([[0, 0], [w, 0], [0, h], [w, h]], float)
+    r_corner = float(np.max(np.hypot((corners[:, 0] - intr.cx) / intr.fx, (corners[:, 1] - intr.cy) / intr.fy)))
+    d = np.zeros(8)
+    d[: min(len(intr.dist), 8)] = intr.dist[:8]
+    k1, k2, _, _, k3, k4, k5, k6 = d
+    r = np.linspace(0.0, 5.0, 2001)
+    r2 = r * r
+    rd = r * (1 + k1 * r2 + k2 * r2**2 + k3 * r2**3) / (1 + k4 * r2 + k5 * r2**2 + k6 * r2**3)
+    falls = np.flatnonzero(np.diff(rd) <= 0)
+    r_fold = r[falls[0]] if len(falls) else np.inf
+    return float(min(1.15 * r_corner, 0.95 * r_fold))
+
+
+def in_fov(Xc: np.ndarray, limit: float) -> np.ndarray:
+    """(N,) bool: camera-frame points (N, 3) in front and within ``fov_limit``."""
+    z = Xc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.hypot(Xc[:, 0], Xc[:, 1]) / z
+    return (z > 0.2) & (r <= limit)
+
+
 def build_area(scene: Scene, coverage_range: float) -> Area:
     """The walking grid of a scene (cached per scene object and range)."""
     key = (id(scene), float(coverage_range))
@@ -139,12 +165,13 @@ def _build_area(scene: Scene, coverage_range: float) -> Area:
         intr, pose = scene.intrinsics[name], scene.poses[name]
         w, h = intr.resolution
         idx = np.flatnonzero(np.linalg.norm(xy - Cf[k, :2], axis=1) <= coverage_range)
+        lim = fov_limit(intr)
         for X in heads:
             if not len(idx):
                 break
             uv, z = project(X[idx], intr, pose)
             with np.errstate(invalid="ignore"):
-                ok = ((z > 0.3) & (uv[:, 0] >= 0.03 * w) & (uv[:, 0] <= 0.97 * w)
+                ok = (in_fov(pose.to_camera(X[idx]), lim) & (z > 0.3) & (uv[:, 0] >= 0.03 * w) & (uv[:, 0] <= 0.97 * w)
                       & (uv[:, 1] >= 0.03 * h) & (uv[:, 1] <= 0.97 * h))
             idx = idx[ok]
         if walls is not None and len(idx):

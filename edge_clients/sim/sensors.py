@@ -27,7 +27,7 @@ from backend.cameras import Intrinsics, Pose, project
 from backend.geometry import closest_points_segments
 from proto import KeypointMessage, Person
 
-from .area import WallMap
+from .area import WallMap, fov_limit, in_fov
 from .body import HIPS_W as HIPS, SHOULDERS_W as SHOULDERS, Body, pose_joints
 from .config import SimConfig
 from .seeding import rng_for
@@ -105,6 +105,7 @@ class SensorSim:
         self.ar_t, self.ar_e = -math.inf, None  # correlated noise state (P, 17, 2)
         self.counters: Counter = Counter()
         self.sigma = np.array([cfg.sigma_head, cfg.sigma_torso, cfg.sigma_limb, cfg.sigma_extremity])[GROUP]
+        self.fov = fov_limit(intr)
 
     # ------------------------------------------------------------------ timing
 
@@ -156,8 +157,9 @@ class SensorSim:
         uv, depth = project(J.reshape(-1, 3), self.intr, self.pose)
         uv = uv.reshape(n, P, 17, 2)
         depth = depth.reshape(n, P, 17)
+        fov = in_fov(self.pose.to_camera(J.reshape(-1, 3)), self.fov).reshape(n, P, 17)
         with np.errstate(invalid="ignore"):
-            in_img = (depth > 0.2) & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
+            in_img = fov & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
         uv = np.where(np.isfinite(uv), uv, 0.0)
         hidden = np.zeros((n, P, 17), bool)
         if self.walls is not None and P:

@@ -13,7 +13,7 @@ import pytest
 
 from backend.cameras import project
 from edge_clients.sim import Scene, SimConfig, Simulator, Truth
-from edge_clients.sim.area import build_area, wall_map
+from edge_clients.sim.area import build_area, fov_limit, in_fov, wall_map
 from edge_clients.sim.body import HIPS_W, SHOULDERS_W, Body, pose_joints
 from edge_clients.sim.scene import read_gray_image
 from edge_clients.sim.sensors import SensorSim
@@ -238,6 +238,16 @@ def test_a_person_behind_another_is_occluded(scene):
     occ = s._occluded(J, uv.reshape(1, 2, 17, 2), depth.reshape(1, 2, 17), np.ones((1, 2, 17), bool))
     assert not occ[0, 0, [5, 6, 11, 12, 13, 14]].any()  # front person
     assert occ[0, 1, [11, 12, 13, 14]].all()  # rear person
+
+
+def test_directions_outside_the_lens_model_are_not_seen(scene):
+    intr, pose = scene.intrinsics["cam_4"], scene.poses["cam_4"]
+    lim = fov_limit(intr)
+    Xc = np.array([[1.8, 0.0, 1.0]])  # 61° off axis, far outside the 640x480 view
+    uv, _ = project(pose.to_world(Xc), intr, pose)
+    assert 0 <= uv[0, 0] < 640  # OpenCV's polynomial folds it back into the image
+    assert not in_fov(Xc, lim)[0]
+    assert in_fov(np.array([[0.7, 0.5, 1.0], [0.0, 0.0, 3.0]]), lim).all()  # the image corner is in view
 
 
 def _png(gray: np.ndarray, filters) -> bytes:
