@@ -39,7 +39,8 @@ class ReadStats:
 
     def skip(self, err: RecordingError) -> None:
         self.skipped += 1
-        self.reasons[err.error.split(":")[0]] += 1
+        # the field of a bad message, or the kind of damage ("not JSON", "unreadable tail")
+        self.reasons[err.error.split(":")[0].split(" (")[0]] += 1
         if len(self.first_errors) < 10:
             self.first_errors.append(str(err))
 
@@ -87,6 +88,7 @@ def read_recording(
 
 
 def _jsonl_records(path: Path) -> Iterator[tuple[int, object]]:
+    lineno = 0
     try:
         with _open(path, "rt") as f:
             for lineno, line in enumerate(f, 1):
@@ -98,7 +100,7 @@ def _jsonl_records(path: Path) -> Iterator[tuple[int, object]]:
                     yield lineno, RecordingError(path, lineno, f"not JSON ({e.msg})")
     except (OSError, EOFError, UnicodeDecodeError) as e:
         # A truncated gzip tail (crash while writing) ends the file, it does not poison it.
-        yield -1, RecordingError(path, -1, f"unreadable tail ({type(e).__name__}: {e})")
+        yield lineno + 1, RecordingError(path, lineno + 1, f"unreadable tail ({type(e).__name__}: {e})")
 
 
 def _msgpack_records(path: Path) -> Iterator[tuple[int, object]]:
