@@ -354,7 +354,12 @@ class Service:
         self._resume()
         from proto.transport import open_session
 
-        zs = await asyncio.to_thread(open_session, self.settings.zenoh.transport())
+        z = self.settings.zenoh
+        try:
+            zs = await asyncio.to_thread(open_session, z.transport())
+        except Exception as e:  # zenoh.ZError and friends: say which endpoints
+            raise OSError(f"cannot open the Zenoh session ({z.mode}, listen {', '.join(z.listen) or '-'}, "
+                          f"connect {', '.join(z.connect) or '-'}): {e}") from None
         self._zenoh = zs
         declared: list[Any] = []
         try:
@@ -442,6 +447,8 @@ class Service:
         assert self.handoff is not None
         self.handoff.close()
         self._wake.set()
+        if self._queries.full():  # the sentinel must get in: an unanswered query times out
+            self._queries.get_nowait()
         self._queries.put_nowait(None)
         await self.writer.flush()
         self.writer.close()
@@ -619,6 +626,8 @@ class Service:
                 except Exception as e:  # SolverCrashed, or solve raised in the worker
                     log.warning("cycle %d: solve failed: %s", problem.cycle, e)
                     solution = failed_solution(problem, f"solve failed: {type(e).__name__}: {e}")
+                if s is not self.active or not s.record.state.active:
+                    continue  # the session failed meanwhile: nothing to fold in
                 with self.work.measure("apply"):
                     report = s.pipeline.apply(problem, solution)
                 wall = time.monotonic() - t0

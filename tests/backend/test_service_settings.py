@@ -90,3 +90,24 @@ def test_hostport_and_loopback():
             parse_hostport(bad)
     assert is_loopback("127.0.0.2") and is_loopback("::1") and is_loopback("localhost")
     assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.2") and not is_loopback("example.org")
+
+
+def test_serve_command_refuses_bad_addresses():
+    """`extrcal serve` says what is wrong in one line and exits 2, before opening anything."""
+    import socket
+
+    from typer.testing import CliRunner
+
+    from backend.cli import _register_all, app
+
+    _register_all()
+    r = CliRunner().invoke(app, ["serve", "--http", "0.0.0.0:0"])
+    assert r.exit_code == 2 and "without a token" in r.output
+    r = CliRunner().invoke(app, ["serve", "--http", "localhost"])
+    assert r.exit_code == 2 and "HOST:PORT" in r.output
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        r = CliRunner().invoke(app, ["serve", "--http", f"127.0.0.1:{port}", "--state-dir", "/nonexistent-extrcal"])
+        assert r.exit_code == 2 and f"cannot listen on 127.0.0.1:{port}" in r.output
