@@ -84,17 +84,22 @@ def report_cmd(
     room: Annotated[Optional[Path], typer.Option(
         help="room.yaml with the floor plane (floor.normal_up, floor.e1) for the top view",
         exists=True, dir_okay=False)] = None,
+    recording: Annotated[Optional[Path], typer.Option(
+        help="keypoint recording of the session: compute per-camera and per-joint-group "
+             "reprojection errors of the result on it", exists=True, dir_okay=False)] = None,
     title: Annotated[Optional[str], typer.Option(help="report title")] = None,
 ) -> None:
     """Write a self-contained HTML report of a calibration session: camera plot, convergence
     over cycles, per-camera and per-joint-group reprojection errors, accuracy vs reference."""
+    from proto import RecordingError
+
     from .cameras import CameraFileError, write_atomic
     from .report import ReportError, load_session, render_html
 
     try:
         data = load_session(session, intrinsics=intrinsics, initial=initial, result=result,
-                            reference=reference, room=room)
-    except (ReportError, CameraFileError) as e:
+                            reference=reference, room=room, recording=recording)
+    except (ReportError, CameraFileError, RecordingError) as e:
         raise fail(str(e))
     for w in data.warnings:
         typer.secho(f"warning: {w}", err=True, fg=typer.colors.YELLOW)

@@ -97,6 +97,7 @@ class SessionData:
     reprojection_per_group: dict[str, float] = field(default_factory=dict)
     config: dict[str, Any] = field(default_factory=dict)  # the engine config of the session
     final_state: CycleRecord | None = None  # state.json: the latest per-camera detail
+    reprojection_source: str = ""  # where the per-camera/per-group errors come from
 
     @property
     def camera_names(self) -> list[str]:
@@ -132,9 +133,11 @@ def _find(root: Path, names: Sequence[str]) -> Path | None:
 def load_session(path: str | os.PathLike, *, intrinsics: str | os.PathLike | None = None,
                  initial: str | os.PathLike | None = None, result: str | os.PathLike | None = None,
                  reference: str | os.PathLike | None = None, room: str | os.PathLike | None = None,
-                 max_points: int = 4000) -> SessionData:
+                 recording: str | os.PathLike | None = None, max_points: int = 4000) -> SessionData:
     """Read a session directory or a history file; explicit files win over found ones.
 
+    ``recording``: keypoint recording of the session; per-camera and per-joint-group
+    reprojection errors of the result are then computed on it (``reprojection_errors``).
     ``max_points``: longer histories are thinned evenly (the last cycle always kept) so
     that the report stays small; the thinning is said in the warnings.
     """
@@ -214,6 +217,18 @@ def load_session(path: str | os.PathLike, *, intrinsics: str | os.PathLike | Non
         except (OSError, json.JSONDecodeError, AttributeError) as e:
             warnings.append(f"{files['reprojection']}: ignored ({e})")
 
+    rep_source = "the session's history" if (rep_cam or rep_grp) else ""
+    if recording is not None:
+        final_ext = cams["result"]
+        if final_ext is None and cycles and cycles[-1].poses:
+            final_ext = {n: Extrinsics(p, (0, 0)) for n, p in cycles[-1].poses.items()}
+        if not intr or not final_ext:
+            raise ReportError(f"{recording}: reprojection errors need the intrinsics and a result")
+        try:
+            rep_cam, rep_grp, n = reprojection_errors(intr, final_ext, recording)
+        except CameraFileError as e:
+            raise ReportError(f"{recording}: {e}") from None
+        rep_source = f"{Path(recording).name}, {n} keypoints reprojected with the result's poses"
     final = None
     if final_state:
         try:
@@ -222,7 +237,7 @@ def load_session(path: str | os.PathLike, *, intrinsics: str | os.PathLike | Non
             warnings.append(f"state.json: ignored ({e})")
     title = str(meta.get("title") or meta.get("name") or meta.get("id") or path.stem)
     return SessionData(path, title, intr, cams["initial"], cams["result"], cams["reference"], cycles,
-                       meta, warnings, floor, rep_cam, rep_grp, config, final)
+                       meta, warnings, floor, rep_cam, rep_grp, config, final, rep_source)
 
 
 def _open_text(path: Path):
@@ -371,6 +386,78 @@ def _read_room(path: Path, warnings: list[str]) -> tuple[np.ndarray, np.ndarray]
     except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError, AssertionError, ZeroDivisionError) as e:
         warnings.append(f"{path}: floor plane not used ({type(e).__name__}: {e})")
         return None
+
+
+# ------------------------------------------------------------------ reprojection from a recording
+
+
+def reprojection_errors(intrinsics: Mapping[str, Intrinsics], extrinsics: Mapping[str, Extrinsics],
+                        recording: str | os.PathLike, *, config: Any = None,
+                        skip_bad: bool = True) -> tuple[dict[str, float], dict[str, float], int]:
+    """Median reprojection error (px) per camera and per joint group of a calibration on a
+    recording, the way the engine sees the data: framesets, preprocessing and association
+    with the engine's components and these poses; each person's joints triangulated (DLT)
+    from all its views and reprojected into each. Pixels are undistorted normalised
+    coordinates times the focal length. Returns (per camera, per joint group, residuals).
+    """
+    from proto import ReadStats, read_recording
+
+    from .associate import Associator
+    from .cameras import CameraSet
+    from .config import EngineConfig
+    from .geometry import triangulate_views
+    from .preprocess import Preprocessor
+    from .sync import Synchronizer
+
+    cfg = config or EngineConfig()
+    cams = CameraSet.combine(intrinsics, extrinsics)
+    names = cams.names
+    R = np.array([cams.extrinsics[n].pose.R for n in names])
+    t = np.array([cams.extrinsics[n].pose.t for n in names])
+    focal = np.array([0.5 * (cams.intrinsics[n].fx + cams.intrinsics[n].fy) for n in names])
+    sync = Synchronizer(cfg.sync, names)
+    pre = Preprocessor(cfg.preprocess, names, cams.intrinsics)
+    assoc = Associator(cfg.associate)
+    per_cam: list[list[np.ndarray]] = [[] for _ in names]
+    per_joint: list[list[np.ndarray]] = [[] for _ in range(17)]
+
+    def consume(framesets) -> None:
+        for fs in framesets:
+            dets = pre(fs)
+            if len(dets) < 2:
+                continue
+            for h in assoc(fs.time, dets, R, t, None):
+                X, _ = triangulate_views(R, t, h.cams, h.xy)  # (17, 3), NaN where not triangulated
+                for v, c in enumerate(h.cams):
+                    Xc = (X - t[c]) @ R[c]  # world → camera c
+                    ok = np.all(np.isfinite(h.xy[v]), axis=1) & np.all(np.isfinite(Xc), axis=1)
+                    ok[ok] &= Xc[ok, 2] > 1e-6
+                    if not ok.any():
+                        continue
+                    r = np.linalg.norm(Xc[ok, :2] / Xc[ok, 2:3] - h.xy[v][ok], axis=1) * focal[c]
+                    per_cam[c].append(r)
+                    for j, rj in zip(np.flatnonzero(ok), r):
+                        per_joint[j].append(np.array([rj]))
+
+    stats = ReadStats()
+    clock: float | None = None
+    for msg in read_recording(recording, skip_bad=skip_bad, stats=stats):
+        sync.push(msg, clock)
+        clock = msg.stamp if clock is None else max(clock, msg.stamp)
+        consume(sync.pop_ready(clock))
+    if clock is None:
+        first = f" (first: {stats.first_errors[0]})" if stats.first_errors else ""
+        raise ReportError(f"{recording}: no keypoint messages, {stats.skipped} bad records skipped{first}")
+    # close the framesets still waiting for late messages
+    consume(sync.pop_ready(clock + cfg.sync.wait + 2.0 / cfg.sync.rate))
+    cam_px = {names[c]: float(np.median(np.concatenate(v))) for c, v in enumerate(per_cam) if v}
+    grp_px = {}
+    for g, joints in JOINT_GROUPS.items():
+        vals = [x for j in joints for x in per_joint[j]]
+        if vals:
+            grp_px[g] = float(np.median(np.concatenate(vals)))
+    n = int(sum(len(x) for v in per_cam for x in v))
+    return cam_px, grp_px, n
 
 
 # ------------------------------------------------------------------ geometry for the plot
@@ -859,6 +946,7 @@ def render_html(data: SessionData, *, title: str | None = None) -> str:
     # --- reprojection
     h.append("<h2>Reprojection errors</h2>")
     if data.reprojection_per_camera or data.reprojection_per_group:
+        h.append(f'<p class="muted">Median over keypoints, from {_e(data.reprojection_source)}.</p>')
         h.append('<div class="grid2">')
         if data.reprojection_per_camera:
             ordered = {n: data.reprojection_per_camera[n] for n in sorted(data.reprojection_per_camera, key=natural_key)}
@@ -874,7 +962,7 @@ def render_html(data: SessionData, *, title: str | None = None) -> str:
         h.append("</div>")
     else:
         h.append('<p class="muted">The session recorded no per-camera or per-joint-group reprojection '
-                 "errors.</p>")
+                 "errors; give the session's recording (<code>--recording</code>) to compute them.</p>")
     h.append("</main></body></html>\n")
     return "\n".join(h)
 

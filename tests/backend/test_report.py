@@ -306,3 +306,54 @@ def test_service_session_layout(tmp_path, lab_dir):
     html = render_html(data)
     assert "19/20" in html and "morning run" in html and "select.scope" in html
     assert "stopped by request" in html and "2023-11-14 22:13:20 UTC" in html
+
+
+@pytest.fixture(scope="module")
+def sim_recording(tmp_path_factory, lab_dir):
+    """8 s of the simulated lab, exact projections (no detector noise)."""
+    from backend.cli import _register_all, app
+
+    _register_all()
+    out = tmp_path_factory.mktemp("sim") / "rec.jsonl.gz"
+    r = CliRunner().invoke(app, ["simulate", "--cameras", str(lab_dir), "--out", str(out), "--duration", "8",
+                                 "--persons", "2", "--seed", "5", "--no-noise"])
+    assert r.exit_code == 0, r.output
+    return out
+
+
+def test_reprojection_errors_from_a_recording(sim_recording, lab_dir, tmp_path):
+    from backend.cameras import load_intrinsics
+    from backend.report import reprojection_errors
+
+    intr = load_intrinsics(lab_dir / "intrinsics.yaml")
+    ref = load_extrinsics(lab_dir / "reference.yaml")
+    cam, grp, n = reprojection_errors(intr, ref, sim_recording)
+    assert n > 1000 and set(grp) == set(JOINT_GROUPS)
+    assert len(cam) >= 15
+    # the true poses and exact projections: only the sync's interpolation is left
+    assert max(grp.values()) < 1.0 and np.median(list(cam.values())) < 1.0
+    bad = perturb_extrinsics(ref, 0.05, 2.0, seed=1, keep_first=True)
+    cam_b, grp_b, _ = reprojection_errors(intr, bad, sim_recording)
+    assert min(grp_b.values()) > 10 * max(grp.values()) and min(grp_b.values()) > 3.0
+
+    # through the CLI, into the report's tables
+    from backend.cli_tools import register
+
+    d = tmp_path / "s"
+    d.mkdir()
+    shutil.copy(lab_dir / "intrinsics.yaml", d / "intrinsics.yaml")
+    save_extrinsics(d / "result.yaml", bad)
+    app = typer.Typer()
+    register(app)
+    out = tmp_path / "r.html"
+    r = CliRunner().invoke(app, ["report", str(d), "--recording", str(sim_recording), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    html = out.read_text()
+    table = re.search(r'<table id="joint-groups">.*?</table>', html, flags=re.S).group(0)
+    shown = dict(re.findall(r"<tr><td>(\w+)</td><td>([0-9.]+)</td></tr>", table))
+    assert set(shown) == set(JOINT_GROUPS)
+    assert float(shown["hips"]) == pytest.approx(grp_b["hips"], abs=0.01)
+    assert "keypoints reprojected with the result" in html
+    r = CliRunner().invoke(app, ["report", str(tmp_path / "s"), "--recording", str(lab_dir / "room.yaml"),
+                                 "--out", str(out)])
+    assert r.exit_code == 2 and "room.yaml" in r.output
