@@ -65,7 +65,8 @@ class SimConfig:
       snap_prob: chance, per pair of overlapping people in an image, that a joint of one
         is reported on the other.
       miss_prob: chance that a clearly visible person is not detected (more when small,
-        truncated or occluded).
+        truncated or occluded); miss_burst: the chance right after a miss (misses come in
+        bursts of a few frames).
       min_person_px: px, persons whose visible part is shorter than this are mostly missed.
       false_rate: mean number of random false detections per frame.
       ghost_prob, ghost_rate: chance that a sensor has a persistent false detection (a
@@ -74,6 +75,10 @@ class SimConfig:
         otherwise it is guessed with large noise and low confidence.
       pixel_decimals: pixel coordinates and confidences are rounded to this many decimals
         (None: full float64); ignored when ``noise`` is False.
+      intrinsics_error: the real lenses differ from the calibration files the backend
+        gets: relative std of the focal length (the principal point moves by this times
+        half the image width, in px). Off when ``noise`` is False; the truth keeps the
+        lenses used (``lens_fx`` ...).
     """
 
     persons: int = 2
@@ -116,12 +121,14 @@ class SimConfig:
     swap_prob: float = 0.005
     snap_prob: float = 0.1
     miss_prob: float = 0.03
+    miss_burst: float = 0.4
     min_person_px: float = 40.0
     false_rate: float = 0.02
     ghost_prob: float = 0.3
     ghost_rate: float = 0.05
     hidden_drop: float = 0.5
     pixel_decimals: int | None = 3
+    intrinsics_error: float = 0.002
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> None:
@@ -153,13 +160,14 @@ class SimConfig:
             if not r > 0:
                 bad("sensor_rates", f"{s}: rate must be > 0 Hz, got {r}")
         for name in ("pause_prob", "bend_prob", "reach_prob", "leave_prob", "drop_prob",
-                     "stall_prob", "swap_prob", "snap_prob", "miss_prob", "ghost_prob",
+                     "stall_prob", "swap_prob", "snap_prob", "miss_prob", "miss_burst", "ghost_prob",
                      "ghost_rate", "hidden_drop"):
             p = getattr(self, name)
             if not 0 <= p <= 1:
                 bad(name, f"a probability in [0, 1], got {p}")
         for name in ("noise_scale", "clock_std", "drift_std", "delay_jitter", "frame_jitter",
-                     "false_rate", "sigma_torso", "sigma_head", "sigma_limb", "sigma_extremity"):
+                     "false_rate", "sigma_torso", "sigma_head", "sigma_limb", "sigma_extremity",
+                     "intrinsics_error"):
             if getattr(self, name) < 0:
                 bad(name, f"must be >= 0, got {getattr(self, name)}")
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -77,8 +77,17 @@ def _sigmoid(x):
 class SensorSim:
     def __init__(self, name: str, index: int, intr: Intrinsics, pose: Pose, cfg: SimConfig,
                  walls: WallMap | None, floor_R: np.ndarray, floor_origin: np.ndarray):
-        self.name, self.index, self.intr, self.pose, self.cfg = name, index, intr, pose, cfg
+        self.name, self.index, self.pose, self.cfg = name, index, pose, cfg
         self.walls, self.floor_R, self.floor_origin = walls, floor_R, floor_origin
+        # The real lens differs a little from its calibration file (which the backend uses).
+        lens = rng_for(cfg.seed, "lens", name)
+        e = lens.standard_normal(4) * cfg.intrinsics_error
+        if cfg.noise and cfg.intrinsics_error > 0:
+            w0 = intr.resolution[0]
+            f = 1.0 + e[0]
+            intr = replace(intr, fx=intr.fx * f, fy=intr.fy * f * (1.0 + e[1] / 3.0),
+                           cx=intr.cx + e[2] * w0 / 2.0, cy=intr.cy + e[3] * w0 / 2.0)
+        self.intr = intr
         self.size = (int(intr.resolution[0]), int(intr.resolution[1]))
         w, h = self.size
         self.res_scale = math.sqrt(w * h / (848.0 * 480.0))
@@ -106,6 +115,7 @@ class SensorSim:
         self.counters: Counter = Counter()
         self.sigma = np.array([cfg.sigma_head, cfg.sigma_torso, cfg.sigma_limb, cfg.sigma_extremity])[GROUP]
         self.fov = fov_limit(intr)
+        self.missed_last: np.ndarray | None = None  # (P,) person missed in the previous frame
 
     # ------------------------------------------------------------------ timing
 
@@ -196,7 +206,14 @@ class SensorSim:
             zc = rng.standard_normal((n, P, 17))
             uj = rng.random((n, P, 17, 3))
             up = rng.random((n, P, 4))
-            detected = (up[..., 0] < p_det * (1 - cfg.miss_prob)) & (n_vis > 0)
+            # misses come in bursts: after a miss, the next frame is missed with miss_burst
+            detected = np.zeros((n, P), bool)
+            last = self.missed_last if self.missed_last is not None else np.zeros(P, bool)
+            for i in range(n):
+                p_miss = np.where(last, cfg.miss_burst, cfg.miss_prob)
+                detected[i] = (up[i, :, 0] < p_det[i] * (1 - p_miss)) & (n_vis[i] > 0)
+                last = ~detected[i] & (p_det[i] >= 0.5)
+            self.missed_last = last
             self.counters["missed"] += int(np.sum(~detected & (p_det >= 0.5)))
             sf = np.clip(np.sqrt(size / 150.0), 0.6, 1.6)
             sig = self.sigma * (cfg.noise_scale * self.res_scale) * sf[..., None]  # (n, P, 17)

@@ -33,6 +33,9 @@ D detections):
     clock_drift    (S,) float64  clock rate error (1e-6 = 1 ppm)
     capture_rate   (S,) float64  Hz
     delay_base     (S,) float64  s, base network + processing delay
+    lens_fx, lens_fy, lens_cx, lens_cy  (S,) float64  the intrinsics the sensors really
+                                 imaged with (at the message resolution; they differ
+                                 from the calibration files by ``intrinsics_error``)
     floor_origin, floor_e1, floor_e2, floor_up  (3,) float64  the floor plane (world frame)
 """
 
@@ -92,6 +95,10 @@ class Truth:
     clock_drift: np.ndarray
     capture_rate: np.ndarray
     delay_base: np.ndarray
+    lens_fx: np.ndarray
+    lens_fy: np.ndarray
+    lens_cx: np.ndarray
+    lens_cy: np.ndarray
     floor_origin: np.ndarray
     floor_e1: np.ndarray
     floor_e2: np.ndarray

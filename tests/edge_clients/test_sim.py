@@ -101,6 +101,35 @@ def test_noise_free_projections_are_exact(scene, tmp_path):
     assert checked > 5000
 
 
+def test_lenses_differ_from_their_calibration_as_the_truth_says(scene):
+    """With zero pixel noise and no gross errors, reported joints are the true joints seen
+    through the true lenses (which differ slightly from the calibration files)."""
+    from dataclasses import replace
+
+    cfg = SimConfig(persons=2, duration=1.0, seed=6, noise_scale=0.0, pixel_decimals=None, swap_prob=0.0,
+                    snap_prob=0.0, hidden_drop=1.0, intrinsics_error=0.003)
+    sim = Simulator(scene, cfg)
+    msgs = [m for _, m in sim.messages()]
+    t = sim.truth
+    k = t.sensors.index("cam_4")
+    assert abs(t.lens_fx[k] / scene.intrinsics["cam_4"].fx - 1) > 1e-5
+    worst_file = checked = 0
+    for d in np.flatnonzero(t.det_person >= 0):
+        m = msgs[t.det_msg[d]]
+        s = t.sensors.index(m.sensor)
+        kp = m.persons[t.det_index[d]].kp
+        ok = kp[:, 2] > 0
+        J = t.joints_at(t.det_capture[d])[t.det_person[d]]
+        file_intr = scene.intrinsics[m.sensor]
+        lens = replace(file_intr, fx=t.lens_fx[s], fy=t.lens_fy[s], cx=t.lens_cx[s], cy=t.lens_cy[s])
+        uv, _ = project(J, lens, scene.poses[m.sensor])
+        np.testing.assert_allclose(kp[ok, :2], uv[ok], atol=1e-6)
+        uv_file, _ = project(J, file_intr, scene.poses[m.sensor])
+        worst_file = max(worst_file, float(np.abs(kp[ok, :2] - uv_file[ok]).max()))
+        checked += int(ok.sum())
+    assert checked > 1000 and 0.1 < worst_file < 10
+
+
 def test_figures_are_plausible_for_the_lab(run):
     _, st, _ = run
     seen = [n for n, s in st.with_person.items() if s > 0]
