@@ -142,7 +142,7 @@ def test_triangulate_dlt_exact():
     np.testing.assert_allclose(triangulate_dlt(np.array(P), np.array(xy)), X, atol=1e-9)
 
 
-def _brute_force(p0, p1, q0, q1, n=801):
+def _brute_force(p0, p1, q0, q1, n=301):
     s = np.linspace(0, 1, n)
     a = p0 + s[:, None] * (p1 - p0)
     b = q0 + s[:, None] * (q1 - q0)
@@ -161,7 +161,7 @@ def test_closest_points_segments_against_brute_force():
     np.testing.assert_allclose(d, np.linalg.norm(cp - cq, axis=1), atol=1e-12)
     for i, c in enumerate(cases):
         bf = _brute_force(*c)
-        assert d[i] <= bf + 1e-9 and d[i] >= bf - 5e-3, (i, d[i], bf)
+        assert bf - 3e-2 <= d[i] <= bf + 1e-9, (i, d[i], bf)
     # broadcasting over leading axes
     d2, _, _ = closest_points_segments(p0[:, None], p1[:, None], q0[None, :3], q1[None, :3])
     assert d2.shape == (len(cases), 3)
