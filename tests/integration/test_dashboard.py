@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 
 from backend.cameras import dump_extrinsics, load_extrinsics
@@ -215,6 +216,20 @@ def test_dashboard_in_chromium_while_a_simulated_session_runs(svc, session_body,
         (tmp_path / "report.html").write_text(html)
         latest = load_session(svc.settings.state_dir)  # a state directory: its latest session
         assert latest.source == svc.service.store.dir(sid) and latest.cycles == data.cycles
+        # the service's exports (backend.export) of this result read back to the same poses
+        import tomllib
+
+        import cv2
+
+        r = client.get(f"/sessions/{sid}/result", params={"format": "pose2sim"})
+        assert r.status_code == 200 and r.headers["content-type"].startswith("application/toml")
+        calib = tomllib.loads(r.text)
+        for name, e in data.result.items():
+            Rwc = cv2.Rodrigues(np.array(calib[name]["rotation"]))[0]
+            assert np.abs(Rwc.T - e.pose.R).max() < 1e-9
+            assert np.abs(-Rwc.T @ np.array(calib[name]["translation"]) - e.pose.t).max() < 1e-9
+        r = client.get(f"/sessions/{sid}/result", params={"format": "colmap"})
+        assert r.status_code == 200 and r.content[:2] == b"PK"
         _wait(lambda: driver.find_element(by.ID, "start").is_enabled(), 30, "Start to be enabled again")
         driver.find_element(by.ID, "name").send_keys("from the page")
         driver.find_element(by.ID, "start").click()
