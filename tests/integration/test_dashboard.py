@@ -27,26 +27,8 @@ SITE = "dashtest"
 CHROMIUM, CHROMEDRIVER = "/usr/bin/chromium", "/usr/bin/chromedriver"
 
 
-def _with_dashboard(monkeypatch) -> None:
-    """Until the service's create_app includes the dashboard router, add it (once)."""
-    import backend.api as api
-    from backend.api import dashboard
-
-    orig = api.create_app
-
-    def create_app(settings, service=None):
-        app = orig(settings, service)
-        if not any(getattr(r, "path", None) == "/" for r in app.routes):
-            app.include_router(dashboard.router)
-        return app
-
-    monkeypatch.setattr(api, "create_app", create_app)
-
-
 @pytest.fixture(scope="module")
 def svc(tmp_path_factory, lab_dir):
-    mp = pytest.MonkeyPatch()
-    _with_dashboard(mp)
     port = free_port()
     files = tmp_path_factory.mktemp("cameras")
     initial = perturb_extrinsics(load_extrinsics(lab_dir / "reference.yaml"), 0.25, 10.0, seed=2)
@@ -58,12 +40,9 @@ def svc(tmp_path_factory, lab_dir):
         camera_files={"lab_intrinsics": lab_dir / "intrinsics.yaml", "lab_initial": files / "initial.yaml"},
         defaults={"intrinsics": "lab_intrinsics", "initial": "lab_initial"},
     )
-    try:
-        with ServiceThread(settings) as st:
-            st.zenoh_endpoint = f"tcp/127.0.0.1:{port}"
-            yield st
-    finally:
-        mp.undo()
+    with ServiceThread(settings) as st:
+        st.zenoh_endpoint = f"tcp/127.0.0.1:{port}"
+        yield st
 
 
 @pytest.fixture(scope="module")
@@ -185,6 +164,15 @@ def test_dashboard_in_chromium_while_a_simulated_session_runs(svc, session_body,
         assert int(js("return document.getElementById('chart-change').dataset.points")) > 0
         assert int(js("return document.getElementById('chart-error').dataset.points")) > 0
         _wait(lambda: table() != before, 120, "the camera table to change")
+        # /metrics of the same service (backend.metrics, mounted by create_app)
+        from prometheus_client.parser import text_string_to_metric_families
+
+        fams = {f.name: f for f in text_string_to_metric_families(client.get("/metrics").text)}
+        msgs = {s.labels["sensor"]: s.value for s in fams["extrcal_messages"].samples if s.name.endswith("_total")}
+        assert len(msgs) == 20 and min(msgs.values()) > 0
+        stds = [s.value for s in fams["extrcal_camera_std_translation_meters"].samples]
+        assert len(stds) == 20 and all(v > 0 for v in stds)
+        assert fams["extrcal_cycle"].samples[0].value >= first
         obs = observations()
         _wait(lambda: observations() > obs, 180, "observations to grow")
         assert driver.find_element(by.ID, "session-state").text in ("calibrating", "converged")
