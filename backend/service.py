@@ -127,25 +127,28 @@ class EventBus:
 
 class WorkTimes:
     """How long the synchronous steps on the loop take (advance, push, apply...): the
-    first place to look when the loop lags."""
+    first place to look when the loop lags. Wall time, and the loop thread's CPU time:
+    when they differ, the loop waited for the CPU or for the GIL (other threads)."""
 
     def __init__(self) -> None:
-        self._d: dict[str, list[float]] = {}  # name → [count, total, max]
+        self._d: dict[str, list[float]] = {}  # name → [count, wall total, wall max, cpu total]
 
     @contextlib.contextmanager
     def measure(self, name: str):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.thread_time()
         try:
             yield
         finally:
-            dt = time.perf_counter() - t
-            x = self._d.setdefault(name, [0, 0.0, 0.0])
+            dt, dc = time.perf_counter() - t, time.thread_time() - c
+            x = self._d.setdefault(name, [0, 0.0, 0.0, 0.0])
             x[0] += 1
             x[1] += dt
             x[2] = max(x[2], dt)
+            x[3] += dc
 
     def to_dict(self) -> dict[str, dict[str, float]]:
-        return {k: {"count": v[0], "mean": v[1] / v[0], "max": v[2]} for k, v in self._d.items() if v[0]}
+        return {k: {"count": v[0], "mean": v[1] / v[0], "max": v[2], "cpu_mean": v[3] / v[0]}
+                for k, v in self._d.items() if v[0]}
 
 
 # ------------------------------------------------------------------ solver process

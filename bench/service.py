@@ -256,7 +256,8 @@ def main() -> None:
             persons = args.persons[i] if args.persons else (2 if n <= 20 else 8)
             log(f"{n} cameras x {args.rate:g} Hz, {persons} people, {args.seconds:g} s")
             results.append(run(n, args.rate, args.seconds, persons, Path(tmp), log))
-    print(f"\nextrcal service on {os.cpu_count()} cores; Zenoh on loopback; one publisher process\n")
+    print(f"\nextrcal service on {os.cpu_count()} cores (load average {os.getloadavg()[0]:.1f} at the end); "
+          "Zenoh on loopback; one publisher process\n")
     print("latency: arrival on the loop − capture stamp, less the simulated network delay (median "
           "over sensors of their median / p95): what Zenoh on loopback and the hand-off add.")
     print("publish→frameset: a frameset's instant to its emission (the sync stage waits for late messages).\n")
@@ -282,13 +283,14 @@ def main() -> None:
               f"{fmt(cw.get('max'), digits=2)} | {fmt(cs.get('mean'), digits=2)} / {fmt(cs.get('max'), digits=2)} | "
               f"{r['session']['state']}, {r['session']['cycles']} cycles, error "
               f"{fmt(acc.get('position_mean'), 100, 1)} cm / {fmt(acc.get('orientation_mean'), 1, 2)}° |")
-    print("\n| cameras | load | loop work: mean / max ms per call |")
+    print("\n| cameras | load | loop work: wall mean (CPU mean) / wall max ms per call |")
     print("|---|---|---|")
     for r in results:
         for key in ("live", "saturation"):
             w = r[key]["loop_work"] or {}
             print(f"| {r['cameras']} | {key} | " + ", ".join(
-                f"{k} {1000 * v['mean']:.1f} / {1000 * v['max']:.0f}" for k, v in sorted(w.items())) + " |")
+                f"{k} {1000 * v['mean']:.1f} ({1000 * v.get('cpu_mean', float('nan')):.1f}) / {1000 * v['max']:.0f}"
+                for k, v in sorted(w.items())) + " |")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1, default=str))
 
