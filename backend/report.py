@@ -848,7 +848,7 @@ def render_html(data: SessionData, *, title: str | None = None) -> str:
     for kk in ("stop", "config_overrides", "sources"):
         if isinstance(data.meta.get(kk), dict) and data.meta[kk]:
             settings[kk] = json.dumps(data.meta[kk])
-    for kk in ("created_wall", "ended_wall"):
+    for kk in ("created_wall", "ended_wall", "first_data"):
         if isinstance(settings.get(kk), (int, float)):
             settings[kk] = datetime.fromtimestamp(settings[kk], timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
     if settings:

@@ -202,6 +202,8 @@ def test_dashboard_in_chromium_while_a_simulated_session_runs(svc, session_body,
         html = render_html(data)
         assert 'id="camera-plot"' in html and "Error vs reference" in html
         (tmp_path / "report.html").write_text(html)
+        if os.environ.get("EXTRCAL_ARTIFACTS"):
+            shutil.copy(tmp_path / "report.html", Path(os.environ["EXTRCAL_ARTIFACTS"]) / "report.html")
         latest = load_session(svc.settings.state_dir)  # a state directory: its latest session
         assert latest.source == svc.service.store.dir(sid) and latest.cycles == data.cycles
         # the service's exports (backend.export) of this result read back to the same poses
