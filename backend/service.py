@@ -669,7 +669,8 @@ class Service:
                     rec.converged_cycle = state.cycle
                 rec.state, rec.reason = SessionState.converged, _converged_reason(state)
             else:
-                rec.state, rec.reason = SessionState.calibrating, _calibrating_reason(state, report)
+                rec.state = SessionState.calibrating
+                rec.reason = _calibrating_reason(state, report, getattr(s.pipeline, "phase", None))
         line = _history_line(report, state, rec, acc)
         self.writer.submit(self.store.append_history, rec.id, [line])
         due = time.monotonic() - s.last_snapshot >= self.settings.snapshot_interval
@@ -1185,8 +1186,10 @@ def _converged_reason(state: "CalibrationState") -> str:
     return msg
 
 
-def _calibrating_reason(state: "CalibrationState", report: "CycleReport") -> str:
+def _calibrating_reason(state: "CalibrationState", report: "CycleReport", phase: str | None = None) -> str:
     calibrated = [c for c in state.cameras if c.cycles > 0]
+    if phase in ("warmup", "handover"):
+        return f"warm-up: batch solve {report.cycle} over the frames so far, until the estimate settles"
     if not calibrated:
         return f"cycle {report.cycle}: no camera has an update yet" + (f" ({report.reason})" if report.reason else "")
     done = sum(1 for c in calibrated if c.converged)

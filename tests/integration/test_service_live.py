@@ -175,27 +175,27 @@ def test_restart_after_sigkill_resumes_the_session(tmp_path, lab_dir):
     proc = _serve(tmp_path, http_port, endpoint, site)
     try:
         _wait_started(proc, client)
+        # One sensor process for both lives of the daemon: Zenoh reconnects it.
         with Sensors(endpoint, site, lab_dir, seed=2):
             sid = client.post("/sessions", json={**_session_body(lab_dir), "stop": {"duration": 3600}}).json()["id"]
             _poll(client, f"/sessions/{sid}", lambda s: s["cycles"] >= 3, 60, "no 3 cycles")
             proc.send_signal(signal.SIGKILL)
             proc.wait(10)
 
-        d = tmp_path / "sessions" / sid
-        rec = json.loads((d / "session.json").read_text())
-        snap = json.loads((d / "snapshot.json").read_text())
-        assert rec["state"] in ("calibrating", "converged")  # it was running when it died
-        assert set(parse_extrinsics((d / "result.yaml").read_text())) == {f"cam_{i}" for i in range(20)}
-        killed_at = snap["cycle"]
-        assert killed_at >= 2  # the last cycle's files may not have been written when it died
+            d = tmp_path / "sessions" / sid
+            rec = json.loads((d / "session.json").read_text())
+            snap = json.loads((d / "snapshot.json").read_text())
+            assert rec["state"] in ("calibrating", "converged")  # it was running when it died
+            assert set(parse_extrinsics((d / "result.yaml").read_text())) == {f"cam_{i}" for i in range(20)}
+            killed_at = snap["cycle"]
+            assert killed_at >= 2  # the last cycle's files may not have been written when it died
 
-        proc = _serve(tmp_path, http_port, endpoint, site)
-        _wait_started(proc, client)
-        s = client.get(f"/sessions/{sid}").json()
-        assert s["live"] and s["resumed"] == 1 and s["cycles"] == killed_at
-        assert f"resumed at cycle {killed_at}" in s["reason"]
-        assert all(int(h["cycle"]) <= killed_at for h in client.get(f"/sessions/{sid}/history").json())
-        with Sensors(endpoint, site, lab_dir, seed=3):
+            proc = _serve(tmp_path, http_port, endpoint, site)
+            _wait_started(proc, client)
+            s = client.get(f"/sessions/{sid}").json()
+            assert s["live"] and s["resumed"] == 1 and s["cycles"] == killed_at
+            assert f"resumed at cycle {killed_at}" in s["reason"]
+            assert all(int(h["cycle"]) <= killed_at for h in client.get(f"/sessions/{sid}/history").json())
             _poll(client, f"/sessions/{sid}", lambda s: s["cycles"] >= killed_at + 2, 60,
                   "the resumed session did not go on")
 
