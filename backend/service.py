@@ -879,14 +879,16 @@ class Service:
         s = self.active
         if s is None or s.record.id != sid:
             return await self.session_view(sid)  # 404 if unknown; a finished one is already stopped
+        if self._closing and not s.finishing:
+            raise SessionConflict("the service is shutting down; the session resumes when it starts again")
         self._begin_stop(s, by)
         if wait:
             await asyncio.shield(s.done.wait())
         return await self.session_view(sid)
 
     def _begin_stop(self, s: ActiveSession, by: str) -> None:
-        if s.finishing or not s.record.state.active:
-            return
+        if s.finishing or not s.record.state.active or self._closing:
+            return  # shutting down: the session stays as it is and resumes at the next start
         s.finishing = True
         s.record.stopped_by = by
         assert self._tg is not None
