@@ -5,7 +5,7 @@ Coverage of a floor cell = cameras that see a standing person's torso (1.0 m) an
 ``coverage_range`` away, and (with a floor plan) no wall between. People walk in free
 space (the floor plan's bright pixels, 0.25 m away from walls; without a plan, where at
 least one camera sees); they mostly head for cells seen by >= 2 cameras and sometimes
-(``leave_prob``) for cells seen by fewer.
+(``leave_prob``) for cells seen by fewer, within 3 m of those (stepping out of the views).
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from .scene import Scene
 
 CELL = 0.1  # m
 CLEARANCE = 0.25  # m between a walker's centre and a wall
+LEAVE_REACH = 3.0  # m: "leave" waypoints lie at most this far from where >= 2 cameras see
 
 
 @dataclass(frozen=True, eq=False)
@@ -53,11 +54,17 @@ class Area:
         ny, nx = self.walk.shape
         return 0 <= i < ny and 0 <= j < nx and bool(self.walk[i, j])
 
-    def line_clear(self, a, b) -> bool:
-        """Every cell along the segment a → b (floor xy) is walkable."""
+    def line_clear(self, a, b, half_width: float = 0.6 * CELL) -> bool:
+        """Every cell along a strip of ±half_width around the segment a → b (floor xy)
+        is walkable (a thin line could graze the corner of a wall cell)."""
         a, b = np.asarray(a, float), np.asarray(b, float)
-        n = max(2, int(np.linalg.norm(b - a) / (0.5 * CELL)) + 1)
-        pts = a + np.linspace(0, 1, n)[:, None] * (b - a)
+        d = b - a
+        length = float(np.hypot(d[0], d[1]))
+        n = max(2, int(length / (0.25 * CELL)) + 1)
+        pts = a + np.linspace(0, 1, n)[:, None] * d
+        if half_width > 0 and length > 1e-9:
+            side = np.array([-d[1], d[0]]) / length * half_width
+            pts = np.concatenate([pts, pts + side, pts - side])
         j = np.floor((pts[:, 0] - self.lo[0]) / CELL).astype(int)
         i = np.floor((pts[:, 1] - self.lo[1]) / CELL).astype(int)
         ny, nx = self.walk.shape
@@ -73,18 +80,20 @@ class Area:
         i, j = divmod(int(k), mask.shape[1])
         return self.centre(i, j) + rng.uniform(-0.5, 0.5, 2) * CELL
 
-    def path(self, a, b) -> list[np.ndarray]:
-        """Floor xy waypoints from a to b through walkable cells (straight when clear);
-        [] when no path exists (the caller picks another goal)."""
-        if self.line_clear(a, b):
+    def path(self, a, b, smooth: bool = True) -> list[np.ndarray]:
+        """Floor xy waypoints from a to b through walkable cells; [] when there is no
+        path (the caller picks another goal). ``smooth``: straight when clear and string
+        pulled; otherwise the plain cell-centre path from the centre of a's cell (every
+        leg stays inside walkable cells)."""
+        if smooth and self.line_clear(a, b):
             return [np.asarray(b, float)]
         start, goal = self.cell_of(a), self.cell_of(b)
         cells = _astar(self.walk, start, goal)
         if cells is None:
             return []
-        pts = [self.centre(i, j) for i, j in cells[1:-1]] + [np.asarray(b, float)]
-        if not self.line_clear(a, pts[0]):
-            pts.insert(0, self.centre(*start))  # off-centre in the start cell: go to its centre first
+        pts = [self.centre(*start)] + [self.centre(i, j) for i, j in cells[1:-1]] + [np.asarray(b, float)]
+        if not smooth:
+            return pts
         # String pulling: keep a waypoint only where the straight line would leave the area.
         out, cur, k = [], np.asarray(a, float), 0
         while k < len(pts):
@@ -192,7 +201,9 @@ def _build_area(scene: Scene, coverage_range: float) -> Area:
     counts = np.bincount(labels[targets], minlength=labels.max() + 1)
     counts[0] = 0
     main = labels == int(np.argmax(counts))
-    return Area(lo=lo, coverage=coverage, walk=main, targets=targets & main, leave=main & (coverage < 2))
+    # Leaving the views: step out of them near their edge, not off to distant rooms.
+    near = _grow(targets & main, int(round(LEAVE_REACH / CELL)), within=main)
+    return Area(lo=lo, coverage=coverage, walk=main, targets=targets & main, leave=main & near & (coverage < 2))
 
 
 @dataclass(frozen=True, eq=False)
@@ -263,6 +274,21 @@ def _erode(mask: np.ndarray, r: int) -> np.ndarray:
         for dj in range(-r, r + 1):
             if di * di + dj * dj <= r * r:
                 out &= p[r + di:r + di + ny, r + dj:r + dj + nx]
+    return out
+
+
+def _grow(mask: np.ndarray, steps: int, within: np.ndarray) -> np.ndarray:
+    """Cells reachable from ``mask`` in ``steps`` 8-neighbour moves inside ``within``
+    (through doors, not through walls)."""
+    out = mask & within
+    ny, nx = mask.shape
+    for _ in range(steps):
+        p = np.pad(out, 1)
+        grown = out.copy()
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                grown |= p[1 + di:1 + di + ny, 1 + dj:1 + dj + nx]
+        out = grown & within
     return out
 
 

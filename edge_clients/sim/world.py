@@ -47,7 +47,8 @@ class Walker:
         self.reach_side, self.reach_pitch = 1.0, math.radians(120)
         self.bend = self.reach = 0.0
         self.head_yaw, self.head_target, self.head_timer = 0.0, 0.0, 1.0
-        self.stuck = 0.0
+        self.best_d, self.no_progress = math.inf, 0.0
+        self.exact = False  # following a cell-exact path after getting stuck
         self.face_to: float | None = None
         self.t = 0.0
 
@@ -62,9 +63,10 @@ class Walker:
             path = self.area.path(self.p, goal)
             if path:
                 self.path = path
+                self.exact = False
+                self.best_d, self.no_progress = math.inf, 0.0
                 self.mode = "walk"
                 self.cruise = self.rng.uniform(*self.cfg.speed)
-                self.stuck = 0.0
                 return
         self.mode, self.timer = "pause", 1.0  # nowhere to go from here right now
 
@@ -96,7 +98,8 @@ class Walker:
         v_des = 0.0
         want = self.heading
         if self.mode == "walk":
-            while len(self.path) > 1 and np.linalg.norm(self.path[0] - self.p) < 0.4:
+            reach = 0.05 if self.exact else 0.4  # an exact cell path is followed point by point
+            while len(self.path) > 1 and np.linalg.norm(self.path[0] - self.p) < reach:
                 self.path.pop(0)
             target = self.path[0]
             d = float(np.linalg.norm(target - self.p))
@@ -105,6 +108,8 @@ class Walker:
             else:
                 want = math.atan2(target[1] - self.p[1], target[0] - self.p[0])
                 v_des = self.cruise * (min(1.0, 0.4 + d / 1.5) if len(self.path) == 1 else 1.0)
+                if self.exact:
+                    v_des = min(v_des, 0.6)
         if self.mode == "pause":
             self.timer -= dt
             if self.face_to is not None:
@@ -115,7 +120,7 @@ class Walker:
                 self._new_goal()
 
         # Other people: a push away and sideways (pass on the right), slowing down when
-        # someone is right ahead; a walker kept standing for 4 s picks another goal.
+        # someone is right ahead.
         slow = 1.0
         if self.mode == "walk":
             dx, dy = math.cos(want), math.sin(want)
@@ -149,9 +154,9 @@ class Walker:
         new = self.p + move
         blocked = not self.area.walkable(new)
         if blocked and step > 0:  # slide along the wall instead of sticking to it
-            for cand in (self.p + [move[0], 0.0], self.p + [0.0, move[1]]):
-                if self.area.walkable(cand):
-                    new, blocked = cand, False
+            for slide in (np.array([move[0], 0.0]), np.array([0.0, move[1]])):
+                if abs(slide).sum() > 0.3 * step and self.area.walkable(self.p + slide):
+                    new, blocked = self.p + slide, False
                     break
         for o in others:
             if o is not self and np.linalg.norm(new - o.p) < cfg.min_separation:
@@ -161,12 +166,20 @@ class Walker:
             self.speed = 0.0
         else:
             self.p = new
-        if self.mode == "walk" and self.speed < 0.1:
-            self.stuck += dt
-            if self.stuck > 4.0:  # give way for good: go somewhere else
-                self._new_goal()
-        else:
-            self.stuck = max(0.0, self.stuck - dt)
+        if self.mode == "walk" and self.path:
+            # No progress towards the goal for 3 s (a wall corner, someone in the way):
+            # follow the grid cells exactly; still none: go somewhere else.
+            d_goal = float(np.linalg.norm(self.path[-1] - self.p))
+            if d_goal < self.best_d - 0.3:
+                self.best_d, self.no_progress = d_goal, 0.0
+            else:
+                self.no_progress += dt
+            if self.no_progress > 3.0:
+                exact = None if self.exact else self.area.path(self.p, self.path[-1], smooth=False)
+                if exact:
+                    self.path, self.exact, self.no_progress = exact, True, 0.0
+                else:
+                    self._new_goal()
 
         # Gait: cadence grows with the square root of speed; the swing fades when stopping.
         v = self.speed
