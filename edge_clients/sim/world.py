@@ -48,6 +48,7 @@ class Walker:
         self.bend = self.reach = 0.0
         self.head_yaw, self.head_target, self.head_timer = 0.0, 0.0, 1.0
         self.best_d, self.no_progress = math.inf, 0.0
+        self.wall_blocked = 0.0
         self.exact = False  # following a cell-exact path after getting stuck
         self.face_to: float | None = None
         self.t = 0.0
@@ -146,7 +147,8 @@ class Walker:
         err = _wrap(want - self.heading)
         rate = max(-math.radians(cfg.turn_rate), min(math.radians(cfg.turn_rate), 3.0 * err))
         self.heading = _wrap(self.heading + rate * dt)
-        v_des *= max(0.2, math.cos(err)) if abs(err) < math.pi / 2 else 0.0
+        # slow down to turn (nobody walks a wide arc into a wall): stop beyond 60°
+        v_des *= min(1.0, max(0.0, (math.cos(err) - 0.5) / 0.4))
         acc = 1.0 if v_des > self.speed else 1.5
         self.speed += max(-acc * dt, min(acc * dt, v_des - self.speed))
         step = self.speed * dt
@@ -164,8 +166,16 @@ class Walker:
                     blocked = True
         if blocked:
             self.speed = 0.0
+            if step > 0 and not self.area.walkable(self.p + move) and self.path and not self.exact:
+                self.wall_blocked += dt
+                if self.wall_blocked > 0.3:  # a wall corner in the way: follow the cells exactly
+                    exact = self.area.path(self.p, self.path[-1], smooth=False)
+                    if exact:
+                        self.path, self.exact = exact, True
+                    self.wall_blocked = 0.0
         else:
             self.p = new
+            self.wall_blocked = 0.0
         if self.mode == "walk" and self.path:
             # No progress towards the goal for 3 s (a wall corner, someone in the way):
             # follow the grid cells exactly; still none: go somewhere else.

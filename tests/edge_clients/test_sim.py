@@ -178,6 +178,22 @@ def test_truth_sidecar_and_the_bodies(run):
     assert gap.min() >= 0.5 - 1e-9
 
 
+@pytest.mark.parametrize("seed", [3, 5])
+def test_walkers_keep_going(scene, seed):
+    """Nobody gets stuck at a wall corner or in front of someone: within any 20 s a
+    walker gets somewhere (pauses last 2-6 s)."""
+    from edge_clients.sim.world import World
+
+    cfg = SimConfig(persons=3, seed=seed)
+    world = World(scene, cfg, build_area(scene, cfg.coverage_range))
+    _, states = world.advance(int(60 * cfg.world_rate))
+    xy = states[:, :, :2]
+    for p in range(3):
+        walked = np.r_[0, np.cumsum(np.linalg.norm(np.diff(xy[p], axis=0), axis=1))]
+        in_20s = walked[2000:] - walked[:-2000]
+        assert in_20s.min() > 3.0, (p, float(in_20s.min()))
+
+
 def test_endless_run_is_produced_lazily(scene):
     sim = Simulator(scene, SimConfig(persons=2, duration=math.inf, seed=1))
     first = list(itertools.islice(sim.messages(["cam_0", "cam_1"]), 100))
