@@ -20,7 +20,7 @@ class _Section(BaseModel):
 class SyncConfig(_Section):
     """Framesets from free-running sensors."""
 
-    rate: float = Field(15.0, gt=0, le=200, description="framesets per second of data time")
+    rate: float = Field(10.0, gt=0, le=200, description="framesets per second of data time")
     max_offset: float = Field(0.05, gt=0, description="s: a sensor whose nearest message is further from the frameset time sits out")
     max_span: float = Field(0.05, gt=0, description="s: reject a frameset whose used stamps span more (paper: 50 ms)")
     max_std: float = Field(0.025, gt=0, description="s: reject a frameset whose stamp std is larger (paper: 25 ms)")
@@ -65,12 +65,21 @@ class OptimizeConfig(_Section):
     robust: Literal["none", "huber", "cauchy"] = "huber"
     robust_k: float = Field(2.0, gt=0, description="robust kernel width in sigmas")
     min_landmark_views: int = Field(2, ge=2)
-    min_camera_observations: int = Field(10, ge=1, description="a camera with fewer projections in a cycle is left out of it")
+    min_camera_observations: int = Field(30, ge=1, description="a camera with fewer projections in a cycle is left out of it")
+    relative_tolerance: float = Field(1e-5, gt=0, description="LM stops when the error improves by less than this fraction")
+    min_triangulation_angle: float = Field(2.0, ge=0, description="deg: landmarks whose rays meet at a smaller angle carry no pose information and are left out")
+    outlier_rounds: int = Field(2, ge=0, description="solve, drop views (one person in one camera) that reproject badly, solve again")
+    outlier_px: float = Field(15.0, gt=0, description="px: a view whose median joint residual exceeds this (and 4x the median view residual) is an outlier")
 
 
 class RefineConfig(_Section):
-    initial_std_translation: float = Field(0.025, gt=0, description="m (paper)")
+    initial_std_translation: float = Field(0.025, gt=0, description="m: std of the initial estimate in the first cycles' priors (paper)")
     initial_std_rotation: float = Field(1.0, gt=0, description="deg (paper)")
+    batch_std_translation: float = Field(0.25, gt=0, description="m: how far the initial estimate may really be off; "
+                                         "the prior of the final batch adjustment (a soft gauge)")
+    batch_std_rotation: float = Field(10.0, gt=0, description="deg")
+    filter_std_translation: float = Field(0.025, gt=0, description="m: process noise unit of the Kalman cycles (paper's initial std)")
+    filter_std_rotation: float = Field(1.0, gt=0, description="deg")
     process_noise: float = Field(0.05, ge=0, description="fraction of the initial std added per cycle")
     keep_scale: bool = Field(True, description="similarity-align to the initial estimate and keep its scale")
     measurement: Literal["posterior", "marginal"] = Field(
@@ -81,8 +90,21 @@ class RefineConfig(_Section):
     converged_translation: float = Field(0.002, gt=0, description="m: a camera is converged when its std and recent change are below")
     converged_rotation: float = Field(0.05, gt=0, description="deg")
     converged_cycles: int = Field(10, ge=1, description="cycles the change is averaged over")
-    final_batch: bool = Field(True, description="a batch adjustment over the kept hypotheses when the run stops")
-    batch_size: int = Field(3000, ge=10, description="hypotheses kept for the final batch adjustment")
+    warmup_hypotheses: int = Field(
+        0, ge=0,
+        description="before the Kalman cycles, repeated batch solves over all frames so far (re-associated with "
+        "the improving estimate, prior = the initial estimate) until this many hypotheses are in; 0 = the paper's "
+        "cycles from the start",
+    )
+    warmup_interval: float = Field(2.0, gt=0, description="s of data time between warm-up solves")
+    trust_translation: float = Field(0.1, gt=0, description="m: std of the prior at the current estimate in a warm-up round (a trust region: "
+                                     "the round cannot move a camera far enough to explain wrong associations away)")
+    trust_rotation: float = Field(2.0, gt=0, description="deg")
+    warmup_settled_translation: float = Field(0.01, gt=0, description="m: the warm-up ends when no camera moved more than this in a round")
+    warmup_settled_rotation: float = Field(0.1, gt=0, description="deg")
+    final_batch: bool = Field(True, description="a batch adjustment over all frames, re-associated with the final estimate, when the run stops")
+    batch_size: int = Field(1000, ge=10, description="most hypotheses in the final batch adjustment")
+    archive_frames: int = Field(10000, ge=100, description="preprocessed framesets kept for warm-up and the final batch")
 
 
 class EngineConfig(_Section):

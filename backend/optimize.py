@@ -19,27 +19,60 @@ from typing import Sequence
 
 import numpy as np
 
-from .associate import Hypothesis
-from .config import OptimizeConfig
+from .associate import Associator, Hypothesis
+from .config import AssociateConfig, OptimizeConfig
 from .geometry import triangulate_views
+from .preprocess import Detection
+from .selection import select_spaced
 
 
 @dataclass(frozen=True, eq=False)
 class Problem:
-    """A cycle's graph in plain arrays.
+    """One cycle's inputs, picklable (the service solves it in a worker process).
 
-    R: (C, 3, 3), t: (C, 3) current poses (world_R_cam, centre); prior_cov: (C, 6, 6)
-    tangent covariance (rot, trans) of the prior on each camera; active: (C,) bool,
-    cameras that get a variable (enough observations).
-    obs_cam, obs_lm: (M,) int; obs_xy: (M, 2) normalised; obs_sigma: (M,) normalised std.
-    landmarks: (L, 3) initial positions; lm_hyp: (L,) index of the hypothesis, lm_joint: (L,).
-    focal: (C,) px, to report residuals in pixels.
+    R: (C, 3, 3), t: (C, 3) current poses (world_R_cam, centre): the linearisation point
+    and the start of the solve. prior_R, prior_t: (C, 3, 3), (C, 3) and prior_cov
+    (C, 6, 6): the camera priors (tangent covariance, rotation then translation).
+    focal: (C,) px. Either ``hypotheses`` are given, or ``frames`` (time, detections per
+    view) that the solve re-associates with R, t first and thins to ``max_hypotheses``
+    spaced by ``spacing`` m.
     """
 
     cycle: int
     R: np.ndarray
     t: np.ndarray
+    prior_R: np.ndarray
+    prior_t: np.ndarray
     prior_cov: np.ndarray
+    focal: np.ndarray
+    config: OptimizeConfig
+    hypotheses: tuple[Hypothesis, ...] = ()
+    frames: tuple[tuple[float, tuple[tuple[Detection, ...], ...]], ...] = ()
+    associate: AssociateConfig | None = None
+    gate_px: np.ndarray | None = None
+    max_hypotheses: int = 0
+    spacing: float = 0.0
+    seed: int = 0
+    marginals: bool = True
+    kind: str = "cycle"  # cycle | warmup | batch
+
+    def __post_init__(self) -> None:
+        C = len(self.R)
+        assert self.R.shape == (C, 3, 3) and self.t.shape == (C, 3)
+        assert self.prior_R.shape == (C, 3, 3) and self.prior_t.shape == (C, 3)
+        assert self.prior_cov.shape == (C, 6, 6) and self.focal.shape == (C,)
+        assert not self.frames or self.associate is not None
+
+
+@dataclass(frozen=True, eq=False)
+class Graph:
+    """The factor graph in plain arrays.
+
+    active: (C,) bool cameras with a variable; obs_cam, obs_lm: (M,) int;
+    obs_xy: (M, 2) normalised; obs_sigma: (M,) normalised std; landmarks: (L, 3)
+    initial positions; lm_hyp, lm_joint: (L,) int.
+    """
+
     active: np.ndarray
     obs_cam: np.ndarray
     obs_lm: np.ndarray
@@ -48,30 +81,39 @@ class Problem:
     landmarks: np.ndarray
     lm_hyp: np.ndarray
     lm_joint: np.ndarray
-    focal: np.ndarray
-    config: OptimizeConfig
-    marginals: bool = True
 
-    def __post_init__(self) -> None:
-        C, M, L = len(self.R), len(self.obs_cam), len(self.landmarks)
-        assert self.R.shape == (C, 3, 3) and self.t.shape == (C, 3) and self.prior_cov.shape == (C, 6, 6)
-        assert self.active.shape == (C,) and self.focal.shape == (C,)
-        assert self.obs_lm.shape == (M,) and self.obs_xy.shape == (M, 2) and self.obs_sigma.shape == (M,)
-        assert self.landmarks.shape == (L, 3) and self.lm_hyp.shape == (L,) and self.lm_joint.shape == (L,)
+    def views(self) -> np.ndarray:
+        """(M,) int id of the view (hypothesis, camera) of each observation."""
+        return self.lm_hyp[self.obs_lm] * 100003 + self.obs_cam
+
+    def without(self, drop_obs: np.ndarray, config: OptimizeConfig) -> "Graph":
+        """The graph without some observations, re-pruned (cameras, landmarks < 2 views)."""
+        keep = ~drop_obs
+        C = len(self.active)
+        counts = np.bincount(self.obs_cam[keep], minlength=C)
+        active = self.active & (counts >= config.min_camera_observations)
+        keep &= active[self.obs_cam]
+        lm_ok = np.bincount(self.obs_lm[keep], minlength=len(self.landmarks)) >= 2
+        keep &= lm_ok[self.obs_lm]
+        remap = np.cumsum(lm_ok) - 1
+        return Graph(active, self.obs_cam[keep], remap[self.obs_lm[keep]], self.obs_xy[keep], self.obs_sigma[keep],
+                     self.landmarks[lm_ok], self.lm_hyp[lm_ok], self.lm_joint[lm_ok])
 
 
 @dataclass(frozen=True, eq=False)
 class Solution:
     """R, t: (C, 3, 3), (C, 3) solved poses (inactive cameras unchanged); cov: (C, 6, 6)
-    marginal covariances (NaN for inactive or when not computed); landmarks (L, 3);
-    residual_px: (M,) reprojection error after the solve."""
+    marginal covariances (NaN for inactive cameras or when not computed);
+    residual_px: (M,) reprojection error after the solve; obs_per_camera: (C,)."""
 
     ok: bool
     reason: str
     R: np.ndarray
     t: np.ndarray
     cov: np.ndarray
-    landmarks: np.ndarray
+    active: np.ndarray
+    obs_per_camera: np.ndarray
+    hypotheses: int
     residual_px: np.ndarray
     initial_error: float
     final_error: float
@@ -82,17 +124,23 @@ class Solution:
 # ------------------------------------------------------------------ building
 
 
-def build_problem(cycle: int, hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, prior_cov: np.ndarray,
-                  focal: np.ndarray, config: OptimizeConfig, *, marginals: bool = True) -> Problem:
+def build_graph(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, config: OptimizeConfig) -> Graph:
+    """Landmarks per (hypothesis, joint) triangulated with R, t; cameras with too few
+    observations are left out, and so are landmarks left with < 2 views."""
     C = len(R)
     obs_cam, obs_lm, obs_xy, obs_sig, lms, lm_hyp, lm_joint = [], [], [], [], [], [], []
     L = 0
+    cos_min = np.cos(np.radians(config.min_triangulation_angle))
     for hi, h in enumerate(hyps):
         X, n = triangulate_views(R, t, h.cams, h.xy)
         for j in range(17):
             if not np.all(np.isfinite(X[j])) or n[j] < config.min_landmark_views:
                 continue
             v = np.flatnonzero(np.all(np.isfinite(h.xy[:, j]), axis=1))
+            rays = X[j] - t[h.cams[v]]
+            rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+            if np.min(rays @ rays.T) > cos_min:  # all rays nearly parallel: depth unknown
+                continue
             obs_cam.extend(h.cams[v])
             obs_lm.extend([L] * len(v))
             obs_xy.extend(h.xy[v, j])
@@ -104,16 +152,13 @@ def build_problem(cycle: int, hyps: Sequence[Hypothesis], R: np.ndarray, t: np.n
     obs_cam_a = np.array(obs_cam, dtype=np.int64)
     counts = np.bincount(obs_cam_a, minlength=C) if len(obs_cam_a) else np.zeros(C, int)
     active = counts >= config.min_camera_observations
-    # Observations of cameras left out are dropped; so are landmarks left with < 2 views.
     keep = active[obs_cam_a] if len(obs_cam_a) else np.zeros(0, bool)
     obs_lm_a = np.array(obs_lm, dtype=np.int64)[keep]
-    per_lm = np.bincount(obs_lm_a, minlength=L)
-    lm_ok = per_lm >= 2
+    lm_ok = np.bincount(obs_lm_a, minlength=L) >= 2
     keep2 = lm_ok[obs_lm_a]
     remap = np.cumsum(lm_ok) - 1
-    return Problem(
-        cycle=cycle,
-        R=R.copy(), t=t.copy(), prior_cov=prior_cov.copy(), active=active,
+    return Graph(
+        active=active,
         obs_cam=obs_cam_a[keep][keep2],
         obs_lm=remap[obs_lm_a[keep2]],
         obs_xy=np.array(obs_xy, dtype=np.float64).reshape(-1, 2)[keep][keep2],
@@ -121,10 +166,20 @@ def build_problem(cycle: int, hyps: Sequence[Hypothesis], R: np.ndarray, t: np.n
         landmarks=np.array(lms, dtype=np.float64).reshape(-1, 3)[lm_ok],
         lm_hyp=np.array(lm_hyp, dtype=np.int64)[lm_ok],
         lm_joint=np.array(lm_joint, dtype=np.int64)[lm_ok],
-        focal=np.asarray(focal, dtype=np.float64),
-        config=config,
-        marginals=marginals,
     )
+
+
+def hypotheses_of(p: Problem) -> list[Hypothesis]:
+    """The problem's hypotheses: given, or re-associated from its frames with R, t."""
+    if not p.frames:
+        return list(p.hypotheses)
+    assoc = Associator(p.associate)
+    hyps: list[Hypothesis] = []
+    for time_, views in p.frames:
+        hyps.extend(assoc(time_, views, p.R, p.t, p.gate_px))
+    if p.max_hypotheses and len(hyps) > p.max_hypotheses or p.spacing > 0:
+        hyps = select_spaced(hyps, p.max_hypotheses or len(hyps), p.spacing, np.random.default_rng(p.seed))
+    return hyps
 
 
 def residuals_px(R, t, landmarks, obs_cam, obs_lm, obs_xy, focal) -> np.ndarray:
@@ -143,32 +198,94 @@ def residuals_px(R, t, landmarks, obs_cam, obs_lm, obs_xy, focal) -> np.ndarray:
 
 
 def solve(p: Problem) -> Solution:
-    """Solve a Problem with GTSAM; never raises for numerical failures (ok=False)."""
+    """Build and solve a Problem with GTSAM; never raises for numerical failures (ok=False).
+
+    After each solve, views (one person in one camera) whose median joint residual is
+    far above the rest are wrong associations or detections: they are dropped and the
+    graph solved again from the last solution, up to ``outlier_rounds`` times."""
+    t0 = time.perf_counter()
+    C = len(p.R)
+    hyps = hypotheses_of(p)
+    g = build_graph(hyps, p.R, p.t, p.config)
+    R, t = p.R, p.t
+    first_error = None
+    iterations = 0
+    for round_ in range(p.config.outlier_rounds + 1):
+        last = round_ == p.config.outlier_rounds
+        # outlier rounds only need to find the bad views: a loose tolerance will do
+        out = _solve_graph(p, g, R, t, marginals=False, tolerance=max(p.config.relative_tolerance, 1e-3))
+        if isinstance(out, str):
+            return _failed(p, g, out, first_error, t0)
+        R, t, lms, e0, e1, its = out
+        first_error = e0 if first_error is None else first_error
+        iterations += its
+        if last:
+            break
+        res = residuals_px(R, t, lms, g.obs_cam, g.obs_lm, g.obs_xy, p.focal)
+        views = g.views()
+        uniq, inv = np.unique(views, return_inverse=True)
+        med = np.array([np.median(res[inv == k]) for k in range(len(uniq))])
+        limit = max(p.config.outlier_px, 4.0 * float(np.median(med)))
+        bad_views = med > limit
+        if not bad_views.any():
+            break
+        g = g.without(bad_views[inv], p.config)
+        # landmarks move with the solution: start the next round from it
+        g = Graph(g.active, g.obs_cam, g.obs_lm, g.obs_xy, g.obs_sigma,
+                  _retriangulate(g, R, t), g.lm_hyp, g.lm_joint)
+    out = _solve_graph(p, g, R, t, marginals=p.marginals)
+    if isinstance(out, str):
+        return _failed(p, g, out, first_error, t0)
+    R, t, lms, _, final_error, its, cov, reason = out
+    res = residuals_px(R, t, lms, g.obs_cam, g.obs_lm, g.obs_xy, p.focal)
+    return Solution(reason == "", reason, R, t, cov, g.active, np.bincount(g.obs_cam, minlength=C),
+                    int(len(np.unique(g.lm_hyp))), res, float(first_error), float(final_error),
+                    iterations + its, time.perf_counter() - t0)
+
+
+def _failed(p: Problem, g: Graph, reason: str, initial: float | None, t0: float) -> Solution:
+    C = len(p.R)
+    e = float("nan") if initial is None else initial
+    return Solution(False, reason, p.R.copy(), p.t.copy(), np.full((C, 6, 6), np.nan), g.active,
+                    np.bincount(g.obs_cam, minlength=C), int(len(np.unique(g.lm_hyp))),
+                    np.zeros(len(g.obs_cam)), e, e, 0, time.perf_counter() - t0)
+
+
+def _retriangulate(g: Graph, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(L, 3) landmarks triangulated again from their observations with R, t."""
+    L = len(g.landmarks)
+    out = g.landmarks.copy()
+    order = np.argsort(g.obs_lm, kind="stable")
+    starts = np.searchsorted(g.obs_lm[order], np.arange(L + 1))
+    for l in range(L):
+        o = order[starts[l]:starts[l + 1]]
+        X, _ = triangulate_views(R, t, g.obs_cam[o], g.obs_xy[o][:, None, :])
+        if np.all(np.isfinite(X[0])):
+            out[l] = X[0]
+    return out
+
+
+def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, marginals: bool,
+                 tolerance: float | None = None):
+    """One GTSAM solve of graph g from poses R0, t0. Returns a failure reason (str), or
+    (R, t, landmarks, initial error, final error, iterations[, cov, reason])."""
     import gtsam
 
-    t0 = time.perf_counter()
-    C, L = len(p.R), len(p.landmarks)
-    cams = np.flatnonzero(p.active)
-    nan_cov = np.full((C, 6, 6), np.nan)
-
-    def failed(reason: str, initial: float = float("nan")) -> Solution:
-        return Solution(False, reason, p.R.copy(), p.t.copy(), nan_cov, p.landmarks.copy(),
-                        np.zeros(len(p.obs_cam)), initial, initial, 0, time.perf_counter() - t0)
-
+    C, L = len(p.R), len(g.landmarks)
+    cams = np.flatnonzero(g.active)
     if len(cams) == 0 or L == 0:
-        return failed("no camera has enough observations")
-
+        return "no camera has enough observations"
     X = lambda c: gtsam.symbol("x", int(c))  # noqa: E731
     Lk = lambda l: gtsam.symbol("l", int(l))  # noqa: E731
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     for c in cams:
-        pose = gtsam.Pose3(gtsam.Rot3(p.R[c]), p.t[c])
-        values.insert(X(c), pose)
+        values.insert(X(c), gtsam.Pose3(gtsam.Rot3(R0[c]), t0[c]))
+        prior = gtsam.Pose3(gtsam.Rot3(p.prior_R[c]), p.prior_t[c])
         cov = 0.5 * (p.prior_cov[c] + p.prior_cov[c].T)
-        graph.add(gtsam.PriorFactorPose3(X(c), pose, gtsam.noiseModel.Gaussian.Covariance(cov)))
+        graph.add(gtsam.PriorFactorPose3(X(c), prior, gtsam.noiseModel.Gaussian.Covariance(cov)))
     for l in range(L):
-        values.insert(Lk(l), p.landmarks[l])
+        values.insert(Lk(l), g.landmarks[l])
     K = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
     cfg = p.config
     robust = None
@@ -176,46 +293,61 @@ def solve(p: Problem) -> Solution:
         robust = gtsam.noiseModel.mEstimator.Huber.Create(cfg.robust_k)
     elif cfg.robust == "cauchy":
         robust = gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_k)
-    for c, l, xy, s in zip(p.obs_cam, p.obs_lm, p.obs_xy, p.obs_sigma):
+    for c, l, xy, s in zip(g.obs_cam, g.obs_lm, g.obs_xy, g.obs_sigma):
         noise = gtsam.noiseModel.Isotropic.Sigma(2, float(s))
         if robust is not None:
             noise = gtsam.noiseModel.Robust.Create(robust, noise)
         graph.add(gtsam.GenericProjectionFactorCal3_S2(xy, noise, X(c), Lk(l), K))
 
     initial_error = graph.error(values)
+    # Landmarks first, cameras last: the Schur complement of bundle adjustment; with
+    # sequential Cholesky about twice as fast as COLAMD + multifrontal on these graphs.
+    ordering = gtsam.Ordering()
+    for l in range(L):
+        ordering.push_back(Lk(l))
+    for c in cams:
+        ordering.push_back(X(c))
     if cfg.solver == "lm":
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(cfg.max_iterations)
-        params.setRelativeErrorTol(1e-6)
+        params.setRelativeErrorTol(tolerance or cfg.relative_tolerance)
         params.setAbsoluteErrorTol(1e-9)
+        params.setOrdering(ordering)
+        params.setLinearSolverType("SEQUENTIAL_CHOLESKY")
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     else:
         params = gtsam.DoglegParams()
         params.setMaxIterations(cfg.max_iterations)
+        params.setRelativeErrorTol(cfg.relative_tolerance)
+        params.setOrdering(ordering)
         optimizer = gtsam.DoglegOptimizer(graph, values, params)
     try:
         result = optimizer.optimize()
     except RuntimeError as e:  # IndeterminantLinearSystem and friends
-        return failed(f"optimizer failed: {str(e).splitlines()[0][:200]}", initial_error)
+        return f"optimizer failed: {_first_line(e)}"
     final_error = graph.error(result)
     if not np.isfinite(final_error):
-        return failed("optimizer diverged (non-finite error)", initial_error)
-
-    R, t = p.R.copy(), p.t.copy()
+        return "optimizer diverged (non-finite error)"
+    R, t = R0.copy(), t0.copy()
     for c in cams:
         pose = result.atPose3(X(c))
         R[c] = pose.rotation().matrix()
         t[c] = pose.translation()
     lms = np.array([result.atPoint3(Lk(l)) for l in range(L)]).reshape(-1, 3)
-    cov = nan_cov.copy()
+    out = (R, t, lms, float(initial_error), float(final_error), int(optimizer.iterations()))
+    if not marginals:
+        return out
+    cov = np.full((C, 6, 6), np.nan)
     reason = ""
-    if p.marginals:
-        try:
-            marg = gtsam.Marginals(graph, result)
-            for c in cams:
-                cov[c] = marg.marginalCovariance(X(c))
-        except RuntimeError as e:
-            reason = f"marginals failed: {str(e).splitlines()[0][:200]}"
-    res = residuals_px(R, t, lms, p.obs_cam, p.obs_lm, p.obs_xy, p.focal)
-    return Solution(reason == "", reason, R, t, cov, lms, res, float(initial_error), float(final_error),
-                    int(optimizer.iterations()), time.perf_counter() - t0)
+    try:
+        marg = gtsam.Marginals(graph, result)
+        for c in cams:
+            cov[c] = marg.marginalCovariance(X(c))
+    except RuntimeError as e:
+        reason = f"marginals failed: {_first_line(e)}"
+    return out + (cov, reason)
+
+
+def _first_line(e: BaseException) -> str:
+    lines = [x.strip() for x in str(e).splitlines() if x.strip()]
+    return (lines[0] if lines else type(e).__name__)[:200]

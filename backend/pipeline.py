@@ -24,13 +24,13 @@ import numpy as np
 
 from proto import KeypointMessage
 
-from .associate import Associator, Hypothesis, triangulate_torso
+from .associate import Associator
 from .cameras import CameraSet
 from .config import EngineConfig
-from .optimize import Problem, Solution, build_problem, solve
-from .preprocess import Preprocessor
+from .optimize import Problem, Solution, solve
+from .preprocess import Detection, Preprocessor
 from .refine import Refiner, initial_covariance
-from .selection import HypothesisQueue, select_spaced
+from .selection import HypothesisQueue
 from .state import CalibrationState, CameraState, Counters, CycleReport
 from .sync import Synchronizer
 
@@ -50,8 +50,12 @@ class Pipeline:
         self.associate = Associator(self.cfg.associate)
         self.queue = HypothesisQueue(self.cfg.select)
         self.refiner = Refiner(self.cfg.refine, R0, t0)
-        # every hypothesis, for the final batch adjustment
-        self.archive: deque[Hypothesis] = deque(maxlen=4 * self.cfg.refine.batch_size)
+        # preprocessed framesets, re-associated with a better estimate by warm-up and final batch
+        self.frames: deque[tuple[float, tuple[tuple[Detection, ...], ...]]] = deque(
+            maxlen=self.cfg.refine.archive_frames)
+        self.phase = "warmup" if self.cfg.refine.warmup_hypotheses > 0 else "filter"
+        self.warmup_hypotheses_used = 0
+        self.observations_warmup = np.zeros(C, dtype=np.int64)
         self.clock: float | None = None
         self.cycle = 0
         self.cycles_rejected = 0
@@ -88,15 +92,17 @@ class Pipeline:
             self.clock = now
         new = 0
         R, t = self.refiner.R, self.refiner.t
-        gate = self._gate()
-        for fs in self.sync.pop_ready(now):
+        ready = self.sync.pop_ready(now)
+        gate = self._gate() if ready and self.phase == "filter" else None
+        for fs in ready:
             dets = self.preprocess(fs)
             if len(dets) < 2:
                 continue
-            hyps = self.associate(fs.time, dets, R, t, gate)
-            self.queue.extend(hyps)
-            self.archive.extend(hyps)
-            new += len(hyps)
+            self.frames.append((fs.time, tuple(tuple(v) for v in dets)))
+            if self.phase == "filter":
+                hyps = self.associate(fs.time, dets, R, t, gate)
+                self.queue.extend(hyps)
+                new += len(hyps)
         return new
 
     def _gate(self) -> np.ndarray | None:
@@ -107,7 +113,7 @@ class Pipeline:
         C = len(self.names)
         gate = np.full(C, np.inf)
         for c in range(C):
-            if self.refiner.cycles[c] >= 3:
+            if self.refiner.cycles[c] >= 2:
                 st, sr = self.refiner.std(c)
                 gate[c] = a.gate_pixels + 3 * self.focal[c] * (np.radians(sr) + st / 3.0)
         return gate
@@ -115,18 +121,57 @@ class Pipeline:
     # ------------------------------------------------------------ optimisation
 
     def next_problem(self, now: float) -> Problem | None:
-        """A cycle's problem when one is due, else None. Only one is in flight at a time."""
-        if self._inflight is not None or not self.queue.ready():
+        """A cycle's problem when one is due, else None. Only one is in flight at a time.
+
+        Warm-up: a batch over every frame so far, re-associated with the current
+        estimate, prior = the initial estimate. Then the paper's cycles: the queue's
+        newest hypotheses, prior = the filter's predicted state."""
+        if self._inflight is not None:
             return None
-        if self.last_cycle_time is not None and now - self.last_cycle_time < self.cfg.select.interval:
-            return None
-        hyps = self.queue.select(self.rng)
+        rf, cfg = self.refiner, self.cfg
+        if self.phase in ("warmup", "handover"):
+            if self.phase == "warmup" and self.last_cycle_time is not None \
+                    and now - self.last_cycle_time < cfg.refine.warmup_interval:
+                return None
+            if not self.frames or self.frames[-1][0] - self.frames[0][0] < cfg.refine.warmup_interval:
+                return None
+            p = self._batch_problem(self.phase, cfg.refine.warmup_hypotheses, cfg.select.min_spacing)
+        else:
+            if not self.queue.ready():
+                return None
+            if self.last_cycle_time is not None and now - self.last_cycle_time < cfg.select.interval:
+                return None
+            self.cycle += 1
+            p = Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
+                        prior_cov=rf.predicted_covariance(), focal=self.focal, config=cfg.optimize,
+                        hypotheses=tuple(self.queue.select(self.rng)), kind="cycle")
         self.last_cycle_time = now
-        self.cycle += 1
-        p = build_problem(self.cycle, hyps, self.refiner.R, self.refiner.t,
-                          self.refiner.predicted_covariance(), self.focal, self.cfg.optimize)
         self._inflight = p
         return p
+
+    def _batch_problem(self, kind: str, max_hypotheses: int, spacing: float) -> Problem:
+        """Every archived frame, re-associated in the solve.
+
+        warmup: prior = the current estimate within the trust region; handover and batch:
+        prior = the initial estimate with its covariance (the honest posterior)."""
+        rf, rc = self.refiner, self.cfg.refine
+        self.cycle += 1
+        C = len(self.names)
+        if kind == "warmup":
+            prior_R, prior_t = rf.R.copy(), rf.t.copy()
+            r, s = np.radians(rc.trust_rotation), rc.trust_translation
+            P0 = np.repeat(np.diag([r * r] * 3 + [s * s] * 3)[None], C, axis=0)
+        else:
+            prior_R, prior_t = rf.R0.copy(), rf.t0.copy()
+            r, s = np.radians(rc.batch_std_rotation), rc.batch_std_translation
+            P0 = np.repeat(np.diag([r * r] * 3 + [s * s] * 3)[None], C, axis=0)
+        opt = self.cfg.optimize
+        if kind == "batch":
+            opt = opt.model_copy(update={"max_iterations": max(opt.max_iterations, 100)})
+        return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=prior_R, prior_t=prior_t,
+                       prior_cov=P0, focal=self.focal, config=opt, frames=tuple(self.frames),
+                       associate=self.cfg.associate, gate_px=self._gate(), max_hypotheses=max_hypotheses,
+                       spacing=spacing, seed=int(self.rng.integers(2**31)), kind=kind)
 
     def apply(self, problem: Problem, solution: Solution) -> CycleReport:
         """Fold a solved cycle into the estimate (or reject it, keeping the estimate)."""
@@ -137,24 +182,42 @@ class Pipeline:
         reason = solution.reason if not solution.ok else ""
         if not reason and solution.final_error > solution.initial_error * (1 + 1e-6):
             reason = "error increased"
-        if not reason and not moved and len(problem.obs_cam):
+        if not reason and not moved and len(solution.residual_px):
             reason = "solver did not move the estimate"
         accepted = reason == ""
         change_t = change_r = 0.0
+        batch = problem.kind in ("warmup", "handover", "batch")
         if accepted:
-            upd = self.refiner.update(problem.active, solution.R, solution.t, solution.cov)
+            if problem.kind == "warmup":
+                # a trust-region step: poses move, the covariance stays the initial one
+                upd = self.refiner.move(solution.active, solution.R, solution.t)
+            else:
+                upd = self.refiner.update(solution.active, solution.R, solution.t, solution.cov, posterior=batch)
             change_t = float(upd.changed_translation.max())
             change_r = float(upd.changed_rotation.max())
-            self.observations += np.bincount(problem.obs_cam, minlength=len(self.names))
+            if batch:
+                self.observations_warmup = solution.obs_per_camera.copy()
+            else:
+                self.observations += solution.obs_per_camera
+            rc = self.cfg.refine
+            if problem.kind == "warmup":
+                self.warmup_hypotheses_used = solution.hypotheses
+                if (solution.hypotheses >= rc.warmup_hypotheses and change_t <= rc.warmup_settled_translation
+                        and change_r <= rc.warmup_settled_rotation):
+                    self.phase = "handover"
+            elif problem.kind == "handover":
+                # The warm-up used every frame so far: the filter starts on new data only.
+                self.phase = "filter"
+                self.queue.clear()
         else:
             self.cycles_rejected += 1
         finite = solution.residual_px[np.isfinite(solution.residual_px)]
         report = CycleReport(
             cycle=problem.cycle,
             data_time=float(self.clock or 0.0),
-            hypotheses=int(len(np.unique(problem.lm_hyp))),
-            observations=int(len(problem.obs_cam)),
-            cameras=tuple(self.names[c] for c in np.flatnonzero(problem.active)),
+            hypotheses=solution.hypotheses,
+            observations=int(solution.obs_per_camera.sum()),
+            cameras=tuple(self.names[c] for c in np.flatnonzero(solution.active)),
             initial_error=float(solution.initial_error),
             final_error=float(solution.final_error),
             iterations=solution.iterations,
@@ -180,38 +243,18 @@ class Pipeline:
     # ------------------------------------------------------------ end of a run
 
     def finish(self) -> CalibrationState:
-        """Flush the front end, then one batch adjustment over the archived hypotheses
-        (re-gated with the final estimate), keeping the initial estimate's scale."""
+        """Flush the front end, then (if configured) one batch adjustment over every
+        archived frame re-associated with the final estimate."""
         if self.clock is not None:
             self.advance(self.clock + self.cfg.sync.wait + 1.0 / self.cfg.sync.rate)
-        if self.cfg.refine.final_batch and len(self.archive) >= 2:
+        if self.cfg.refine.final_batch and self.frames:
             self.batch_adjust()
         return self.state()
 
-    def batch_adjust(self) -> CycleReport | None:
-        cfg = self.cfg
-        R, t = self.refiner.R, self.refiner.t
-        hyps = [h for h in (_regate(h, R, t, self.focal, cfg.associate.gate_pixels) for h in self.archive) if h is not None]
-        hyps = select_spaced(hyps, cfg.refine.batch_size, cfg.select.min_spacing / 2, self.rng)
-        if not hyps:
-            return None
-        # A wide prior at the filter's estimate is a soft gauge: frame and scale, not data.
-        prior = np.repeat((initial_covariance(cfg.refine) * 100.0)[None], len(self.names), axis=0)
-        opt = cfg.optimize.model_copy(update={"max_iterations": max(cfg.optimize.max_iterations, 100)})
-        p = build_problem(self.cycle + 1, hyps, R, t, prior, self.focal, opt)
-        sol = solve(p)
-        if not sol.ok or sol.final_error > sol.initial_error:
-            self.last_report = None
-            return None
-        self.cycle += 1
+    def batch_adjust(self) -> CycleReport:
+        p = self._batch_problem("batch", self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2)
         self._inflight = p
-        # The batch solution replaces the state outright (its prior is no data).
-        saved = self.refiner.cfg
-        self.refiner.cfg = saved.model_copy(update={"measurement": "posterior"})
-        try:
-            return self.apply(p, sol)
-        finally:
-            self.refiner.cfg = saved
+        return self.apply(p, solve(p))
 
     # ------------------------------------------------------------ state
 
@@ -238,7 +281,7 @@ class Pipeline:
             ct, cr = rf.change(c)
             cams.append(CameraState(
                 name=n, R=rf.R[c].copy(), t=rf.t[c].copy(), cov=rf.P[c].copy(),
-                observations=int(self.observations[c]), cycles=int(rf.cycles[c]),
+                observations=int(self.observations[c] + self.observations_warmup[c]), cycles=int(rf.cycles[c]),
                 change_translation=ct, change_rotation=cr, converged=rf.converged(c),
                 last_seen=self.last_seen.get(n),
             ))
@@ -257,7 +300,9 @@ class Pipeline:
             "cycles": rf.cycles.tolist(),
             "history": [list(map(list, h)) for h in rf.history],
             "cycle": self.cycle,
+            "phase": self.phase,
             "observations": self.observations.tolist(),
+            "observations_warmup": self.observations_warmup.tolist(),
             "clock": self.clock,
         }
 
@@ -273,21 +318,10 @@ class Pipeline:
         for h, items in zip(rf.history, snapshot["history"]):
             h.extend(tuple(x) for x in items)
         p.cycle = int(snapshot["cycle"])
+        p.phase = snapshot.get("phase", p.phase)
         p.observations = np.array(snapshot["observations"], dtype=np.int64)
+        p.observations_warmup = np.array(snapshot.get("observations_warmup", [0] * len(p.names)), dtype=np.int64)
         return p
-
-
-def _regate(h: Hypothesis, R: np.ndarray, t: np.ndarray, focal: np.ndarray, gate_px: float) -> Hypothesis | None:
-    """The hypothesis without views whose torso joints reproject beyond the gate."""
-    X, err = triangulate_torso(h, R, t, focal)
-    if X is None:
-        return None
-    keep = err <= gate_px
-    if keep.sum() < 2:
-        return None
-    if keep.all():
-        return h
-    return Hypothesis(h.time, h.cams[keep], h.xy[keep], h.sigma[keep], h.com)
 
 
 def run_offline(cameras: CameraSet, config: EngineConfig, messages: Iterable[KeypointMessage], *, seed: int = 0,

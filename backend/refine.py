@@ -37,10 +37,13 @@ class UpdateResult:
 
 
 def initial_covariance(cfg: RefineConfig) -> np.ndarray:
-    """(6, 6) diagonal covariance of an initial estimate."""
-    r = np.radians(cfg.initial_std_rotation)
-    s = cfg.initial_std_translation
-    return np.diag([r * r] * 3 + [s * s] * 3)
+    """(6, 6) diagonal covariance of the initial estimate."""
+    return _diag(cfg.initial_std_rotation, cfg.initial_std_translation)
+
+
+def _diag(std_deg: float, std_m: float) -> np.ndarray:
+    r = np.radians(std_deg)
+    return np.diag([r * r] * 3 + [std_m * std_m] * 3)
 
 
 def _sym_pd(P: np.ndarray, floor: float = 1e-14) -> np.ndarray:
@@ -59,7 +62,7 @@ class Refiner:
         self.R0, self.t0 = R0.copy(), t0.copy()  # the initial estimate: frame and scale
         self.R, self.t = R0.copy(), t0.copy()
         self.P = np.repeat(initial_covariance(cfg)[None], C, axis=0) if P0 is None else P0.copy()
-        self.Q = initial_covariance(cfg) * cfg.process_noise**2
+        self.Q = _diag(cfg.filter_std_rotation, cfg.filter_std_translation) * cfg.process_noise**2
         self.cycles = np.zeros(C, dtype=np.int64)
         self.history: list[deque] = [deque(maxlen=cfg.converged_cycles) for _ in range(C)]
 
@@ -67,8 +70,12 @@ class Refiner:
         """(C, 6, 6) prior covariance for the next cycle's graph."""
         return self.P + self.Q[None]
 
-    def update(self, active: np.ndarray, R_new: np.ndarray, t_new: np.ndarray, cov: np.ndarray) -> UpdateResult:
-        """Fold in one cycle's solution for the cameras in ``active`` (C,) bool."""
+    def update(self, active: np.ndarray, R_new: np.ndarray, t_new: np.ndarray, cov: np.ndarray,
+               *, posterior: bool = False) -> UpdateResult:
+        """Fold in one cycle's solution for the cameras in ``active`` (C,) bool.
+
+        ``posterior``: the solution is already the full posterior (a batch whose prior
+        was the initial estimate): take it as the state whatever the measurement mode."""
         C = len(self.R)
         R_old, t_old = self.R.copy(), self.t.copy()
         Pp = self.predicted_covariance()
@@ -76,7 +83,7 @@ class Refiner:
             S = cov[c]
             if not np.all(np.isfinite(S)):
                 continue
-            if self.cfg.measurement == "posterior":
+            if posterior or self.cfg.measurement == "posterior":
                 self.R[c], self.t[c] = R_new[c], t_new[c]
                 self.P[c] = _sym_pd(S)
             else:
@@ -84,15 +91,24 @@ class Refiner:
                 K = Pp[c] @ np.linalg.inv(Pp[c] + S)
                 self.R[c], self.t[c] = pose_retract(self.R[c], self.t[c], K @ innov)
                 self.P[c] = _sym_pd((np.eye(6) - K) @ Pp[c])
-        # cameras without data this cycle still become less certain
-        for c in np.flatnonzero(~active):
-            self.P[c] = Pp[c]
+        if not posterior:  # cameras without data this cycle still become less certain
+            for c in np.flatnonzero(~active):
+                self.P[c] = Pp[c]
         scale = self.keep_scale() if self.cfg.keep_scale else 1.0
         dt = np.linalg.norm(self.t - t_old, axis=1)
         dr = np.array([rotation_angle_deg(R_old[c], self.R[c]) for c in range(C)])
         for c in np.flatnonzero(active):
             self.cycles[c] += 1
             self.history[c].append((dt[c], dr[c]))
+        return UpdateResult(dt, dr, scale)
+
+    def move(self, active: np.ndarray, R_new: np.ndarray, t_new: np.ndarray) -> UpdateResult:
+        """Take new poses for the active cameras without touching the covariance."""
+        R_old, t_old = self.R.copy(), self.t.copy()
+        self.R[active], self.t[active] = R_new[active], t_new[active]
+        scale = self.keep_scale() if self.cfg.keep_scale else 1.0
+        dt = np.linalg.norm(self.t - t_old, axis=1)
+        dr = np.array([rotation_angle_deg(R_old[c], self.R[c]) for c in range(len(self.R))])
         return UpdateResult(dt, dr, scale)
 
     def keep_scale(self) -> float:

@@ -32,6 +32,9 @@ class HypothesisQueue:
                 self.dropped += 1
             self._q.append(h)
 
+    def clear(self) -> None:
+        self._q.clear()
+
     def ready(self) -> bool:
         return len(self._q) >= 2 * self.cfg.scope
 

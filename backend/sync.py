@@ -65,14 +65,26 @@ class Frameset:
     views: tuple[View, ...]
 
 
-def _boxes(msg: KeypointMessage) -> np.ndarray:
-    return np.array([p.bbox if p.bbox is not None else np.full(4, np.nan) for p in msg.persons]).reshape(-1, 4)
+@dataclass(frozen=True, eq=False)
+class _Entry:
+    """A buffered message with its arrays stacked once (kp (P, 17, 3), boxes (P, 4))."""
 
+    msg: KeypointMessage
+    kp: np.ndarray
+    boxes: np.ndarray
+    cov: np.ndarray | None
 
-def _cov(msg: KeypointMessage) -> np.ndarray | None:
-    if msg.persons and all(p.cov is not None for p in msg.persons):
-        return np.stack([p.cov for p in msg.persons])
-    return None
+    @property
+    def stamp(self) -> float:
+        return self.msg.stamp
+
+    @staticmethod
+    def of(msg: KeypointMessage) -> "_Entry":
+        boxes = np.array([p.bbox if p.bbox is not None else np.full(4, np.nan) for p in msg.persons]).reshape(-1, 4)
+        cov = None
+        if msg.persons and all(p.cov is not None for p in msg.persons):
+            cov = np.stack([p.cov for p in msg.persons])
+        return _Entry(msg, msg.keypoints(), boxes, cov)
 
 
 def _match(a: np.ndarray, b: np.ndarray, max_dist: float) -> list[tuple[int, int]]:
@@ -97,24 +109,32 @@ def _match(a: np.ndarray, b: np.ndarray, max_dist: float) -> list[tuple[int, int
     return pairs
 
 
-def _single(msg: KeypointMessage, T: float) -> View:
-    P = len(msg.persons)
-    return View(msg.sensor, msg.stamp, msg.stamp - T, msg.size, msg.keypoints(), _boxes(msg),
-                _cov(msg), np.zeros((P, N_J)), False)
+def _single(e: _Entry, T: float) -> View:
+    m = e.msg
+    return View(m.sensor, m.stamp, m.stamp - T, m.size, e.kp, e.boxes, e.cov, np.zeros((len(e.kp), N_J)), False)
 
 
 def interpolate(m0: KeypointMessage, m1: KeypointMessage, T: float) -> View:
+    """Keypoints of the persons seen in both messages, linearly interpolated to T."""
+    return _interpolate(_Entry.of(m0), _Entry.of(m1), T, {})
+
+
+def _interpolate(e0: _Entry, e1: _Entry, T: float, cache: dict) -> View:
     """Keypoints of persons seen in both messages, linearly interpolated to T.
 
     A joint missing in either message is missing. Persons seen in only one message are
     dropped: their time offset is unknown to the frameset.
     """
+    m0, m1 = e0.msg, e1.msg
     dt = m1.stamp - m0.stamp
     assert dt > 0 and m0.stamp <= T <= m1.stamp
     w = (T - m0.stamp) / dt
-    k0, k1 = m0.keypoints(), m1.keypoints()
-    diag = float(np.hypot(*m0.size))
-    pairs = _match(k0, k1, diag * max(_MATCH_MIN_FRAC, _MATCH_DIAG_PER_S * dt))
+    k0, k1 = e0.kp, e1.kp
+    key = (m0.sensor, m0.stamp, m1.stamp)
+    if key not in cache:  # the same pair brackets several frameset times
+        diag = float(np.hypot(*m0.size))
+        cache[key] = _match(k0, k1, diag * max(_MATCH_MIN_FRAC, _MATCH_DIAG_PER_S * dt))
+    pairs = cache[key]
     if not pairs:
         return View(m0.sensor, T, 0.0, m0.size, np.zeros((0, N_J, 3)), np.zeros((0, 4)), None,
                     np.zeros((0, N_J)), True)
@@ -125,9 +145,8 @@ def interpolate(m0: KeypointMessage, m1: KeypointMessage, T: float) -> View:
     ok = (a[..., 2] > 0) & (b[..., 2] > 0)
     kp[..., 2] = np.where(ok, np.minimum(a[..., 2], b[..., 2]), 0.0)
     speed = np.where(ok, np.linalg.norm(b[..., :2] - a[..., :2], axis=-1) / dt, 0.0)
-    bx0, bx1 = _boxes(m0)[i0], _boxes(m1)[i1]
-    boxes = (1 - w) * bx0 + w * bx1
-    c0, c1 = _cov(m0), _cov(m1)
+    boxes = (1 - w) * e0.boxes[i0] + w * e1.boxes[i1]
+    c0, c1 = e0.cov, e1.cov
     cov = None if c0 is None or c1 is None else (1 - w) * c0[i0] + w * c1[i1]
     return View(m0.sensor, T, 0.0, m0.size, kp, boxes, cov, speed, True)
 
@@ -144,7 +163,8 @@ class Synchronizer:
         self.cfg = config
         self.sensors = tuple(sensors)
         self._stamps: dict[str, list[float]] = {s: [] for s in self.sensors}
-        self._msgs: dict[str, list[KeypointMessage]] = {s: [] for s in self.sensors}
+        self._msgs: dict[str, list[_Entry]] = {s: [] for s in self.sensors}
+        self._pairs: dict[tuple[str, float, float], list[tuple[int, int]]] = {}
         self._last_seq: dict[str, deque] = {s: deque(maxlen=64) for s in self.sensors}
         self.next_time: float | None = None
         self.rejected: Counter = Counter()
@@ -173,7 +193,7 @@ class Synchronizer:
         if i > 0 and stamps[i - 1] == msg.stamp:
             return self._reject("duplicate")
         stamps.insert(i, msg.stamp)
-        msgs.insert(i, msg)
+        msgs.insert(i, _Entry.of(msg))
         if self.latest_stamp is None or msg.stamp > self.latest_stamp:
             self.latest_stamp = msg.stamp
         if self.next_time is None:
@@ -209,6 +229,8 @@ class Synchronizer:
             if k > 0:
                 del stamps[:k]
                 del self._msgs[s][:k]
+        if len(self._pairs) > 4096:
+            self._pairs.clear()
 
     def _build(self, T: float) -> Frameset | None:
         views = []
@@ -235,14 +257,16 @@ class Synchronizer:
         i = bisect.bisect_right(stamps, T)
         m0 = msgs[i - 1] if i > 0 else None
         m1 = msgs[i] if i < len(msgs) else None
+        if (m0 is None or not len(m0.kp)) and (m1 is None or not len(m1.kp)):
+            return None  # nobody seen: nothing to add
         if m0 is not None and m0.stamp == T:
             return _single(m0, T)
         if (
             self.cfg.interpolate and m0 is not None and m1 is not None
             and m1.stamp - m0.stamp <= 2 * self.cfg.max_offset + 1e-9
-            and m0.size == m1.size
+            and m0.msg.size == m1.msg.size
         ):
-            return interpolate(m0, m1, T)
+            return _interpolate(m0, m1, T, self._pairs)
         best = min((m for m in (m0, m1) if m is not None), key=lambda m: abs(m.stamp - T), default=None)
         if best is None or abs(best.stamp - T) > self.cfg.max_offset:
             return None

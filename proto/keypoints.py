@@ -125,24 +125,45 @@ def _matrix(value: Any, name: str, rows: int, cols: int) -> np.ndarray:
             )
         arr = np.frombuffer(raw, dtype="<f4").reshape(rows, cols).astype(np.float64)
     elif isinstance(value, (list, tuple)):
-        if len(value) != rows:
-            raise MessageError(name, f"expected {rows} rows of {cols}, got {len(value)}")
-        for i, row in enumerate(value):
-            if not isinstance(row, (list, tuple)) or len(row) != cols:
-                got = len(row) if isinstance(row, (list, tuple)) else type(row).__name__
-                raise MessageError(f"{name}[{i}]", f"expected {cols} numbers, got {got}")
-            for j, x in enumerate(row):
-                if isinstance(x, bool) or not isinstance(x, (int, float)):
-                    raise MessageError(
-                        f"{name}[{i}][{j}]", f"expected a number, got {type(x).__name__}"
-                    )
-        arr = np.array(value, dtype=np.float64)
+        arr = _fast_matrix(value, rows, cols)
+        if arr is None:  # something is off: find it and say where
+            _explain_matrix(value, name, rows, cols)
+            arr = np.array(value, dtype=np.float64)  # well-formed after all: NaN/inf, named below
     else:
         raise MessageError(name, f"expected a list or packed bytes, got {type(value).__name__}")
     if not np.all(np.isfinite(arr)):
         i = int(np.argwhere(~np.isfinite(arr))[0][0])
         raise MessageError(f"{name}[{i}]", "NaN or infinite value")
     return arr
+
+
+def _fast_matrix(value: list | tuple, rows: int, cols: int) -> np.ndarray | None:
+    """(rows, cols) float64 of well-formed nested lists, else None (no bools, no strings)."""
+    if len(value) != rows:
+        return None
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    if arr.shape != (rows, cols) or not np.all(np.isfinite(arr)):
+        return None  # None becomes NaN in np.array: let the slow path name it
+    for row in value:
+        for x in row:
+            if x.__class__ is bool:
+                return None
+    return arr
+
+
+def _explain_matrix(value: list | tuple, name: str, rows: int, cols: int) -> None:
+    if len(value) != rows:
+        raise MessageError(name, f"expected {rows} rows of {cols}, got {len(value)}")
+    for i, row in enumerate(value):
+        if not isinstance(row, (list, tuple)) or len(row) != cols:
+            got = len(row) if isinstance(row, (list, tuple)) else type(row).__name__
+            raise MessageError(f"{name}[{i}]", f"expected {cols} numbers, got {got}")
+        for j, x in enumerate(row):
+            if isinstance(x, bool) or not isinstance(x, (int, float)):
+                raise MessageError(f"{name}[{i}][{j}]", f"expected a number, got {type(x).__name__}")
 
 
 def _person(d: Any, name: str, size: tuple[int, int]) -> Person:
