@@ -37,6 +37,8 @@ class Detection:
     xy: np.ndarray
     sigma: np.ndarray
     focal: float  # mean focal length in px: sigma / focal is the normalised std
+    seq: int = -1  # provenance: message seq and position in its persons (for evaluation)
+    index: int = -1
 
     def __post_init__(self) -> None:
         assert self.xy.shape == (17, 2) and self.sigma.shape == (17,)
@@ -101,7 +103,8 @@ class Preprocessor:
         f = 0.5 * (intr.fx + intr.fy)
         cam = self.index[v.sensor]
         self.accepted += len(idx)
-        return [Detection(cam, xy[k], sigma[k], f) for k in range(len(idx))]
+        src = v.index[idx] if v.index is not None else np.full(len(idx), -1)
+        return [Detection(cam, xy[k], sigma[k], f, v.seq, int(src[k])) for k in range(len(idx))]
 
     def _too_close(self, kp: np.ndarray, boxes: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         """(P,) True for persons whose box is within the distance limit of another's."""

@@ -39,6 +39,8 @@ class View:
     cov: (P, 17, 3) float64 pixel² [xx, xy, yy], or None.
     offset: s between the stamp used and the frameset time (0 when interpolated).
     speed: (P, 17) float64 px/s image speed of each joint where known, else 0.
+    seq, index: where each person came from: message ``seq`` of this sensor (the earlier
+        one when interpolated) and (P,) int64 positions in its ``persons``.
     """
 
     sensor: str
@@ -50,9 +52,12 @@ class View:
     cov: np.ndarray | None
     speed: np.ndarray
     interpolated: bool
+    seq: int = -1
+    index: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         P = self.kp.shape[0]
+        assert self.index is None or self.index.shape == (P,)
         assert self.kp.shape == (P, N_J, 3)
         assert self.boxes.shape == (P, 4)
         assert self.speed.shape == (P, N_J)
@@ -111,7 +116,9 @@ def _match(a: np.ndarray, b: np.ndarray, max_dist: float) -> list[tuple[int, int
 
 def _single(e: _Entry, T: float) -> View:
     m = e.msg
-    return View(m.sensor, m.stamp, m.stamp - T, m.size, e.kp, e.boxes, e.cov, np.zeros((len(e.kp), N_J)), False)
+    P = len(e.kp)
+    return View(m.sensor, m.stamp, m.stamp - T, m.size, e.kp, e.boxes, e.cov, np.zeros((P, N_J)), False,
+                m.seq, np.arange(P))
 
 
 def interpolate(m0: KeypointMessage, m1: KeypointMessage, T: float) -> View:
@@ -137,7 +144,7 @@ def _interpolate(e0: _Entry, e1: _Entry, T: float, cache: dict) -> View:
     pairs = cache[key]
     if not pairs:
         return View(m0.sensor, T, 0.0, m0.size, np.zeros((0, N_J, 3)), np.zeros((0, 4)), None,
-                    np.zeros((0, N_J)), True)
+                    np.zeros((0, N_J)), True, m0.seq, np.zeros(0, np.int64))
     i0 = [i for i, _ in pairs]
     i1 = [j for _, j in pairs]
     a, b = k0[i0], k1[i1]
@@ -148,7 +155,7 @@ def _interpolate(e0: _Entry, e1: _Entry, T: float, cache: dict) -> View:
     boxes = (1 - w) * e0.boxes[i0] + w * e1.boxes[i1]
     c0, c1 = e0.cov, e1.cov
     cov = None if c0 is None or c1 is None else (1 - w) * c0[i0] + w * c1[i1]
-    return View(m0.sensor, T, 0.0, m0.size, kp, boxes, cov, speed, True)
+    return View(m0.sensor, T, 0.0, m0.size, kp, boxes, cov, speed, True, m0.seq, np.array(i0, dtype=np.int64))
 
 
 class Synchronizer:
