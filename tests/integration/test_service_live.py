@@ -20,6 +20,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+import yaml
 
 from backend.cameras import dump_extrinsics, load_extrinsics, parse_extrinsics
 from backend.cli_service import publish_simulation
@@ -33,7 +34,10 @@ from proto.transport import ZenohSettings, open_session
 pytestmark = pytest.mark.slow
 
 SPEED = 4.0  # simulated seconds per wall second (the publisher's pace)
-RATE = (10.0, 10.0)  # Hz per simulated sensor: enough for the service, light on the CPU
+RATE = (30.0, 30.0)  # Hz per simulated sensor
+# Five cameras of the lab that see the same people most of the time: a short scenario
+# that the simulator can produce at SPEED on one core.
+CAMS = ["cam_9", "cam_14", "cam_15", "cam_18", "cam_19"]
 # Loose thresholds: a few cycles of agreement are enough to call it converged here.
 LOOSE = {"refine": {"converged_translation": 0.02, "converged_rotation": 0.3, "converged_cycles": 3}}
 
@@ -41,11 +45,11 @@ LOOSE = {"refine": {"converged_translation": 0.02, "converged_rotation": 0.3, "c
 class Sensors:
     """The simulated lab in its own process, publishing to ``endpoint`` at SPEED."""
 
-    def __init__(self, endpoint: str, site: str, lab: Path, *, duration: float = 120.0, seed: int = 0):
+    def __init__(self, endpoint: str, site: str, lab: Path, *, duration: float = 900.0, seed: int = 0):
         ctx = multiprocessing.get_context("spawn")
         self.ready, self.stop_event = ctx.Event(), ctx.Event()
         self.proc = ctx.Process(target=publish_simulation, daemon=True, args=(
-            endpoint, site, 2, duration, seed, SPEED, None, self.ready, self.stop_event, str(lab), RATE))
+            endpoint, site, 2, duration, seed, SPEED, CAMS, self.ready, self.stop_event, str(lab), RATE))
 
     def __enter__(self) -> "Sensors":
         self.proc.start()
@@ -60,12 +64,13 @@ class Sensors:
 
 
 def _session_body(lab: Path, seed: int = 1) -> dict:
-    ref = load_extrinsics(lab / "reference.yaml")
+    intr = yaml.safe_load((lab / "intrinsics.yaml").read_text())
+    ref = {k: e for k, e in load_extrinsics(lab / "reference.yaml").items() if k in CAMS}
     return {
         "name": "integration",
-        "intrinsics_yaml": (lab / "intrinsics.yaml").read_text(),
+        "intrinsics_yaml": yaml.safe_dump({c: intr[c] for c in CAMS}),
         "initial_yaml": dump_extrinsics(perturb_extrinsics(ref, 0.1, 3.0, seed=seed)),
-        "reference_yaml": (lab / "reference.yaml").read_text(),
+        "reference_yaml": dump_extrinsics(ref),
         "config": LOOSE,
     }
 
@@ -110,7 +115,7 @@ def test_live_session_converges_stops_and_has_a_result(tmp_path, lab_dir):
 
         # live status while the sensors were publishing
         sensors = status["sensors"]
-        assert len(sensors) == 20 and all(x["online"] for x in sensors.values())
+        assert set(sensors) == set(CAMS) and all(x["online"] for x in sensors.values())
         assert all(x["accepted"] > 0 and x["latency"] is not None for x in sensors.values())
         assert status["framesets"]["accepted"] > 0 and status["cycles"]["wall_seconds"]["mean"] > 0
         assert status["queues"]["ingest"]["dropped"] == 0
@@ -118,7 +123,7 @@ def test_live_session_converges_stops_and_has_a_result(tmp_path, lab_dir):
 
         # stopped with a final result that beats the initial estimate
         assert stopped["state"] == "stopped" and stopped["stopped_by"] == "request"
-        ref = {k: v.pose for k, v in load_extrinsics(lab_dir / "reference.yaml").items()}
+        ref = {k: v.pose for k, v in parse_extrinsics(body["reference_yaml"]).items()}
         init = {k: v.pose for k, v in parse_extrinsics(body["initial_yaml"]).items()}
         result = parse_extrinsics(client.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text)
         before, after = evaluate(init, ref), evaluate({k: v.pose for k, v in result.items()}, ref)
@@ -134,7 +139,7 @@ def test_live_session_converges_stops_and_has_a_result(tmp_path, lab_dir):
         # every cycle went out on Zenoh
         assert len(updates) >= 3
         last = json.loads(updates[-1])
-        assert last["session"] == sid and len(last["cameras"]) == 20
+        assert last["session"] == sid and set(last["cameras"]) == set(CAMS)
 
 
 # ------------------------------------------------------------------ restart after SIGKILL
@@ -186,7 +191,7 @@ def test_restart_after_sigkill_resumes_the_session(tmp_path, lab_dir):
             rec = json.loads((d / "session.json").read_text())
             snap = json.loads((d / "snapshot.json").read_text())
             assert rec["state"] in ("calibrating", "converged")  # it was running when it died
-            assert set(parse_extrinsics((d / "result.yaml").read_text())) == {f"cam_{i}" for i in range(20)}
+            assert set(parse_extrinsics((d / "result.yaml").read_text())) == set(CAMS)
             killed_at = snap["cycle"]
             assert killed_at >= 2  # the last cycle's files may not have been written when it died
 
