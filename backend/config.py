@@ -73,11 +73,9 @@ class OptimizeConfig(_Section):
 
 
 class RefineConfig(_Section):
-    initial_std_translation: float = Field(0.025, gt=0, description="m: std of the initial estimate in the first cycles' priors (paper)")
-    initial_std_rotation: float = Field(1.0, gt=0, description="deg (paper)")
-    batch_std_translation: float = Field(0.25, gt=0, description="m: how far the initial estimate may really be off; "
-                                         "the prior of the final batch adjustment (a soft gauge)")
-    batch_std_rotation: float = Field(10.0, gt=0, description="deg")
+    initial_std_translation: float = Field(0.25, gt=0, description="m: how far the initial estimate may be off (its std; "
+                                           "the paper uses 0.025, which makes the filter creep from worse starts)")
+    initial_std_rotation: float = Field(10.0, gt=0, description="deg (paper: 1)")
     filter_std_translation: float = Field(0.025, gt=0, description="m: process noise unit of the Kalman cycles (paper's initial std)")
     filter_std_rotation: float = Field(1.0, gt=0, description="deg")
     process_noise: float = Field(0.05, ge=0, description="fraction of the initial std added per cycle")

@@ -163,8 +163,7 @@ class Pipeline:
             P0 = np.repeat(np.diag([r * r] * 3 + [s * s] * 3)[None], C, axis=0)
         else:
             prior_R, prior_t = rf.R0.copy(), rf.t0.copy()
-            r, s = np.radians(rc.batch_std_rotation), rc.batch_std_translation
-            P0 = np.repeat(np.diag([r * r] * 3 + [s * s] * 3)[None], C, axis=0)
+            P0 = np.repeat(initial_covariance(rc)[None], C, axis=0)
         opt = self.cfg.optimize
         if kind == "batch":
             opt = opt.model_copy(update={"max_iterations": max(opt.max_iterations, 100)})
