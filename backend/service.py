@@ -210,20 +210,9 @@ class Solver:
 def failed_solution(problem: Any, reason: str) -> Any:
     """A Solution that says the solve did not happen, so that apply() rejects the cycle
     (and the pipeline has no cycle in flight any more)."""
-    import dataclasses
+    from .optimize import failed
 
-    from .optimize import Solution
-
-    C = len(problem.R)
-    known = {
-        "ok": False, "reason": reason, "R": problem.R.copy(), "t": problem.t.copy(),
-        "cov": np.full((C, 6, 6), np.nan), "active": np.zeros(C, dtype=bool),
-        "obs_per_camera": np.zeros(C, dtype=np.int64), "hypotheses": 0,
-        "landmarks": np.zeros((0, 3)), "residual_px": np.zeros(0),
-        "initial_error": float("nan"), "final_error": float("nan"), "iterations": 0, "seconds": 0.0,
-    }
-    return Solution(**{f.name: known[f.name] for f in dataclasses.fields(Solution) if f.name in known
-                       or f.default is dataclasses.MISSING})
+    return failed(problem, reason)
 
 
 # ------------------------------------------------------------------ writer
@@ -256,6 +245,10 @@ class Writer:
                     self.errors += 1
                     self.error = f"{type(e).__name__}: {e}"
                     log.error("state directory write failed: %s", self.error)
+                except Exception as e:  # a bug in one write must not stop the others
+                    self.errors += 1
+                    self.error = f"{type(e).__name__}: {e}"
+                    log.exception("writer task failed")
             finally:
                 self._q.task_done()
 
@@ -671,16 +664,31 @@ class Service:
             else:
                 rec.state = SessionState.calibrating
                 rec.reason = _calibrating_reason(state, report, getattr(s.pipeline, "phase", None))
-        line = _history_line(report, state, rec, acc)
-        self.writer.submit(self.store.append_history, rec.id, [line])
+        self._write_cycle(rec, report, state, acc)
         due = time.monotonic() - s.last_snapshot >= self.settings.snapshot_interval
         self._persist(s, snapshot=due)
         self._publish_calibration(s)
-        self.events.publish("cycle", {"session": rec.id, **line})
         if rec.stop.max_cycles is not None and state.cycle >= rec.stop.max_cycles:
             self._begin_stop(s, "max_cycles")
         elif rec.stop.converged and state.converged:
             self._begin_stop(s, "converged")
+
+    def _write_cycle(self, rec: SessionRecord, report: "CycleReport", state: "CalibrationState",
+                     acc: dict[str, Any] | None, **extra: Any) -> None:
+        """The cycle's history line, built and appended in the writer thread (per camera
+        work for 100 cameras is milliseconds), then sent to the event stream in order."""
+        sid, state_name, store, loop, events = rec.id, rec.state.value, self.store, self._loop, self.events
+
+        def write() -> None:
+            line = {**_history_line(report, state, state_name, acc), **extra}
+            try:
+                store.append_history(sid, [line])
+            finally:
+                if loop is not None:
+                    with contextlib.suppress(RuntimeError):
+                        loop.call_soon_threadsafe(events.publish, "cycle", {"session": sid, **line})
+
+        self.writer.submit(write)
 
     def _check_duration(self, s: ActiveSession, now: float) -> None:
         rec = s.record
@@ -733,12 +741,13 @@ class Service:
     def _publish_calibration(self, s: ActiveSession) -> None:
         if self._publisher is None:
             return
-        d = self.calibration_dict(s)
+        build = self._calibration_doc(s)
         pub = self._publisher
 
         def put() -> None:
+            payload = dumps_json(build()).encode()
             with contextlib.suppress(Exception):  # a closing session: the update is moot
-                pub.put(dumps_json(d).encode())
+                pub.put(payload)
 
         # put() can block on a congested link: not on the loop. Through the writer task
         # so that updates go out in order.
@@ -915,8 +924,7 @@ class Service:
             if acc is not None:
                 rec.accuracy = acc
             if rec.final_batch.get("ran") and s.pipeline.last_report is not None:
-                self.writer.submit(self.store.append_history, rec.id,
-                                   [{**_history_line(s.pipeline.last_report, s.state, rec, acc), "final_batch": True}])
+                self._write_cycle(rec, s.pipeline.last_report, s.state, acc, final_batch=True)
             rec.state = SessionState.stopped
             rec.reason = {
                 "request": "stopped on request", "duration": f"stop criterion: duration {rec.stop.duration:g} s reached"
@@ -1003,19 +1011,28 @@ class Service:
         return await asyncio.to_thread(read)
 
     def calibration_dict(self, s: ActiveSession) -> dict[str, Any]:
-        state = s.state
-        cams = {}
-        res = s.resolutions
-        for c in state.cameras:
-            d = c.to_dict()
-            d.pop("name")
-            d["resolution"] = list(res[c.name])
-            cams[c.name] = d
-        return clean_json({
-            "site": self.settings.site, "session": s.record.id, "state": s.record.state.value,
-            "cycle": state.cycle, "data_time": state.data_time, "converged": state.converged,
-            "accuracy": s.record.accuracy, "cameras": cams,
-        })
+        return self._calibration_doc(s)()
+
+    def _calibration_doc(self, s: ActiveSession) -> Callable[[], dict[str, Any]]:
+        """What calibration_dict needs, captured now; the returned function builds the
+        document anywhere (the state is frozen), e.g. in the writer thread."""
+        state, res, site = s.state, s.resolutions, self.settings.site
+        sid, state_name = s.record.id, s.record.state.value
+        accuracy = dict(s.record.accuracy) if s.record.accuracy else None
+
+        def build() -> dict[str, Any]:
+            cams = {}
+            for c in state.cameras:
+                d = c.to_dict()
+                d.pop("name")
+                d["resolution"] = list(res[c.name])
+                cams[c.name] = d
+            return clean_json({
+                "site": site, "session": sid, "state": state_name, "cycle": state.cycle,
+                "data_time": state.data_time, "converged": state.converged, "accuracy": accuracy, "cameras": cams,
+            })
+
+        return build
 
     def _latest_finished(self) -> dict[str, Any] | None:
         for sid in reversed(self.store.ids()):
@@ -1212,13 +1229,13 @@ def _waiting_reason(counters: Any, cfg: EngineConfig, sensors: SensorTable, name
             f"needs {need} waiting")
 
 
-def _history_line(report: "CycleReport", state: "CalibrationState", rec: SessionRecord,
+def _history_line(report: "CycleReport", state: "CalibrationState", state_name: str,
                   acc: dict[str, Any] | None) -> dict[str, Any]:
     cams = state.cameras
     return {
         **report.to_dict(),
         "wall": time.time(),
-        "state": rec.state.value,
+        "state": state_name,
         "converged": state.converged,
         "cameras_converged": sum(1 for c in cams if c.converged),
         "cameras_calibrated": sum(1 for c in cams if c.cycles > 0),
