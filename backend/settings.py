@@ -62,10 +62,18 @@ class HttpSettings(_Model):
 
 class ZenohOptions(_Model):
     mode: Literal["peer", "client", "router"] = "peer"
-    listen: tuple[str, ...] = Field((DEFAULT_LISTEN,), description="endpoints to listen on")
+    listen: tuple[str, ...] | None = Field(
+        None, description=f"endpoints to listen on (default: {DEFAULT_LISTEN} for a peer or router, none for a client)")
     connect: tuple[str, ...] = Field((), description="endpoints (routers, peers) to connect to")
     multicast_scouting: bool = Field(False, description="off: sensors find the backend through explicit endpoints")
     config_file: Path | None = Field(None, description="a full Zenoh JSON5 config (TLS, access control); the fields above override it")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_listen(cls, data: Any) -> Any:
+        if isinstance(data, dict) and data.get("listen") is None:
+            data = {**data, "listen": () if data.get("mode") == "client" else (DEFAULT_LISTEN,)}
+        return data
 
     def transport(self) -> ZenohSettings:
         return ZenohSettings(
@@ -90,7 +98,7 @@ class ServiceSettings(BaseSettings):
 
     site: str = Field(DEFAULT_SITE, description="<site> in the Zenoh key expressions")
     http: HttpSettings = HttpSettings()
-    zenoh: ZenohOptions = ZenohOptions()
+    zenoh: ZenohOptions = Field(default_factory=lambda: ZenohOptions.model_validate({}))
     state_dir: Path = Field(Path("extrcal-state"), description="sessions, results, history, snapshots")
     token: SecretStr | None = Field(None, description="bearer token for state-changing endpoints")
     protect_reads: bool = Field(False, description="require the token for read endpoints too")

@@ -111,3 +111,9 @@ def test_serve_command_refuses_bad_addresses():
         port = taken.getsockname()[1]
         r = CliRunner().invoke(app, ["serve", "--http", f"127.0.0.1:{port}", "--state-dir", "/nonexistent-extrcal"])
         assert r.exit_code == 2 and f"cannot listen on 127.0.0.1:{port}" in r.output
+
+
+def test_a_zenoh_client_listens_nowhere_by_default():
+    s = ServiceSettings.load(zenoh={"mode": "client", "connect": ("tcp/127.0.0.1:7447",)})
+    assert s.zenoh.listen == () and s.zenoh.transport().connect == ("tcp/127.0.0.1:7447",)
+    assert ServiceSettings.load(zenoh={"mode": "router"}).zenoh.listen == ("tcp/127.0.0.1:7447",)
