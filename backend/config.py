@@ -85,9 +85,11 @@ class RefineConfig(_Section):
         description="'marginal': the paper's update with the marginal covariance as noise (counts the prior twice); "
         "'posterior': the data-only information of the cycle",
     )
-    converged_translation: float = Field(0.002, gt=0, description="m: a camera is converged when its std and recent change are below")
-    converged_rotation: float = Field(0.05, gt=0, description="deg")
-    converged_cycles: int = Field(10, ge=1, description="cycles the change is averaged over")
+    converged_translation: float = Field(0.01, gt=0, description="m: a camera is converged when it moved less than this over the last converged_cycles cycles ...")
+    converged_rotation: float = Field(0.1, gt=0, description="deg ... and turned less than this ...")
+    converged_std_translation: float = Field(0.02, gt=0, description="m ... and its std is below this ...")
+    converged_std_rotation: float = Field(0.3, gt=0, description="deg ... and this")
+    converged_cycles: int = Field(10, ge=1, description="cycles over which the net pose change is measured")
     warmup_hypotheses: int = Field(
         0, ge=0,
         description="before the Kalman cycles, repeated batch solves over all frames so far (re-associated with "

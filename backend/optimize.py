@@ -111,6 +111,7 @@ class Solution:
     R: np.ndarray
     t: np.ndarray
     cov: np.ndarray
+    cov_shape: np.ndarray  # (C, 6, 6) the same with the similarity gauge projected out
     active: np.ndarray
     obs_per_camera: np.ndarray
     hypotheses: int
@@ -236,17 +237,27 @@ def solve(p: Problem) -> Solution:
     out = _solve_graph(p, g, R, t, marginals=p.marginals)
     if isinstance(out, str):
         return _failed(p, g, out, first_error, t0)
-    R, t, lms, _, final_error, its, cov, reason = out
+    R, t, lms, _, final_error, its, cov, cov_shape, reason = out
     res = residuals_px(R, t, lms, g.obs_cam, g.obs_lm, g.obs_xy, p.focal)
-    return Solution(reason == "", reason, R, t, cov, g.active, np.bincount(g.obs_cam, minlength=C),
+    return Solution(reason == "", reason, R, t, cov, cov_shape, g.active, np.bincount(g.obs_cam, minlength=C),
                     int(len(np.unique(g.lm_hyp))), res, float(first_error), float(final_error),
                     iterations + its, time.perf_counter() - t0)
+
+
+def failed(p: Problem, reason: str) -> Solution:
+    """A Solution saying the solve did not happen (a worker died, a time limit): apply()
+    rejects it and the estimate stays as it was."""
+    C = len(p.R)
+    nan = np.full((C, 6, 6), np.nan)
+    return Solution(False, reason, p.R.copy(), p.t.copy(), nan, nan.copy(), np.zeros(C, bool),
+                    np.zeros(C, np.int64), 0, np.zeros(0), float("nan"), float("nan"), 0, 0.0)
 
 
 def _failed(p: Problem, g: Graph, reason: str, initial: float | None, t0: float) -> Solution:
     C = len(p.R)
     e = float("nan") if initial is None else initial
-    return Solution(False, reason, p.R.copy(), p.t.copy(), np.full((C, 6, 6), np.nan), g.active,
+    nan = np.full((C, 6, 6), np.nan)
+    return Solution(False, reason, p.R.copy(), p.t.copy(), nan, nan.copy(), g.active,
                     np.bincount(g.obs_cam, minlength=C), int(len(np.unique(g.lm_hyp))),
                     np.zeros(len(g.obs_cam)), e, e, 0, time.perf_counter() - t0)
 
@@ -338,14 +349,43 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
     if not marginals:
         return out
     cov = np.full((C, 6, 6), np.nan)
+    cov_shape = cov.copy()
     reason = ""
     try:
         marg = gtsam.Marginals(graph, result)
-        for c in cams:
-            cov[c] = marg.marginalCovariance(X(c))
+        keys = gtsam.KeyVector([X(c) for c in cams])
+        joint = marg.jointMarginalCovariance(keys)
+        J = np.block([[joint.at(X(a), X(b)) for b in cams] for a in cams])
+        for i, c in enumerate(cams):
+            cov[c] = J[6 * i:6 * i + 6, 6 * i:6 * i + 6]
+        S = shape_covariance(R[cams], t[cams], J)
+        for i, c in enumerate(cams):
+            cov_shape[c] = S[6 * i:6 * i + 6, 6 * i:6 * i + 6]
     except RuntimeError as e:
         reason = f"marginals failed: {_first_line(e)}"
-    return out + (cov, reason)
+    return out + (cov, cov_shape, reason)
+
+
+def shape_covariance(R: np.ndarray, t: np.ndarray, joint: np.ndarray) -> np.ndarray:
+    """Joint pose covariance with the 7 similarity gauge directions projected out.
+
+    R: (K, 3, 3), t: (K, 3) poses; joint: (6K, 6K) covariance in GTSAM's body-frame
+    tangent (rotation, translation) per camera. The data see the cameras' shape, not
+    where the world is: this is the uncertainty of the shape (what a similarity-aligned
+    error measures), without the frame's uncertainty, which only the priors bound.
+    """
+    K = len(R)
+    assert joint.shape == (6 * K, 6 * K)
+    G = np.zeros((6 * K, 7))
+    for k in range(K):
+        Rt = R[k].T
+        tx = np.array([[0, -t[k, 2], t[k, 1]], [t[k, 2], 0, -t[k, 0]], [-t[k, 1], t[k, 0], 0]])
+        G[6 * k:6 * k + 3, 0:3] = Rt  # world rotation ω seen in the body frame
+        G[6 * k + 3:6 * k + 6, 0:3] = -Rt @ tx  # ω × t moves the centre
+        G[6 * k + 3:6 * k + 6, 3:6] = Rt  # world translation
+        G[6 * k + 3:6 * k + 6, 6] = Rt @ t[k]  # scale about the origin
+    P = np.eye(6 * K) - G @ np.linalg.pinv(G)
+    return P @ joint @ P.T
 
 
 def _first_line(e: BaseException) -> str:

@@ -114,7 +114,7 @@ class Pipeline:
         gate = np.full(C, np.inf)
         for c in range(C):
             if self.refiner.cycles[c] >= 2:
-                st, sr = self.refiner.std(c)
+                st, sr = self.refiner.std(c, shape=False)
                 gate[c] = a.gate_pixels + 3 * self.focal[c] * (np.radians(sr) + st / 3.0)
         return gate
 
@@ -169,7 +169,10 @@ class Pipeline:
             opt = opt.model_copy(update={"max_iterations": max(opt.max_iterations, 100)})
         return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=prior_R, prior_t=prior_t,
                        prior_cov=P0, focal=self.focal, config=opt, frames=tuple(self.frames),
-                       associate=self.cfg.associate, gate_px=self._gate(), max_hypotheses=max_hypotheses,
+                       associate=self.cfg.associate,
+                       # the batch re-associates ungated: a camera the filter got wrong must
+                       # keep its views to be put right; the solve's outlier rounds drop bad ones
+                       gate_px=None if kind == "batch" else self._gate(), max_hypotheses=max_hypotheses,
                        spacing=spacing, seed=int(self.rng.integers(2**31)), kind=kind)
 
     def apply(self, problem: Problem, solution: Solution) -> CycleReport:
@@ -191,7 +194,8 @@ class Pipeline:
                 # a trust-region step: poses move, the covariance stays the initial one
                 upd = self.refiner.move(solution.active, solution.R, solution.t)
             else:
-                upd = self.refiner.update(solution.active, solution.R, solution.t, solution.cov, posterior=batch)
+                upd = self.refiner.update(solution.active, solution.R, solution.t, solution.cov, posterior=batch,
+                                          cov_shape=solution.cov_shape)
             change_t = float(upd.changed_translation.max())
             change_r = float(upd.changed_rotation.max())
             if batch:
@@ -279,7 +283,7 @@ class Pipeline:
         for c, n in enumerate(self.names):
             ct, cr = rf.change(c)
             cams.append(CameraState(
-                name=n, R=rf.R[c].copy(), t=rf.t[c].copy(), cov=rf.P[c].copy(),
+                name=n, R=rf.R[c].copy(), t=rf.t[c].copy(), cov=rf.S[c].copy(),
                 observations=int(self.observations[c] + self.observations_warmup[c]), cycles=int(rf.cycles[c]),
                 change_translation=ct, change_rotation=cr, converged=rf.converged(c),
                 last_seen=self.last_seen.get(n),
@@ -292,12 +296,12 @@ class Pipeline:
         """JSON-able state to resume from: the estimate, not the buffered data."""
         rf = self.refiner
         return {
-            "version": 1,
+            "version": 2,
             "names": list(self.names),
-            "R": rf.R.tolist(), "t": rf.t.tolist(), "P": rf.P.tolist(),
+            "R": rf.R.tolist(), "t": rf.t.tolist(), "P": rf.P.tolist(), "S": rf.S.tolist(),
             "R0": rf.R0.tolist(), "t0": rf.t0.tolist(),
             "cycles": rf.cycles.tolist(),
-            "history": [list(map(list, h)) for h in rf.history],
+            "history": [[[t.tolist(), R.tolist()] for t, R in h] for h in rf.history],
             "cycle": self.cycle,
             "phase": self.phase,
             "observations": self.observations.tolist(),
@@ -307,15 +311,15 @@ class Pipeline:
 
     @classmethod
     def restore(cls, cameras: CameraSet, config: EngineConfig, snapshot: dict, *, seed: int = 0) -> "Pipeline":
-        if snapshot.get("version") != 1 or list(snapshot.get("names", [])) != list(cameras.names):
+        if snapshot.get("version") != 2 or list(snapshot.get("names", [])) != list(cameras.names):
             raise ValueError("snapshot does not belong to this camera set")
         p = cls(cameras, config, seed=seed)
         rf = p.refiner
-        rf.R, rf.t, rf.P = (np.array(snapshot[k], dtype=np.float64) for k in ("R", "t", "P"))
+        rf.R, rf.t, rf.P, rf.S = (np.array(snapshot[k], dtype=np.float64) for k in ("R", "t", "P", "S"))
         rf.R0, rf.t0 = np.array(snapshot["R0"]), np.array(snapshot["t0"])
         rf.cycles = np.array(snapshot["cycles"], dtype=np.int64)
         for h, items in zip(rf.history, snapshot["history"]):
-            h.extend(tuple(x) for x in items)
+            h.extend((np.array(t, dtype=np.float64), np.array(R, dtype=np.float64)) for t, R in items)
         p.cycle = int(snapshot["cycle"])
         p.phase = snapshot.get("phase", p.phase)
         p.observations = np.array(snapshot["observations"], dtype=np.int64)

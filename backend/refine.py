@@ -62,16 +62,19 @@ class Refiner:
         self.R0, self.t0 = R0.copy(), t0.copy()  # the initial estimate: frame and scale
         self.R, self.t = R0.copy(), t0.copy()
         self.P = np.repeat(initial_covariance(cfg)[None], C, axis=0) if P0 is None else P0.copy()
+        # what is reported: the filter's covariance, or a solve's shape covariance (gauge removed)
+        self.S = self.P.copy()
         self.Q = _diag(cfg.filter_std_rotation, cfg.filter_std_translation) * cfg.process_noise**2
         self.cycles = np.zeros(C, dtype=np.int64)
-        self.history: list[deque] = [deque(maxlen=cfg.converged_cycles) for _ in range(C)]
+        # pose after each of the last cycles a camera took part in: (t (3,), R (3, 3))
+        self.history: list[deque] = [deque(maxlen=cfg.converged_cycles + 1) for _ in range(C)]
 
     def predicted_covariance(self) -> np.ndarray:
         """(C, 6, 6) prior covariance for the next cycle's graph."""
         return self.P + self.Q[None]
 
     def update(self, active: np.ndarray, R_new: np.ndarray, t_new: np.ndarray, cov: np.ndarray,
-               *, posterior: bool = False) -> UpdateResult:
+               *, posterior: bool = False, cov_shape: np.ndarray | None = None) -> UpdateResult:
         """Fold in one cycle's solution for the cameras in ``active`` (C,) bool.
 
         ``posterior``: the solution is already the full posterior (a batch whose prior
@@ -94,13 +97,21 @@ class Refiner:
         if not posterior:  # cameras without data this cycle still become less certain
             for c in np.flatnonzero(~active):
                 self.P[c] = Pp[c]
+        self.S = self.P.copy()
+        if cov_shape is not None:
+            for c in np.flatnonzero(active):
+                if np.all(np.isfinite(cov_shape[c])):
+                    self.S[c] = _sym_pd(cov_shape[c])
         scale = self.keep_scale() if self.cfg.keep_scale else 1.0
         dt = np.linalg.norm(self.t - t_old, axis=1)
         dr = np.array([rotation_angle_deg(R_old[c], self.R[c]) for c in range(C)])
+        self._record(active)
+        return UpdateResult(dt, dr, scale)
+
+    def _record(self, active: np.ndarray) -> None:
         for c in np.flatnonzero(active):
             self.cycles[c] += 1
-            self.history[c].append((dt[c], dr[c]))
-        return UpdateResult(dt, dr, scale)
+            self.history[c].append((self.t[c].copy(), self.R[c].copy()))
 
     def move(self, active: np.ndarray, R_new: np.ndarray, t_new: np.ndarray) -> UpdateResult:
         """Take new poses for the active cameras without touching the covariance."""
@@ -119,30 +130,36 @@ class Refiner:
         c = self.t.mean(0)
         self.t = c + s * (self.t - c)
         # The uncertainty of a position scales with it.
-        self.P[:, 3:, 3:] *= s * s
-        self.P[:, :3, 3:] *= s
-        self.P[:, 3:, :3] *= s
+        for M in (self.P, self.S):
+            M[:, 3:, 3:] *= s * s
+            M[:, :3, 3:] *= s
+            M[:, 3:, :3] *= s
         return float(s)
 
     def change(self, c: int) -> tuple[float, float]:
-        """Mean per-cycle change (m, deg) of camera c over the last cycles."""
+        """Net pose change (m, deg) of camera c over its last ``converged_cycles`` cycles:
+        a converging camera drifts; a converged one only jitters, which the filter averages."""
         h = self.history[c]
-        if not h:
+        if len(h) < 2:
             return float("inf"), float("inf")
-        a = np.array(h)
-        return float(a[:, 0].mean()), float(a[:, 1].mean())
+        (t0, R0), (t1, R1) = h[0], h[-1]
+        return float(np.linalg.norm(t1 - t0)), rotation_angle_deg(R0, R1)
 
-    def std(self, c: int) -> tuple[float, float]:
-        P = self.P[c]
+    def std(self, c: int, *, shape: bool = True) -> tuple[float, float]:
+        """(m, deg) of camera c: by default without the uncertainty of the world frame
+        when a solve provided it; ``shape=False``: the filter's own covariance."""
+        P = self.S[c] if shape else self.P[c]
         return (float(np.sqrt(max(np.trace(P[3:, 3:]) / 3, 0))),
                 float(np.degrees(np.sqrt(max(np.trace(P[:3, :3]) / 3, 0)))))
 
     def converged(self, c: int) -> bool:
-        """Converged: enough cycles, and both the recent mean change and the std are
-        below the thresholds."""
-        if self.cycles[c] < self.cfg.converged_cycles:
+        """Converged: at least ``converged_cycles`` cycles, the net change over them below
+        ``converged_translation``/``converged_rotation`` and the std below
+        ``converged_std_translation``/``converged_std_rotation``."""
+        cfg = self.cfg
+        if self.cycles[c] < cfg.converged_cycles:
             return False
         ct, cr = self.change(c)
         st, sr = self.std(c)
-        return (ct <= self.cfg.converged_translation and cr <= self.cfg.converged_rotation
-                and st <= self.cfg.converged_translation and sr <= self.cfg.converged_rotation)
+        return (ct <= cfg.converged_translation and cr <= cfg.converged_rotation
+                and st <= cfg.converged_std_translation and sr <= cfg.converged_std_rotation)
