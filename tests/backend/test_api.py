@@ -258,3 +258,33 @@ def test_optional_parts_are_wired(client):
     assert r.status_code == 200 and "extrcal_" in r.text
     pytest.importorskip("backend.api.dashboard")
     assert client.get("/").status_code == 200
+
+
+def test_create_app_alone_runs_its_service_in_the_lifespan(tmp_path):
+    """create_app(settings) without a service is a complete app (e.g. for uvicorn --factory)."""
+    import asyncio
+
+    import uvicorn
+
+    from backend.api import create_app
+
+    port = free_port()
+    settings = ServiceSettings.load(None, zenoh={"listen": (f"tcp/127.0.0.1:{port}",)}, state_dir=tmp_path)
+
+    async def main() -> tuple[dict, dict]:
+        server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=0, log_level="warning"))
+        server.capture_signals = __import__("contextlib").nullcontext  # a test: leave signals alone
+        task = asyncio.create_task(server.serve())
+        while not server.started:
+            assert not task.done(), "uvicorn did not start"
+            await asyncio.sleep(0.01)
+        http_port = server.servers[0].sockets[0].getsockname()[1]
+        async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{http_port}") as c:
+            health = (await c.get("/healthz")).json()
+            status = (await c.get("/status")).json()
+        server.should_exit = True
+        await task
+        return health, status
+
+    health, status = asyncio.run(main())
+    assert health["ok"] is True and status["zenoh"]["listen"] == [f"tcp/127.0.0.1:{port}"]
