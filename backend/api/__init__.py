@@ -24,15 +24,15 @@ Start one with `POST /sessions`, watch it with `GET /sessions/{id}` or the event
 `GET /events`, stop it with `POST /sessions/{id}/stop`, fetch the result with
 `GET /sessions/{id}/result` or the current calibration with `GET /calibration`.
 
-**Convergence.** After every optimisation cycle each camera's estimate has a standard
-deviation (from the Kalman filter's covariance) and a recent change (the mean pose change
-per cycle over the last `refine.converged_cycles` cycles, default 10). A camera is
-*converged* when it took part in at least that many cycles and its translation std and
-change are both at most `refine.converged_translation` (default 0.002 m) and its rotation
-std and change at most `refine.converged_rotation` (default 0.05°). A session is
-*converged* when every camera that took part in a cycle is converged; cameras nobody was
-seen by are listed but do not hold convergence back. All thresholds are session `config`
-overrides.
+**Convergence.** After every cycle each camera has a standard deviation (from the
+filter's covariance) and a recent pose change over its last `refine.converged_cycles`
+cycles. A camera is *converged* when it took part in at least that many cycles and both
+its change and its std are within the thresholds below; a session is *converged* when
+every camera that took part in a cycle is converged (cameras nobody saw are listed with
+`cycles: 0` and do not hold it back). The thresholds are session `config` overrides;
+their defaults in this build:
+
+{thresholds}
 
 **Authentication.** When the service has a token, state-changing endpoints (POST) need
 `Authorization: Bearer <token>` (and read endpoints too with `protect_reads`).
@@ -71,7 +71,7 @@ def create_app(settings: "ServiceSettings", service: "Service | None" = None) ->
     app = FastAPI(
         title="extrcal service",
         version="1",
-        description=DESCRIPTION,
+        description=DESCRIPTION.replace("{thresholds}", _thresholds()),
         lifespan=lifespan,
         openapi_tags=[
             {"name": "sessions", "description": "calibration sessions: start, watch, stop, results"},
@@ -87,6 +87,17 @@ def create_app(settings: "ServiceSettings", service: "Service | None" = None) ->
         app.include_router(r.router)
     _optional_parts(app, service)
     return app
+
+
+def _thresholds() -> str:
+    """The engine's convergence settings, from its config model (always in step with it)."""
+    from ..config import RefineConfig
+
+    lines = []
+    for name, f in RefineConfig.model_fields.items():
+        if name.startswith("converged"):
+            lines.append(f"- `refine.{name}` = {f.default}: {f.description or ''}")
+    return "\n".join(lines)
 
 
 def _optional_parts(app: "FastAPI", service: "Service") -> None:

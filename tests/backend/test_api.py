@@ -57,7 +57,8 @@ def _stop_all(client):
 def test_health_and_openapi_documents_convergence(client):
     assert client.get("/healthz").json()["ok"] is True
     spec = client.get("/openapi.json").json()
-    assert "A camera is\n*converged*" in spec["info"]["description"] or "*converged*" in spec["info"]["description"]
+    desc = spec["info"]["description"]
+    assert "A camera is *converged*" in desc and "- `refine.converged_cycles` = " in desc
     for path in ("/sessions", "/sessions/{sid}", "/sessions/{sid}/stop", "/sessions/{sid}/result",
                  "/calibration", "/status", "/events", "/healthz"):
         assert path in spec["paths"], path
