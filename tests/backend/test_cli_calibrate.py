@@ -1,0 +1,178 @@
+"""`extrcal calibrate` on a small simulated recording."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import re
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from backend.cameras import Extrinsics, load_extrinsics, save_extrinsics, save_intrinsics
+from backend.evaluate import evaluate
+from backend.perturb import perturb_extrinsics
+from edge_clients.sim import Scene, SimConfig, Simulator
+
+WEST = ("cam_11", "cam_13", "cam_14", "cam_15", "cam_16", "cam_17")
+ABSENT = "cam_5"  # in the camera files, never in the recording
+
+
+@pytest.fixture(scope="module")
+def cli():
+    from backend.cli import _register_all, app
+
+    _register_all()
+    return app
+
+
+@pytest.fixture(scope="module")
+def files(lab_dir, tmp_path_factory):
+    d = tmp_path_factory.mktemp("calibrate")
+    full = Scene.load(lab_dir)
+    scene = Scene.from_cameras({n: full.intrinsics[n] for n in WEST}, {n: full.poses[n] for n in WEST},
+                               lab_dir / "room.yaml")
+    rec = d / "rec.jsonl.gz"
+    Simulator(scene, SimConfig(persons=2, duration=10.0, seed=2, heights=(1.9, 1.75))).write(rec)
+    names = WEST + (ABSENT,)
+    save_intrinsics(d / "intrinsics.yaml", {n: full.intrinsics[n] for n in names})
+    ref = {n: Extrinsics(full.poses[n], full.intrinsics[n].resolution) for n in names}
+    save_extrinsics(d / "reference.yaml", ref)
+    save_extrinsics(d / "initial.yaml", perturb_extrinsics(ref, 0.05, 2.0, seed=1))
+    (d / "engine.toml").write_text("[select]\nscope = 15\n\n[refine]\nfinal_batch = true\n")
+    return d
+
+
+def _invoke(cli, *argv):
+    return CliRunner().invoke(cli, ["calibrate", *[str(a) for a in argv]])
+
+
+def _args(d, rec, out, *extra):
+    return ("--intrinsics", d / "intrinsics.yaml", "--initial", d / "initial.yaml", "--recording", rec,
+            "--output", out, *extra)
+
+
+CALIBRATE_ARGS = ("--config", "engine.toml", "--set", "select.min_spacing=0.25", "--seed", "1")
+
+
+def _configured(d):
+    return [str(d / a) if a.endswith(".toml") else a for a in CALIBRATE_ARGS]
+
+
+@pytest.fixture(scope="module")
+def calibrated(cli, files):
+    """One run on the JSON Lines recording, with a reference and a history."""
+    d = files
+    out, hist = d / "out.yaml", d / "history.jsonl"
+    r = _invoke(cli, *_args(d, d / "rec.jsonl.gz", out, "--reference", d / "reference.yaml",
+                            "--history", hist, *_configured(d)))
+    return r, out, hist
+
+
+def test_calibrate_writes_extrinsics_history_and_names_uncalibrated_cameras(files, calibrated):
+    d = files
+    r, out, hist = calibrated
+    assert r.exit_code == 0, r.output
+    assert f"wrote {out}" in r.output
+    assert "vs reference: position" in r.output
+    assert re.search(rf"not calibrated.*{ABSENT}", r.output)
+
+    result = load_extrinsics(out)
+    assert set(result) == set(WEST) | {ABSENT}
+    for n, e in result.items():
+        assert e.std_translation is not None and e.std_rotation is not None
+        assert np.isfinite(e.std_translation) and e.std_translation > 0
+    text = out.read_text()
+    assert text.startswith("# extrcal calibrate of ")
+    named = re.search(r"# not calibrated \(kept initial pose\): (.*)", text).group(1).split(", ")
+    assert ABSENT in named
+    cycles = int(re.search(r"(\d+) cycles", text).group(1))
+    assert cycles >= 3
+    doc = yaml.safe_load(text)
+    assert {n for n, e in doc.items() if not e["calibrated"]} == set(named)
+    assert len(set(WEST) - set(named)) >= 4, r.output  # the cameras with data were calibrated
+
+    lines = [json.loads(x) for x in hist.read_text().splitlines()]
+    assert len(lines) == cycles
+    assert [x["cycle"] for x in lines] == list(range(1, cycles + 1))
+    for x in lines:
+        assert {c["name"] for c in x["cameras"]} == set(WEST) | {ABSENT}
+        assert {"std_translation", "std_rotation", "translation", "rotation"} <= set(x["cameras"][0])
+        assert x["report"]["solve_seconds"] > 0 and "error" in x
+    # the result is better than the start, in the history and in the file
+    ref = {n: e.pose for n, e in load_extrinsics(d / "reference.yaml").items()}
+    init = {n: e.pose for n, e in load_extrinsics(d / "initial.yaml").items()}
+    west = list(WEST)
+    assert evaluate({n: e.pose for n, e in result.items()}, ref, west).orientation.mean < \
+        evaluate(init, ref, west).orientation.mean / 2
+    assert lines[-1]["error"]["orientation"] < lines[0]["error"]["orientation"] + 1e-9
+
+
+def test_a_msgpack_recording_gives_the_same_result(cli, files, calibrated):
+    from proto import read_recording, write_recording
+
+    d = files
+    rec = d / "rec.msgpack"
+    write_recording(rec, read_recording(d / "rec.jsonl.gz"))
+    out = d / "out_msgpack.yaml"
+    r = _invoke(cli, *_args(d, rec, out, "--quiet", *_configured(d)))
+    assert r.exit_code == 0, r.output
+    a, b = load_extrinsics(calibrated[1]), load_extrinsics(out)
+    assert set(a) == set(b)
+    for n in a:  # the same messages, the same seed: the same numbers
+        np.testing.assert_array_equal(a[n].pose.t, b[n].pose.t)
+        np.testing.assert_array_equal(a[n].pose.R, b[n].pose.R)
+
+
+def test_a_reference_without_enough_common_cameras_is_a_clear_error(cli, files, tmp_path):
+    d = files
+    ref = load_extrinsics(d / "reference.yaml")
+    two = tmp_path / "two.yaml"
+    save_extrinsics(two, {n: ref[n] for n in WEST[:2]})
+    r = _invoke(cli, *_args(d, d / "rec.jsonl.gz", tmp_path / "o.yaml", "--quiet", "--reference", two,
+                            "--set", "select.scope=15"))
+    # a clear message (or a note), not a traceback after the whole run
+    assert r.exception is None or isinstance(r.exception, SystemExit), repr(r.exception)
+    assert "3 cameras" in r.output
+
+
+def test_a_broken_recording_is_reported_at_its_line(cli, files):
+    d = files
+    lines = gzip.open(d / "rec.jsonl.gz", "rt").read().splitlines()
+    bad = d / "broken.jsonl"
+    lines[6] = lines[6][: len(lines[6]) // 2]  # a line cut in half
+    bad.write_text("\n".join(lines) + "\n")
+    out = d / "never.yaml"
+    r = _invoke(cli, *_args(d, bad, out, "--quiet"))
+    assert r.exit_code == 2
+    assert f"{bad}:7" in r.output and "not JSON" in r.output
+    assert not out.exists()
+
+    # a well-formed line with a bad field names the line and the field
+    rec = json.loads(lines[3])
+    rec["size"] = [-1, 480]
+    lines[6] = json.dumps(rec)
+    bad.write_text("\n".join(lines) + "\n")
+    r = _invoke(cli, *_args(d, bad, out, "--quiet"))
+    assert r.exit_code == 2 and f"{bad}:7" in r.output and "size" in r.output
+    # --skip-bad goes on and counts it
+    r = _invoke(cli, *_args(d, bad, out, "--quiet", "--skip-bad", "--set", "select.scope=15"))
+    assert r.exit_code == 0, r.output
+    assert "1 bad records skipped" in r.output and out.exists()
+
+
+def test_bad_inputs_give_one_clear_error(cli, files, tmp_path):
+    d = files
+    out = tmp_path / "o.yaml"
+    r = _invoke(cli, *_args(d, tmp_path / "missing.jsonl", out))
+    assert r.exit_code == 2 and "does not exist" in r.output
+    r = _invoke(cli, *_args(d, d / "rec.jsonl.gz", out, "--set", "select.scoop=3"))
+    assert r.exit_code == 2 and "select.scoop" in r.output
+    broken = tmp_path / "initial.yaml"
+    broken.write_text("cam_11:\n  translation: [0, 0]\n  rotation: [0, 0, 0, 1]\n")
+    r = CliRunner().invoke(cli, ["calibrate", "--intrinsics", str(d / "intrinsics.yaml"), "--initial", str(broken),
+                                 "--recording", str(d / "rec.jsonl.gz"), "--output", str(out)])
+    assert r.exit_code == 2 and f"{broken}:2" in r.output and "translation" in r.output
+    assert not out.exists()

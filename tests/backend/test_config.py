@@ -1,0 +1,90 @@
+"""The engine's one typed config: the paper's defaults, TOML, --set, unknown keys."""
+
+from __future__ import annotations
+
+import pytest
+from pydantic import ValidationError
+
+from backend.config import ConfigError, EngineConfig, apply_override
+
+
+def test_defaults_are_the_papers():
+    c = EngineConfig()
+    assert (c.sync.max_span, c.sync.max_std) == (0.05, 0.025)
+    assert c.preprocess.min_confidence == 0.6 and c.preprocess.max_persons == 10
+    # 100 px at the paper's 848x480 as a fraction of the diagonal
+    assert c.preprocess.min_box_distance * (848**2 + 480**2) ** 0.5 == pytest.approx(100, abs=5)
+    a = c.associate
+    assert (a.min_height, a.max_height, a.max_distance, a.min_views) == (1.70, 2.00, 1.0, 2)
+    assert (a.hips_ratio, a.shoulders_ratio, a.torso_ratio) == (0.1526, 0.1753, 0.2924)
+    assert (c.select.scope, c.select.min_spacing, c.select.interval) == (50, 0.2, 0.5)
+    assert c.optimize.solver == "lm"
+    assert c.refine.process_noise == 0.05 and c.refine.keep_scale
+
+
+def test_toml_file_and_set_overrides(tmp_path):
+    f = tmp_path / "engine.toml"
+    f.write_text('[select]\nscope = 80\nmin_spacing = 0.3\n\n[optimize]\nrobust = "cauchy"\n'
+                 '[sync]\ninterpolate = false\n')
+    c = EngineConfig.load(f)
+    assert c.select.scope == 80 and c.select.min_spacing == 0.3
+    assert c.optimize.robust == "cauchy" and c.sync.interpolate is False
+    assert c.preprocess == EngineConfig().preprocess  # untouched sections keep their defaults
+    # --set wins over the file; values are TOML (numbers, booleans, strings) or bare strings
+    c = EngineConfig.load(f, ["select.scope=12", "sync.interpolate=true", "optimize.robust=huber",
+                              "refine.measurement='marginal'"])
+    assert c.select.scope == 12 and c.select.min_spacing == 0.3 and c.sync.interpolate is True
+    assert c.optimize.robust == "huber" and c.refine.measurement == "marginal"
+    assert EngineConfig.load(None, ["associate.max_distance=0.8"]).associate.max_distance == 0.8
+    assert EngineConfig.load(None) == EngineConfig()
+
+
+def test_unknown_keys_and_bad_values_are_errors_that_name_them(tmp_path):
+    f = tmp_path / "engine.toml"
+    f.write_text("[optimize]\nmax_iteration = 10\n")  # typo
+    with pytest.raises(ConfigError, match=r"optimize\.max_iteration") as e:
+        EngineConfig.load(f)
+    assert str(f) in str(e.value)
+    f.write_text("[optimise]\nmax_iterations = 10\n")  # unknown section
+    with pytest.raises(ConfigError, match="optimise"):
+        EngineConfig.load(f)
+    with pytest.raises(ConfigError, match=r"select\.bogus"):
+        EngineConfig.load(None, ["select.bogus=1"])
+    with pytest.raises(ConfigError, match=r"select\.scope"):
+        EngineConfig.load(None, ["select.scope=0"])  # must be >= 1
+    with pytest.raises(ConfigError, match=r"optimize\.solver"):
+        EngineConfig.load(None, ["optimize.solver=newton"])
+    with pytest.raises(ConfigError, match="section.key=value"):
+        EngineConfig.load(None, ["scope=3"])
+    with pytest.raises(ConfigError, match="section.key=value"):
+        EngineConfig.load(None, ["select.scope"])
+    with pytest.raises(ConfigError, match="does not exist"):
+        EngineConfig.load(tmp_path / "missing.toml")
+    f.write_text("[select\nscope = 3\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        EngineConfig.load(f)
+
+
+def test_merged_applies_nested_overrides_with_validation():
+    base = EngineConfig.load(None, ["select.scope=20"])
+    m = base.merged({"select": {"min_spacing": 0.5}, "refine": {"final_batch": False}})
+    assert m.select.scope == 20 and m.select.min_spacing == 0.5 and m.refine.final_batch is False
+    assert base.select.min_spacing == 0.2  # the original is unchanged
+    with pytest.raises(ConfigError, match=r"refine\.nope"):
+        base.merged({"refine": {"nope": 1}})
+    with pytest.raises(ConfigError, match=r"select\.scope"):
+        base.merged({"select": {"scope": -1}})
+
+
+def test_config_is_frozen():
+    c = EngineConfig()
+    with pytest.raises(ValidationError):
+        c.select.scope = 3  # type: ignore[misc]
+
+
+def test_apply_override_builds_nested_dicts():
+    d: dict = {}
+    apply_override(d, "select.scope=7")
+    apply_override(d, "select.newer_bias=1.5")
+    apply_override(d, "optimize.robust=none")
+    assert d == {"select": {"scope": 7, "newer_bias": 1.5}, "optimize": {"robust": "none"}}

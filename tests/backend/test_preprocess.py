@@ -1,0 +1,159 @@
+"""Preprocessing: the paper's filters, undistortion with the lab's real lenses, sigma."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from backend.cameras import Pose, load_intrinsics, project
+from backend.config import PreprocessConfig
+from backend.preprocess import JOINT_NOISE, TORSO, Preprocessor
+from backend.sync import Frameset, View
+
+
+@pytest.fixture(scope="module")
+def lab_intrinsics(lab_dir):
+    return load_intrinsics(lab_dir / "intrinsics.yaml")
+
+
+@pytest.fixture(scope="module")
+def pre(lab_intrinsics):
+    names = ("cam_0", "cam_4")  # 848x480 with 5 coefficients, 640x480 with 4
+    return lambda cfg=PreprocessConfig(): Preprocessor(cfg, names, {n: lab_intrinsics[n] for n in names})
+
+
+def _body(centre, height=1.8) -> np.ndarray:
+    """(17, 3) joints of an upright person in a camera frame (y down), facing the camera."""
+    h = height
+    x = {0: (0, -0.93), 1: (0.03, -0.95), 2: (-0.03, -0.95), 3: (0.07, -0.94), 4: (-0.07, -0.94),
+         5: (0.0877, -0.818), 6: (-0.0877, -0.818), 7: (0.12, -0.63), 8: (-0.12, -0.63),
+         9: (0.13, -0.47), 10: (-0.13, -0.47), 11: (0.0763, -0.526), 12: (-0.0763, -0.526),
+         13: (0.08, -0.28), 14: (-0.08, -0.28), 15: (0.08, -0.04), 16: (-0.08, -0.04)}
+    J = np.array([[x[j][0] * h, (x[j][1] + 0.5) * h, 0.0] for j in range(17)])
+    return J + np.asarray(centre, dtype=np.float64)
+
+
+def _view(sensor, persons_uv, size, *, conf=0.9, boxes=None, cov=None, offset=0.0, speed=None, seq=5):
+    kp = np.stack([np.c_[uv, np.full(17, conf) if np.isscalar(conf) else conf] for uv in persons_uv]) \
+        if persons_uv else np.zeros((0, 17, 3))
+    P = len(kp)
+    b = np.full((P, 4), np.nan) if boxes is None else np.asarray(boxes, dtype=np.float64)
+    sp = np.zeros((P, 17)) if speed is None else speed
+    return View(sensor, 100.0 + offset, offset, size, kp, b, cov, sp, offset == 0.0, seq, np.arange(P))
+
+
+def _pixels(intr, J):
+    uv, z = project(J, intr, Pose.identity())
+    assert np.all(z > 0)
+    return uv
+
+
+def test_undistorted_xy_is_the_normalised_projection(pre, lab_intrinsics):
+    p = pre()
+    rng = np.random.default_rng(0)
+    for cam in ("cam_0", "cam_4"):
+        intr = lab_intrinsics[cam]
+        W, H = intr.resolution
+        for _ in range(20):
+            # anywhere in the image, including its distorted edges
+            while True:
+                c = [rng.uniform(-2.5, 2.5), rng.uniform(-1.0, 1.0), rng.uniform(2.5, 6.0)]
+                J = _body(c)
+                uv = _pixels(intr, J)
+                if np.all((uv > 2) & (uv < [W - 2, H - 2])):
+                    break
+            dets = p.view(_view(cam, [uv], (W, H)))
+            assert len(dets) == 1
+            want = J[:, :2] / J[:, 2:]
+            assert np.abs(dets[0].xy - want).max() < 1e-9
+            assert dets[0].cam == ("cam_0", "cam_4").index(cam)
+            assert dets[0].focal == pytest.approx(0.5 * (intr.fx + intr.fy))
+    # distortion is not negligible: raw normalised pixels would be off
+    intr = lab_intrinsics["cam_0"]
+    J = _body([2.2, 0.0, 3.0])
+    raw = (_pixels(intr, J) - [intr.cx, intr.cy]) / [intr.fx, intr.fy]
+    assert np.abs(raw - J[:, :2] / J[:, 2:]).max() * intr.fx > 3  # px
+
+
+def test_a_message_at_another_resolution_with_the_same_aspect_is_scaled(pre, lab_intrinsics):
+    p = pre()
+    intr = lab_intrinsics["cam_0"]  # 848x480
+    J = _body([1.5, 0.1, 3.5])
+    uv = _pixels(intr, J) * 0.5  # the sensor sent 424x240 images' pixels
+    dets = p.view(_view("cam_0", [uv], (424, 240)))
+    assert len(dets) == 1
+    assert np.abs(dets[0].xy - J[:, :2] / J[:, 2:]).max() < 1e-9
+    assert dets[0].focal == pytest.approx(0.25 * (intr.fx + intr.fy))
+    # another aspect ratio cannot be the same camera: rejected, counted per person
+    assert p.view(_view("cam_0", [uv, uv + 300], (640, 480))) == []
+    assert p.rejected["resolution_mismatch"] == 2
+
+
+def test_confidence_threshold_drops_joints_and_a_missing_torso_joint_drops_the_person(pre, lab_intrinsics):
+    p = pre()
+    intr = lab_intrinsics["cam_4"]
+    uv = _pixels(intr, _body([0.0, 0.0, 4.0]))
+    conf = np.full(17, 0.9)
+    conf[9], conf[10], conf[0] = 0.59, 0.0, 0.6  # wrists below, nose at the threshold (kept)
+    [d] = p.view(_view("cam_4", [uv], intr.resolution, conf=conf))
+    assert np.all(np.isnan(d.xy[[9, 10]])) and np.all(np.isnan(d.sigma[[9, 10]]))
+    keep = np.setdiff1d(np.arange(17), [9, 10])
+    assert np.all(np.isfinite(d.xy[keep])) and np.all(np.isfinite(d.sigma[keep]))
+    for j in TORSO:
+        c = np.full(17, 0.9)
+        c[j] = 0.5
+        assert p.view(_view("cam_4", [uv], intr.resolution, conf=c)) == []
+    assert p.rejected["no_torso"] == 4
+    assert p.accepted == 1
+
+
+def test_persons_too_close_are_both_dropped(pre, lab_intrinsics):
+    p = pre()
+    intr = lab_intrinsics["cam_4"]  # 640x480: limit 0.1 * 800 = 80 px between boxes
+    a = _pixels(intr, _body([-0.3, 0.0, 5.0]))
+    b = _pixels(intr, _body([0.1, 0.0, 5.0]))  # overlapping a
+    far = _pixels(intr, _body([2.2, 0.0, 5.0]))
+    # boxes from the keypoints (the sensor sent none)
+    dets = p.view(_view("cam_4", [a, b, far], intr.resolution))
+    assert len(dets) == 1 and dets[0].index == 2
+    assert p.rejected["too_close"] == 2
+    # boxes sent by the sensor are used: the same persons with boxes far apart are kept
+    boxes = [[0, 0, 10, 10], [200, 200, 210, 210], [500, 400, 510, 410]]
+    assert len(p.view(_view("cam_4", [a, b, far], intr.resolution, boxes=boxes))) == 3
+    assert p.rejected["too_close"] == 2
+
+
+def test_crowded_views_are_dropped(pre, lab_intrinsics):
+    intr = lab_intrinsics["cam_4"]
+    p = pre(PreprocessConfig(max_persons=3, min_box_distance=0.0))
+    persons = [_pixels(intr, _body([x, 0.0, 6.0])) for x in (-2.0, -1.0, 0.0, 1.0)]
+    assert p.view(_view("cam_4", persons, intr.resolution)) == []
+    assert p.rejected["crowded_view"] == 4
+    assert len(p.view(_view("cam_4", persons[:3], intr.resolution))) == 3
+
+
+def test_sigma_from_the_sensor_covariance_or_the_confidence(pre, lab_intrinsics):
+    p = pre()
+    intr = lab_intrinsics["cam_4"]
+    uv = _pixels(intr, _body([0.0, 0.0, 4.0]))
+    cov = np.tile([9.0, 1.0, 16.0], (1, 17, 1))  # var x 9, y 16 px²
+    [d] = p.view(_view("cam_4", [uv], intr.resolution, cov=cov))
+    assert np.allclose(d.sigma, np.sqrt(12.5))
+    conf = np.linspace(0.6, 1.0, 17)
+    [d] = p.view(_view("cam_4", [uv], intr.resolution, conf=conf))
+    assert np.allclose(d.sigma, PreprocessConfig().pixel_sigma * JOINT_NOISE / conf)
+    # a nearest-message view 40 ms off, joints moving 100 px/s: 4 px more (in quadrature)
+    speed = np.full((1, 17), 100.0)
+    [d] = p.view(_view("cam_4", [uv], intr.resolution, cov=cov, offset=0.04, speed=speed))
+    assert np.allclose(d.sigma, np.sqrt(12.5 + 16.0))
+
+
+def test_frameset_keeps_provenance_and_leaves_out_empty_views(pre, lab_intrinsics):
+    p = pre()
+    i0, i4 = lab_intrinsics["cam_0"], lab_intrinsics["cam_4"]
+    v0 = _view("cam_0", [_pixels(i0, _body([0.5, 0.0, 4.0]))], i0.resolution, seq=11)
+    v4 = _view("cam_4", [], i4.resolution)
+    out = p(Frameset(100.0, (v0, v4)))
+    assert len(out) == 1 and len(out[0]) == 1
+    d = out[0][0]
+    assert (d.cam, d.seq, d.index) == (0, 11, 0)
