@@ -146,7 +146,6 @@ def run_demo(*, speed: float, duration: float, http: str, persons: int, translat
     import multiprocessing
     import sys
     import tempfile
-    import time
 
     import httpx
 

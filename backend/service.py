@@ -42,11 +42,11 @@ import numpy as np
 from proto import MessageError, decode, keys
 from proto.keys import sensor_of
 
-from .cameras import dump_extrinsics, natural_key, parse_extrinsics, parse_intrinsics
+from .cameras import dump_extrinsics, parse_extrinsics, parse_intrinsics
 from .config import ConfigError, EngineConfig
 from .ingest import HandOff, SensorTable, ServiceClock
 from .session import (
-    NotAvailable, SessionConflict, SessionInputError, SessionInputs, SessionNotFound, SessionRecord,
+    NotAvailable, SessionConflict, SessionInputError, SessionInputs, SessionRecord,
     SessionState, SessionStore, StopCriteria, clean_json, dumps_json, new_session_id,
 )
 from .settings import ServiceSettings
@@ -316,7 +316,6 @@ class Service:
         self.started_wall = time.time()
         self.started = asyncio.Event()
         self.http_address: tuple[str, int] | None = None
-        self.zenoh_locators: list[str] = []
         self.handoff: HandOff | None = None
         self._closing = False
         self._stop = asyncio.Event()
@@ -410,8 +409,6 @@ class Service:
 
         qbl = zs.declare_queryable(keys.calibration(site), on_query)
         self._publisher = zs.declare_publisher(keys.calibration(site), encoding=zenoh.Encoding("application/json"))
-        with contextlib.suppress(Exception):
-            self.zenoh_locators = [str(x) for x in zs.info.locators()] if hasattr(zs.info, "locators") else []
         return [sub, live, qbl, self._publisher]
 
     @staticmethod
@@ -880,8 +877,7 @@ class Service:
             raise SessionInputError(f"config: {e}") from None
         except (TypeError, AttributeError) as e:
             raise SessionInputError(f"config: expected sections of objects, e.g. {{\"select\": {{\"scope\": 60}}}} ({e})") from None
-        inputs = SessionInputs.parse(resolved["intrinsics"], resolved["initial"], resolved["reference"], cfg,
-                                     {k: v if v != "upload" else "upload" for k, v in sources.items()})
+        inputs = SessionInputs.parse(resolved["intrinsics"], resolved["initial"], resolved["reference"], cfg, sources)
         return inputs, sources
 
     async def stop_session(self, sid: str, *, wait: bool = True, by: str = "request") -> dict[str, Any]:

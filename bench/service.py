@@ -62,7 +62,6 @@ def hall_cameras(n: int, seed: int = 0) -> tuple[dict[str, Intrinsics], dict[str
     intr0 = next(iter(load_intrinsics(LAB / "intrinsics.yaml").values()))
     rng = np.random.default_rng(seed)
     cols = int(math.ceil(math.sqrt(n * 1.5)))
-    rows = int(math.ceil(n / cols))
     intr, ext = {}, {}
     for i in range(n):
         r, c = divmod(i, cols)
