@@ -114,9 +114,12 @@ def publish_simulation(endpoint: str, site: str, persons: int, duration: float, 
     Runs in its own process: simulating 20 cameras takes most of a core, which the
     service's loop must not share. ``ready``/``stop`` are multiprocessing events.
     """
+    import signal
     import time as _time
 
     from edge_clients.publisher import SensorPublisher, zenoh_session
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is for the demo, which stops us via `stop`
     from edge_clients.sim import Scene, SimConfig, Simulator
     from proto.transport import ZenohSettings
 
