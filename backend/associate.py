@@ -2,8 +2,8 @@
 
 Each detection's torso size bounds its depth for persons of 1.70-2.00 m in any
 orientation; its torso-centre ray cut to that interval is a 3D line segment. Detections
-are taken by ascending depth and greedily joined to the hypothesis whose segments are
-closest (closest-point distance below ``max_distance``), at most one per camera. Once
+are grouped greedily by the closest-point distance of their segments (closest pairs
+first, complete linkage below ``max_distance``, at most one detection per camera). Once
 the camera poses are known well, every view of a hypothesis must also reproject its
 torso within a gate, which splits wrong associations that segments alone allow.
 """
@@ -66,12 +66,49 @@ def depth_interval(xy: np.ndarray, cfg: AssociateConfig) -> tuple[float, float]:
         1.0 / np.sqrt((to / (cfg.torso_ratio * lo_h)) ** 2 + (sh / (cfg.shoulders_ratio * lo_h)) ** 2 + eps),
         1.0 / np.sqrt((to / (cfg.torso_ratio * lo_h)) ** 2 + (hp / (cfg.hips_ratio * lo_h)) ** 2 + eps),
     )
+    # Off the optical axis a segment can look longer than L/d by up to sqrt(1 + |x|²)
+    # (it faces the ray, not the image plane): widen the upper bound by that much.
+    c = torso_centre(xy)
+    d_max *= float(np.sqrt(1.0 + c @ c))
     m = cfg.depth_margin
     d_min, d_max = d_min * (1 - m), d_max * (1 + m)
     if d_min > d_max:  # noisy keypoints: keep an interval around the geometric mean
         c = np.sqrt(d_min * d_max)
         d_min, d_max = c * (1 - m), c * (1 + m)
     return float(max(d_min, 0.1)), float(max(d_max, 0.2))
+
+
+def _cluster(dist: np.ndarray, cams: np.ndarray, depth: np.ndarray, limit: float) -> list[list[int]]:
+    """Complete-linkage grouping of detections: pairs closest first (nearer persons
+    first on ties), two groups merge when every cross pair is within ``limit`` and they
+    share no camera.
+
+    The paper walks detections by ascending depth and lets each join the best group
+    open at that moment; a near-miss of another person then takes a detection before its
+    true partners are seen. Taking the closest pairs first, over the whole frameset,
+    does not have that order dependence.
+    """
+    n = len(dist)
+    group = list(range(n))
+    members: dict[int, list[int]] = {i: [i] for i in range(n)}
+    ii, jj = np.triu_indices(n, 1)
+    d = dist[ii, jj]
+    ok = d < limit
+    ii, jj, d = ii[ok], jj[ok], d[ok]
+    for k in np.lexsort((depth[ii] + depth[jj], d)):
+        gi, gj = group[ii[k]], group[jj[k]]
+        if gi == gj:
+            continue
+        a, b = members[gi], members[gj]
+        if set(cams[a]) & set(cams[b]):
+            continue
+        if dist[np.ix_(a, b)].max() >= limit:
+            continue
+        for m in b:
+            group[m] = gi
+        a.extend(b)
+        del members[gj]
+    return [sorted(g, key=lambda m: depth[m]) for g in members.values()]
 
 
 def torso_centre(xy: np.ndarray) -> np.ndarray:
@@ -126,20 +163,7 @@ class Associator:
         cams = np.array([d.cam for d in dets])
         dist[cams[:, None] == cams[None, :]] = np.inf
 
-        groups: list[list[int]] = []
-        for k in np.argsort(depth, kind="stable"):
-            best, best_cost = None, self.cfg.max_distance
-            for g in groups:
-                if any(cams[m] == cams[k] for m in g):
-                    continue
-                cost = max(dist[k, m] for m in g)
-                if cost < best_cost:
-                    best, best_cost = g, cost
-            if best is None:
-                groups.append([int(k)])
-            else:
-                best.append(int(k))
-
+        groups = _cluster(dist, cams, np.asarray(depth), self.cfg.max_distance)
         out = []
         for g in groups:
             if len(g) < self.cfg.min_views:

@@ -49,6 +49,11 @@ def calibrate(
         ref = {k: v.pose for k, v in load_extrinsics(reference).items()} if reference else None
     except (ConfigError, CameraFileError) as e:
         raise fail(str(e))
+    if ref is not None:
+        common = set(ref) & set(cams.names)
+        if len(common) < 3:
+            raise fail(f"the reference {reference} shares {len(common)} cameras with the calibration; "
+                       "at least 3 cameras are needed to compare them")
     if not recording.is_file():
         raise fail(f"recording {recording} does not exist")
 

@@ -49,6 +49,10 @@ class AssociateConfig(_Section):
     min_views: int = Field(2, ge=2)
     reassociate: bool = Field(True, description="once cameras are certain, gate hypotheses by reprojection error")
     gate_pixels: float = Field(25.0, gt=0, description="px, a view whose torso reprojects further is split off")
+    relocalize: bool = Field(True, description="a camera whose detections stop joining hypotheses is re-localised by PnP")
+    relocalize_interval: float = Field(10.0, gt=0, description="s of data time between checks for lost cameras")
+    lost_ratio: float = Field(0.15, ge=0, le=1, description="a camera is lost when less than this share of its detections is associated ...")
+    lost_min_detections: int = Field(50, ge=1, description="... out of at least this many since the last check")
 
 
 class SelectConfig(_Section):

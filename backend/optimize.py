@@ -54,7 +54,8 @@ class Problem:
     spacing: float = 0.0
     seed: int = 0
     marginals: bool = True
-    kind: str = "cycle"  # cycle | warmup | batch
+    kind: str = "cycle"  # cycle | warmup | handover | batch | relocalize
+    lost: tuple[int, ...] = ()  # relocalize: the cameras to find again
 
     def __post_init__(self) -> None:
         C = len(self.R)
@@ -204,6 +205,8 @@ def solve(p: Problem) -> Solution:
     After each solve, views (one person in one camera) whose median joint residual is
     far above the rest are wrong associations or detections: they are dropped and the
     graph solved again from the last solution, up to ``outlier_rounds`` times."""
+    if p.kind == "relocalize":
+        return _relocalize(p)
     t0 = time.perf_counter()
     C = len(p.R)
     hyps = hypotheses_of(p)
@@ -242,6 +245,26 @@ def solve(p: Problem) -> Solution:
     return Solution(reason == "", reason, R, t, cov, cov_shape, g.active, np.bincount(g.obs_cam, minlength=C),
                     int(len(np.unique(g.lm_hyp))), res, float(first_error), float(final_error),
                     iterations + its, time.perf_counter() - t0)
+
+
+def _relocalize(p: Problem) -> Solution:
+    """Poses for the lost cameras by PnP against people the others triangulate."""
+    from .relocalize import relocalize
+
+    t0 = time.perf_counter()
+    C = len(p.R)
+    R, t = p.R.copy(), p.t.copy()
+    active = np.zeros(C, bool)
+    found = []
+    for c in p.lost:
+        r = relocalize(p.frames, c, p.R, p.t, float(p.focal[c]), p.associate, seed=p.seed)
+        if r is not None:
+            R[c], t[c], active[c] = r.R, r.t, True
+            found.append(f"{c}: {r.inliers}/{r.correspondences} inliers")
+    nan = np.full((C, 6, 6), np.nan)
+    reason = "" if found else "no lost camera could be re-localised"
+    return Solution(bool(found), reason, R, t, nan, nan.copy(), active, np.zeros(C, np.int64), 0,
+                    np.zeros(0), 0.0, 0.0, 0, time.perf_counter() - t0)
 
 
 def failed(p: Problem, reason: str) -> Solution:

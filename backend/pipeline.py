@@ -35,6 +35,9 @@ from .state import CalibrationState, CameraState, Counters, CycleReport
 from .sync import Synchronizer
 
 
+_CLOCK_SAMPLES = 16  # offline: messages held back to find a plausible start of time
+
+
 class Pipeline:
     def __init__(self, cameras: CameraSet, config: EngineConfig | None = None, *, seed: int = 0):
         self.cameras = cameras
@@ -56,6 +59,11 @@ class Pipeline:
         self.phase = "warmup" if self.cfg.refine.warmup_hypotheses > 0 else "filter"
         self.warmup_hypotheses_used = 0
         self.observations_warmup = np.zeros(C, dtype=np.int64)
+        # detections and associated detections per camera since the last lost-camera check
+        self.detected = np.zeros(C, dtype=np.int64)
+        self.associated = np.zeros(C, dtype=np.int64)
+        self.last_lost_check: float | None = None
+        self.relocalized: list[str] = []
         self.clock: float | None = None
         self.cycle = 0
         self.cycles_rejected = 0
@@ -66,15 +74,23 @@ class Pipeline:
         self.messages = 0
         self.rejected: Counter = Counter()
         self._inflight: Problem | None = None
+        self._pending: list[KeypointMessage] = []  # offline: held until the clock is known
 
     # ------------------------------------------------------------ front end
 
     def push(self, msg: KeypointMessage, arrival: float | None = None) -> str | None:
         """Take one validated message; returns the rejection reason or None.
 
-        ``arrival`` is the receiver's clock (live); offline the newest stamp so far
-        stands in for it, so a stamp absurdly far ahead cannot drag the clock along.
+        ``arrival`` is the receiver's clock (live). Offline the newest plausible stamp
+        stands in for it; until there is one, the first messages are held back and their
+        median stamp decides which are absurd (one bad stamp at the start of a recording
+        must not become the clock and reject everything after it).
         """
+        if arrival is None and self.clock is None:
+            self._pending.append(msg)
+            if len(self._pending) < _CLOCK_SAMPLES:
+                return None
+            return self._release_pending()
         self.messages += 1
         now = arrival if arrival is not None else self.clock
         reason = self.sync.push(msg, now)
@@ -86,8 +102,23 @@ class Pipeline:
             self.clock = msg.stamp
         return None
 
-    def advance(self, now: float) -> int:
-        """Run sync/preprocess/associate up to clock time ``now``; returns new hypotheses."""
+    def _release_pending(self) -> str | None:
+        """Establish the offline clock from the held-back messages and push them."""
+        pending, self._pending = self._pending, []
+        med = float(np.median([m.stamp for m in pending]))
+        limit = self.cfg.sync.max_stamp_future
+        ok = [m.stamp for m in pending if abs(m.stamp - med) <= limit]
+        self.clock = max(ok) if ok else med
+        reason = None
+        for m in sorted(pending, key=lambda m: m.stamp):
+            reason = self.push(m)
+        return reason
+
+    def advance(self, now: float | None) -> int:
+        """Run sync/preprocess/associate up to clock time ``now``; returns new hypotheses.
+        ``None`` (offline, before the clock is known) does nothing."""
+        if now is None:
+            return 0
         if self.clock is None or now > self.clock:
             self.clock = now
         new = 0
@@ -103,6 +134,10 @@ class Pipeline:
                 hyps = self.associate(fs.time, dets, R, t, gate)
                 self.queue.extend(hyps)
                 new += len(hyps)
+                for v in dets:
+                    self.detected[v[0].cam] += len(v)
+                for h in hyps:
+                    self.associated[h.cams] += 1
         return new
 
     def _gate(self) -> np.ndarray | None:
@@ -120,13 +155,13 @@ class Pipeline:
 
     # ------------------------------------------------------------ optimisation
 
-    def next_problem(self, now: float) -> Problem | None:
+    def next_problem(self, now: float | None) -> Problem | None:
         """A cycle's problem when one is due, else None. Only one is in flight at a time.
 
         Warm-up: a batch over every frame so far, re-associated with the current
         estimate, prior = the initial estimate. Then the paper's cycles: the queue's
         newest hypotheses, prior = the filter's predicted state."""
-        if self._inflight is not None:
+        if self._inflight is not None or now is None:
             return None
         rf, cfg = self.refiner, self.cfg
         if self.phase in ("warmup", "handover"):
@@ -137,6 +172,17 @@ class Pipeline:
                 return None
             p = self._batch_problem(self.phase, cfg.refine.warmup_hypotheses, cfg.select.min_spacing)
         else:
+            lost = self._lost_cameras(now)
+            if lost:
+                self.cycle += 1
+                horizon = self.frames[-1][0] - 180.0 if self.frames else 0.0
+                p = Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
+                            prior_cov=rf.predicted_covariance(), focal=self.focal, config=cfg.optimize,
+                            frames=tuple(f for f in self.frames if f[0] >= horizon), associate=cfg.associate,
+                            seed=int(self.rng.integers(2**31)), kind="relocalize", lost=tuple(lost))
+                self.last_cycle_time = now
+                self._inflight = p
+                return p
             if not self.queue.ready():
                 return None
             if self.last_cycle_time is not None and now - self.last_cycle_time < cfg.select.interval:
@@ -148,6 +194,23 @@ class Pipeline:
         self.last_cycle_time = now
         self._inflight = p
         return p
+
+    def _lost_cameras(self, now: float) -> list[int]:
+        """Cameras that see people but whose detections almost never join a hypothesis."""
+        a = self.cfg.associate
+        if not a.relocalize:
+            return []
+        if self.last_lost_check is None:
+            self.last_lost_check = now
+        if now - self.last_lost_check < a.relocalize_interval:
+            return []
+        self.last_lost_check = now
+        det, assoc = self.detected, self.associated
+        lost = np.flatnonzero((det >= a.lost_min_detections) & (assoc < a.lost_ratio * det))
+        # decay rather than reset: a camera that sees people rarely still adds up
+        self.detected = det // 2
+        self.associated = assoc // 2
+        return [int(c) for c in lost]
 
     def _batch_problem(self, kind: str, max_hypotheses: int, spacing: float) -> Problem:
         """Every archived frame, re-associated in the solve.
@@ -189,7 +252,11 @@ class Pipeline:
         accepted = reason == ""
         change_t = change_r = 0.0
         batch = problem.kind in ("warmup", "handover", "batch")
-        if accepted:
+        if accepted and problem.kind == "relocalize":
+            for c in np.flatnonzero(solution.active):
+                self.refiner.relocate(c, solution.R[c], solution.t[c])
+                self.relocalized.append(self.names[c])
+        elif accepted:
             if problem.kind == "warmup":
                 # a trust-region step: poses move, the covariance stays the initial one
                 upd = self.refiner.move(solution.active, solution.R, solution.t)
@@ -248,6 +315,8 @@ class Pipeline:
     def finish(self) -> CalibrationState:
         """Flush the front end, then (if configured) one batch adjustment over every
         archived frame re-associated with the final estimate."""
+        if self._pending:
+            self._release_pending()
         if self.clock is not None:
             self.advance(self.clock + self.cfg.sync.wait + 1.0 / self.cfg.sync.rate)
         if self.cfg.refine.final_batch and self.frames:

@@ -102,7 +102,7 @@ class Refiner:
             for c in np.flatnonzero(active):
                 if np.all(np.isfinite(cov_shape[c])):
                     self.S[c] = _sym_pd(cov_shape[c])
-        scale = self.keep_scale() if self.cfg.keep_scale else 1.0
+        scale = self.keep_scale(active) if self.cfg.keep_scale else 1.0
         dt = np.linalg.norm(self.t - t_old, axis=1)
         dr = np.array([rotation_angle_deg(R_old[c], self.R[c]) for c in range(C)])
         self._record(active)
@@ -117,23 +117,35 @@ class Refiner:
         """Take new poses for the active cameras without touching the covariance."""
         R_old, t_old = self.R.copy(), self.t.copy()
         self.R[active], self.t[active] = R_new[active], t_new[active]
-        scale = self.keep_scale() if self.cfg.keep_scale else 1.0
+        scale = self.keep_scale(active) if self.cfg.keep_scale else 1.0
         dt = np.linalg.norm(self.t - t_old, axis=1)
         dr = np.array([rotation_angle_deg(R_old[c], self.R[c]) for c in range(len(self.R))])
         return UpdateResult(dt, dr, scale)
 
-    def keep_scale(self) -> float:
-        """Rescale the centres about their centroid to the initial estimate's scale."""
-        if len(self.t) < 3:
+    def relocate(self, c: int, R: np.ndarray, t: np.ndarray) -> None:
+        """Camera c found elsewhere: new pose, the initial uncertainty, no history."""
+        self.R[c], self.t[c] = R, t
+        self.P[c] = initial_covariance(self.cfg)
+        self.S[c] = self.P[c].copy()
+        self.history[c].clear()
+        self.cycles[c] = 0
+
+    def keep_scale(self, active: np.ndarray | None = None) -> float:
+        """Rescale the calibrated cameras' centres about their centroid to the initial
+        estimate's scale. Cameras that never had data keep their initial pose exactly."""
+        m = self.cycles > 0
+        if active is not None:
+            m = m | active
+        if m.sum() < 3:
             return 1.0
-        s, _, _ = umeyama(self.t, self.t0, with_scale=True)
-        c = self.t.mean(0)
-        self.t = c + s * (self.t - c)
+        s, _, _ = umeyama(self.t[m], self.t0[m], with_scale=True)
+        c = self.t[m].mean(0)
+        self.t[m] = c + s * (self.t[m] - c)
         # The uncertainty of a position scales with it.
         for M in (self.P, self.S):
-            M[:, 3:, 3:] *= s * s
-            M[:, :3, 3:] *= s
-            M[:, 3:, :3] *= s
+            M[m, 3:, 3:] *= s * s
+            M[m, :3, 3:] *= s
+            M[m, 3:, :3] *= s
         return float(s)
 
     def change(self, c: int) -> tuple[float, float]:

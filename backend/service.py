@@ -154,6 +154,25 @@ class WorkTimes:
 # ------------------------------------------------------------------ solver process
 
 
+def _worker_init(parent: int) -> None:
+    """The solver process leaves SIGINT/SIGTERM to the service: Ctrl-C in a terminal and
+    systemd's stop signal reach the whole process group, and the cycle in flight must end
+    (the service shuts the pool down itself). If the service dies (kill -9), nothing
+    closes the pool's queue for us (the worker holds both ends), so a watchdog ends it."""
+    import os
+    import threading
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
+
+
 def _warm_up() -> int:
     """Import the optimiser (and gtsam) in the worker before the first cycle needs it."""
     from . import optimize  # noqa: F401
@@ -183,7 +202,10 @@ class Solver:
 
     def _ensure(self) -> ProcessPoolExecutor:
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=self._ctx)
+            import os
+
+            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=self._ctx, initializer=_worker_init,
+                                             initargs=(os.getpid(),))
         return self._pool
 
     async def run(self, fn: Callable, *args: Any) -> Any:
