@@ -157,6 +157,23 @@ def _serve(state_dir: Path, http_port: int, endpoint: str, site: str) -> subproc
     return proc
 
 
+def _children(pid: int) -> list[int]:
+    try:
+        return [int(x) for x in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except OSError:  # not Linux: nothing to check
+        return []
+
+
+def _gone(pids: list[int], timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    alive = list(pids)
+    while alive and time.monotonic() < deadline:
+        alive = [p for p in alive if Path(f"/proc/{p}").exists()
+                 and "Z" not in Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()[0]]
+        time.sleep(0.1)
+    assert not alive, f"processes of the killed daemon still run: {alive}"
+
+
 def _wait_started(proc: subprocess.Popen, client: httpx.Client, timeout: float = 60) -> None:
     """The daemon's started state: /healthz answers ok (or the process died: say why)."""
     deadline = time.monotonic() + timeout
@@ -184,8 +201,10 @@ def test_restart_after_sigkill_resumes_the_session(tmp_path, lab_dir):
         with Sensors(endpoint, site, lab_dir, seed=2):
             sid = client.post("/sessions", json={**_session_body(lab_dir), "stop": {"duration": 3600}}).json()["id"]
             _poll(client, f"/sessions/{sid}", lambda s: s["cycles"] >= 3, 60, "no 3 cycles")
+            workers = _children(proc.pid)  # the solver process (and multiprocessing's tracker)
             proc.send_signal(signal.SIGKILL)
             proc.wait(10)
+            _gone(workers, 10)  # no orphaned solver keeps running after a kill -9
 
             d = tmp_path / "sessions" / sid
             rec = json.loads((d / "session.json").read_text())
