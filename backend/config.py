@@ -52,7 +52,7 @@ class AssociateConfig(_Section):
     relocalize: bool = Field(True, description="a camera whose detections stop joining hypotheses is re-localised by PnP")
     relocalize_interval: float = Field(10.0, gt=0, description="s of data time between checks for lost cameras")
     lost_ratio: float = Field(0.15, ge=0, le=1, description="a camera is lost when less than this share of its detections is associated ...")
-    lost_min_detections: int = Field(50, ge=1, description="... out of at least this many since the last check")
+    lost_min_detections: int = Field(30, ge=1, description="... out of at least this many (decayed by half at each check)")
 
 
 class SelectConfig(_Section):

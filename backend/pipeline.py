@@ -62,6 +62,8 @@ class Pipeline:
         # detections and associated detections per camera since the last lost-camera check
         self.detected = np.zeros(C, dtype=np.int64)
         self.associated = np.zeros(C, dtype=np.int64)
+        self.detected_total = np.zeros(C, dtype=np.int64)
+        self.associated_total = np.zeros(C, dtype=np.int64)
         self.last_lost_check: float | None = None
         self.relocalized: list[str] = []
         self.clock: float | None = None
@@ -136,8 +138,10 @@ class Pipeline:
                 new += len(hyps)
                 for v in dets:
                     self.detected[v[0].cam] += len(v)
+                    self.detected_total[v[0].cam] += len(v)
                 for h in hyps:
                     self.associated[h.cams] += 1
+                    self.associated_total[h.cams] += 1
         return new
 
     def _gate(self) -> np.ndarray | None:
@@ -206,11 +210,17 @@ class Pipeline:
             return []
         self.last_lost_check = now
         det, assoc = self.detected, self.associated
-        lost = np.flatnonzero((det >= a.lost_min_detections) & (assoc < a.lost_ratio * det))
-        # decay rather than reset: a camera that sees people rarely still adds up
+        lost = (det >= a.lost_min_detections) & (assoc < a.lost_ratio * det)
+        # decay rather than reset: recent behaviour counts most
         self.detected = det // 2
         self.associated = assoc // 2
-        return [int(c) for c in lost]
+        return [int(c) for c in np.flatnonzero(lost | self._never_associated())]
+
+    def _never_associated(self) -> np.ndarray:
+        """(C,) cameras that never took part in a cycle though they saw people often."""
+        a = self.cfg.associate
+        det, assoc = self.detected_total, self.associated_total
+        return (self.refiner.cycles == 0) & (det >= a.lost_min_detections) & (assoc < a.lost_ratio * det)
 
     def _batch_problem(self, kind: str, max_hypotheses: int, spacing: float) -> Problem:
         """Every archived frame, re-associated in the solve.
@@ -319,6 +329,17 @@ class Pipeline:
             self._release_pending()
         if self.clock is not None:
             self.advance(self.clock + self.cfg.sync.wait + 1.0 / self.cfg.sync.rate)
+        lost = np.flatnonzero(self._never_associated()) if self.cfg.associate.relocalize else []
+        if len(lost) and self.frames and self._inflight is None:
+            # one more try with the final estimate of the others, before the batch needs them
+            rf = self.refiner
+            self.cycle += 1
+            p = Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
+                        prior_cov=rf.predicted_covariance(), focal=self.focal, config=self.cfg.optimize,
+                        frames=tuple(self.frames), associate=self.cfg.associate,
+                        seed=int(self.rng.integers(2**31)), kind="relocalize", lost=tuple(int(c) for c in lost))
+            self._inflight = p
+            self.apply(p, solve(p))
         if self.cfg.refine.final_batch and self.frames:
             self.batch_adjust()
         return self.state()
