@@ -547,6 +547,10 @@ class Service:
         except MessageError as e:
             self._reject(stats, f"malformed:{e.field.split('[')[0].split('.')[0] or 'payload'}")
             return
+        except Exception as e:  # a decoder bug: one message must not end the ingest task (and the service)
+            log.exception("decoding a message failed")
+            self._reject(stats, f"internal:{type(e).__name__}")
+            return
         if name is not None and msg.sensor != name:
             self._reject(stats, "sensor_mismatch")
             return

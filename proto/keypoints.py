@@ -233,8 +233,8 @@ def from_dict(d: Any, *, default_version: int | None = None) -> KeypointMessage:
     if not (0 < w <= MAX_SIZE_PX and 0 < h <= MAX_SIZE_PX):
         raise MessageError("size", f"{w}x{h} is not a plausible image size")
     layout = d.get("layout", "coco17")
-    if layout not in LAYOUTS:
-        raise MessageError("layout", f"unknown layout {layout!r} (known: {', '.join(LAYOUTS)})")
+    if not isinstance(layout, str) or layout not in LAYOUTS:  # a list here is unhashable
+        raise MessageError("layout", f"unknown layout {str(layout)[:40]!r} (known: {', '.join(LAYOUTS)})")
     persons = d["persons"]
     if not isinstance(persons, (list, tuple)):
         raise MessageError("persons", f"expected a list, got {type(persons).__name__}")
