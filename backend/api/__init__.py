@@ -82,11 +82,68 @@ def create_app(settings: "ServiceSettings", service: "Service | None" = None) ->
     )
     app.state.service = service
     app.state.settings = settings
+    app.add_middleware(BodyLimit, limit=MAX_BODY)
     errors.install(app)
     for r in (sessions, calibration, status, events, health):
         app.include_router(r.router)
     _optional_parts(app, service)
     return app
+
+
+MAX_BODY = 8 * 1024 * 1024  # bytes: camera files of a few hundred cameras fit many times over
+
+
+class BodyLimit:
+    """413 for request bodies over ``limit`` bytes, by Content-Length or while streaming
+    (chunked uploads have none): an oversized upload must not fill the service's memory."""
+
+    def __init__(self, app: Any, limit: int):
+        self.app, self.limit = app, limit
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        cl = next((v for k, v in scope.get("headers", ()) if k == b"content-length"), None)
+        if cl is not None:
+            try:
+                n = int(cl)
+            except ValueError:
+                return await self._refuse(send, "Content-Length is not a number")
+            if n > self.limit:
+                return await self._refuse(send, f"request body of {n} bytes is over the limit of {self.limit}")
+        elif scope.get("method") in ("POST", "PUT", "PATCH"):  # chunked: read up to the limit here, then hand it on
+            chunks, seen, more = [], 0, True
+            while more:
+                msg = await receive()
+                if msg["type"] != "http.request":
+                    return  # the client went away
+                chunks.append(msg.get("body", b""))
+                seen += len(chunks[-1])
+                more = msg.get("more_body", False)
+                if seen > self.limit:
+                    return await self._refuse(send, f"request body over the limit of {self.limit} bytes")
+            body, sent = b"".join(chunks), False
+
+            async def replay() -> Any:
+                nonlocal sent
+                if not sent:
+                    sent = True
+                    return {"type": "http.request", "body": body, "more_body": False}
+                return await receive()
+
+            return await self.app(scope, replay, send)
+        await self.app(scope, receive, send)
+
+    @staticmethod
+    async def _refuse(send: Any, why: str) -> None:
+        import json
+
+        body = json.dumps({"detail": f"{why}: send smaller camera files (or name files configured on the "
+                                     f"server in camera_files)"}).encode()
+        status = 413 if "limit" in why else 400
+        await send({"type": "http.response.start", "status": status,
+                    "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
+        await send({"type": "http.response.body", "body": body})
 
 
 def _thresholds() -> str:
