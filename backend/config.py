@@ -51,6 +51,7 @@ class AssociateConfig(_Section):
     gate_pixels: float = Field(25.0, gt=0, description="px, a view whose torso reprojects further is split off")
     relocalize: bool = Field(True, description="a camera whose detections stop joining hypotheses is re-localised by PnP")
     relocalize_interval: float = Field(10.0, gt=0, description="s of data time between checks for lost cameras")
+    relocalize_after: int = Field(10, ge=0, description="cycles before the first check: early on every camera associates poorly")
     lost_ratio: float = Field(0.15, ge=0, le=1, description="a camera is lost when less than this share of its detections is associated ...")
     lost_min_detections: int = Field(30, ge=1, description="... out of at least this many (decayed by half at each check)")
 
@@ -89,26 +90,15 @@ class RefineConfig(_Section):
         description="'marginal': the paper's update with the marginal covariance as noise (counts the prior twice); "
         "'posterior': the data-only information of the cycle",
     )
-    converged_translation: float = Field(0.01, gt=0, description="m: a camera is converged when it moved less than this over the last converged_cycles cycles ...")
-    converged_rotation: float = Field(0.1, gt=0, description="deg ... and turned less than this ...")
-    converged_std_translation: float = Field(0.02, gt=0, description="m ... and its std is below this ...")
-    converged_std_rotation: float = Field(0.3, gt=0, description="deg ... and this")
+    converged_translation: float = Field(0.02, gt=0, description="m: a camera is converged when it moved less than this over the last converged_cycles cycles ...")
+    converged_rotation: float = Field(0.2, gt=0, description="deg ... and turned less than this ...")
+    converged_std_translation: float = Field(0.03, gt=0, description="m ... and its std is below this ...")
+    converged_std_rotation: float = Field(0.5, gt=0, description="deg ... and this (after the final batch adjustment, which "
+                                          "uses all data at once, the std alone decides)")
     converged_cycles: int = Field(10, ge=1, description="cycles over which the net pose change is measured")
-    warmup_hypotheses: int = Field(
-        0, ge=0,
-        description="before the Kalman cycles, repeated batch solves over all frames so far (re-associated with "
-        "the improving estimate, prior = the initial estimate) until this many hypotheses are in; 0 = the paper's "
-        "cycles from the start",
-    )
-    warmup_interval: float = Field(2.0, gt=0, description="s of data time between warm-up solves")
-    trust_translation: float = Field(0.1, gt=0, description="m: std of the prior at the current estimate in a warm-up round (a trust region: "
-                                     "the round cannot move a camera far enough to explain wrong associations away)")
-    trust_rotation: float = Field(2.0, gt=0, description="deg")
-    warmup_settled_translation: float = Field(0.01, gt=0, description="m: the warm-up ends when no camera moved more than this in a round")
-    warmup_settled_rotation: float = Field(0.1, gt=0, description="deg")
     final_batch: bool = Field(True, description="a batch adjustment over all frames, re-associated with the final estimate, when the run stops")
     batch_size: int = Field(1000, ge=10, description="most hypotheses in the final batch adjustment")
-    archive_frames: int = Field(10000, ge=100, description="preprocessed framesets kept for warm-up and the final batch")
+    archive_frames: int = Field(10000, ge=100, description="preprocessed framesets kept for re-localisation and the final batch")
 
 
 class EngineConfig(_Section):

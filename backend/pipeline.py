@@ -56,9 +56,7 @@ class Pipeline:
         # preprocessed framesets, re-associated with a better estimate by warm-up and final batch
         self.frames: deque[tuple[float, tuple[tuple[Detection, ...], ...]]] = deque(
             maxlen=self.cfg.refine.archive_frames)
-        self.phase = "warmup" if self.cfg.refine.warmup_hypotheses > 0 else "filter"
-        self.warmup_hypotheses_used = 0
-        self.observations_warmup = np.zeros(C, dtype=np.int64)
+        self.observations_batch = np.zeros(C, dtype=np.int64)
         # detections and associated detections per camera since the last lost-camera check
         self.detected = np.zeros(C, dtype=np.int64)
         self.associated = np.zeros(C, dtype=np.int64)
@@ -126,22 +124,21 @@ class Pipeline:
         new = 0
         R, t = self.refiner.R, self.refiner.t
         ready = self.sync.pop_ready(now)
-        gate = self._gate() if ready and self.phase == "filter" else None
+        gate = self._gate() if ready else None
         for fs in ready:
             dets = self.preprocess(fs)
             if len(dets) < 2:
                 continue
             self.frames.append((fs.time, tuple(tuple(v) for v in dets)))
-            if self.phase == "filter":
-                hyps = self.associate(fs.time, dets, R, t, gate)
-                self.queue.extend(hyps)
-                new += len(hyps)
-                for v in dets:
-                    self.detected[v[0].cam] += len(v)
-                    self.detected_total[v[0].cam] += len(v)
-                for h in hyps:
-                    self.associated[h.cams] += 1
-                    self.associated_total[h.cams] += 1
+            hyps = self.associate(fs.time, dets, R, t, gate)
+            self.queue.extend(hyps)
+            new += len(hyps)
+            for v in dets:
+                self.detected[v[0].cam] += len(v)
+                self.detected_total[v[0].cam] += len(v)
+            for h in hyps:
+                self.associated[h.cams] += 1
+                self.associated_total[h.cams] += 1
         return new
 
     def _gate(self) -> np.ndarray | None:
@@ -160,33 +157,18 @@ class Pipeline:
     # ------------------------------------------------------------ optimisation
 
     def next_problem(self, now: float | None) -> Problem | None:
-        """A cycle's problem when one is due, else None. Only one is in flight at a time.
-
-        Warm-up: a batch over every frame so far, re-associated with the current
-        estimate, prior = the initial estimate. Then the paper's cycles: the queue's
-        newest hypotheses, prior = the filter's predicted state."""
+        """A cycle's problem when one is due, else None. Only one is in flight at a time:
+        re-localisation of lost cameras when one is due, else the paper's cycle over the
+        queue's newest hypotheses with the filter's predicted state as the prior."""
         if self._inflight is not None or now is None:
             return None
         rf, cfg = self.refiner, self.cfg
-        if self.phase in ("warmup", "handover"):
-            if self.phase == "warmup" and self.last_cycle_time is not None \
-                    and now - self.last_cycle_time < cfg.refine.warmup_interval:
-                return None
-            if not self.frames or self.frames[-1][0] - self.frames[0][0] < cfg.refine.warmup_interval:
-                return None
-            p = self._batch_problem(self.phase, cfg.refine.warmup_hypotheses, cfg.select.min_spacing)
+        lost = self._lost_cameras(now)
+        if lost:
+            self.cycle += 1
+            horizon = self.frames[-1][0] - 180.0 if self.frames else 0.0
+            p = self._relocalize_problem(lost, [f for f in self.frames if f[0] >= horizon])
         else:
-            lost = self._lost_cameras(now)
-            if lost:
-                self.cycle += 1
-                horizon = self.frames[-1][0] - 180.0 if self.frames else 0.0
-                p = Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
-                            prior_cov=rf.predicted_covariance(), focal=self.focal, config=cfg.optimize,
-                            frames=tuple(f for f in self.frames if f[0] >= horizon), associate=cfg.associate,
-                            seed=int(self.rng.integers(2**31)), kind="relocalize", lost=tuple(lost))
-                self.last_cycle_time = now
-                self._inflight = p
-                return p
             if not self.queue.ready():
                 return None
             if self.last_cycle_time is not None and now - self.last_cycle_time < cfg.select.interval:
@@ -199,10 +181,17 @@ class Pipeline:
         self._inflight = p
         return p
 
+    def _relocalize_problem(self, lost, frames) -> Problem:
+        rf = self.refiner
+        return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
+                       prior_cov=rf.predicted_covariance(), focal=self.focal, config=self.cfg.optimize,
+                       frames=tuple(frames), associate=self.cfg.associate, seed=int(self.rng.integers(2**31)),
+                       kind="relocalize", lost=tuple(int(c) for c in lost))
+
     def _lost_cameras(self, now: float) -> list[int]:
         """Cameras that see people but whose detections almost never join a hypothesis."""
         a = self.cfg.associate
-        if not a.relocalize:
+        if not a.relocalize or self.cycle < a.relocalize_after:
             return []
         if self.last_lost_check is None:
             self.last_lost_check = now
@@ -222,31 +211,21 @@ class Pipeline:
         det, assoc = self.detected_total, self.associated_total
         return (self.refiner.cycles == 0) & (det >= a.lost_min_detections) & (assoc < a.lost_ratio * det)
 
-    def _batch_problem(self, kind: str, max_hypotheses: int, spacing: float) -> Problem:
-        """Every archived frame, re-associated in the solve.
-
-        warmup: prior = the current estimate within the trust region; handover and batch:
-        prior = the initial estimate with its covariance (the honest posterior)."""
+    def _batch_problem(self, max_hypotheses: int, spacing: float) -> Problem:
+        """Every archived frame, re-associated in the solve with the current estimate;
+        prior = the initial estimate with its covariance, so the result is the honest
+        posterior of all the data."""
         rf, rc = self.refiner, self.cfg.refine
         self.cycle += 1
-        C = len(self.names)
-        if kind == "warmup":
-            prior_R, prior_t = rf.R.copy(), rf.t.copy()
-            r, s = np.radians(rc.trust_rotation), rc.trust_translation
-            P0 = np.repeat(np.diag([r * r] * 3 + [s * s] * 3)[None], C, axis=0)
-        else:
-            prior_R, prior_t = rf.R0.copy(), rf.t0.copy()
-            P0 = np.repeat(initial_covariance(rc)[None], C, axis=0)
-        opt = self.cfg.optimize
-        if kind == "batch":
-            opt = opt.model_copy(update={"max_iterations": max(opt.max_iterations, 100)})
-        return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=prior_R, prior_t=prior_t,
+        P0 = np.repeat(initial_covariance(rc)[None], len(self.names), axis=0)
+        opt = self.cfg.optimize.model_copy(update={"max_iterations": max(self.cfg.optimize.max_iterations, 100)})
+        return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R0.copy(), prior_t=rf.t0.copy(),
                        prior_cov=P0, focal=self.focal, config=opt, frames=tuple(self.frames),
                        associate=self.cfg.associate,
                        # the batch re-associates ungated: a camera the filter got wrong must
                        # keep its views to be put right; the solve's outlier rounds drop bad ones
-                       gate_px=None if kind == "batch" else self._gate(), max_hypotheses=max_hypotheses,
-                       spacing=spacing, seed=int(self.rng.integers(2**31)), kind=kind)
+                       gate_px=None, max_hypotheses=max_hypotheses,
+                       spacing=spacing, seed=int(self.rng.integers(2**31)), kind="batch")
 
     def apply(self, problem: Problem, solution: Solution) -> CycleReport:
         """Fold a solved cycle into the estimate (or reject it, keeping the estimate)."""
@@ -261,34 +240,20 @@ class Pipeline:
             reason = "solver did not move the estimate"
         accepted = reason == ""
         change_t = change_r = 0.0
-        batch = problem.kind in ("warmup", "handover", "batch")
+        batch = problem.kind == "batch"
         if accepted and problem.kind == "relocalize":
             for c in np.flatnonzero(solution.active):
                 self.refiner.relocate(c, solution.R[c], solution.t[c])
                 self.relocalized.append(self.names[c])
         elif accepted:
-            if problem.kind == "warmup":
-                # a trust-region step: poses move, the covariance stays the initial one
-                upd = self.refiner.move(solution.active, solution.R, solution.t)
-            else:
-                upd = self.refiner.update(solution.active, solution.R, solution.t, solution.cov, posterior=batch,
-                                          cov_shape=solution.cov_shape)
+            upd = self.refiner.update(solution.active, solution.R, solution.t, solution.cov, posterior=batch,
+                                      cov_shape=solution.cov_shape)
             change_t = float(upd.changed_translation.max())
             change_r = float(upd.changed_rotation.max())
             if batch:
-                self.observations_warmup = solution.obs_per_camera.copy()
+                self.observations_batch = solution.obs_per_camera.copy()
             else:
                 self.observations += solution.obs_per_camera
-            rc = self.cfg.refine
-            if problem.kind == "warmup":
-                self.warmup_hypotheses_used = solution.hypotheses
-                if (solution.hypotheses >= rc.warmup_hypotheses and change_t <= rc.warmup_settled_translation
-                        and change_r <= rc.warmup_settled_rotation):
-                    self.phase = "handover"
-            elif problem.kind == "handover":
-                # The warm-up used every frame so far: the filter starts on new data only.
-                self.phase = "filter"
-                self.queue.clear()
         else:
             self.cycles_rejected += 1
         finite = solution.residual_px[np.isfinite(solution.residual_px)]
@@ -332,12 +297,8 @@ class Pipeline:
         lost = np.flatnonzero(self._never_associated()) if self.cfg.associate.relocalize else []
         if len(lost) and self.frames and self._inflight is None:
             # one more try with the final estimate of the others, before the batch needs them
-            rf = self.refiner
             self.cycle += 1
-            p = Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
-                        prior_cov=rf.predicted_covariance(), focal=self.focal, config=self.cfg.optimize,
-                        frames=tuple(self.frames), associate=self.cfg.associate,
-                        seed=int(self.rng.integers(2**31)), kind="relocalize", lost=tuple(int(c) for c in lost))
+            p = self._relocalize_problem(lost, self.frames)
             self._inflight = p
             self.apply(p, solve(p))
         if self.cfg.refine.final_batch and self.frames:
@@ -345,7 +306,7 @@ class Pipeline:
         return self.state()
 
     def batch_adjust(self) -> CycleReport:
-        p = self._batch_problem("batch", self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2)
+        p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2)
         self._inflight = p
         return self.apply(p, solve(p))
 
@@ -374,7 +335,7 @@ class Pipeline:
             ct, cr = rf.change(c)
             cams.append(CameraState(
                 name=n, R=rf.R[c].copy(), t=rf.t[c].copy(), cov=rf.S[c].copy(),
-                observations=int(self.observations[c] + self.observations_warmup[c]), cycles=int(rf.cycles[c]),
+                observations=int(self.observations[c] + self.observations_batch[c]), cycles=int(rf.cycles[c]),
                 change_translation=ct, change_rotation=cr, converged=rf.converged(c),
                 last_seen=self.last_seen.get(n),
             ))
@@ -393,9 +354,9 @@ class Pipeline:
             "cycles": rf.cycles.tolist(),
             "history": [[[t.tolist(), R.tolist()] for t, R in h] for h in rf.history],
             "cycle": self.cycle,
-            "phase": self.phase,
+            "batched": rf.batched.tolist(),
             "observations": self.observations.tolist(),
-            "observations_warmup": self.observations_warmup.tolist(),
+            "observations_batch": self.observations_batch.tolist(),
             "clock": self.clock,
         }
 
@@ -411,9 +372,9 @@ class Pipeline:
         for h, items in zip(rf.history, snapshot["history"]):
             h.extend((np.array(t, dtype=np.float64), np.array(R, dtype=np.float64)) for t, R in items)
         p.cycle = int(snapshot["cycle"])
-        p.phase = snapshot.get("phase", p.phase)
+        rf.batched = np.array(snapshot.get("batched", [False] * len(p.names)), dtype=bool)
         p.observations = np.array(snapshot["observations"], dtype=np.int64)
-        p.observations_warmup = np.array(snapshot.get("observations_warmup", [0] * len(p.names)), dtype=np.int64)
+        p.observations_batch = np.array(snapshot.get("observations_batch", [0] * len(p.names)), dtype=np.int64)
         return p
 
 

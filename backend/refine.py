@@ -66,6 +66,7 @@ class Refiner:
         self.S = self.P.copy()
         self.Q = _diag(cfg.filter_std_rotation, cfg.filter_std_translation) * cfg.process_noise**2
         self.cycles = np.zeros(C, dtype=np.int64)
+        self.batched = np.zeros(C, dtype=bool)  # the last update was a batch over all data
         # pose after each of the last cycles a camera took part in: (t (3,), R (3, 3))
         self.history: list[deque] = [deque(maxlen=cfg.converged_cycles + 1) for _ in range(C)]
 
@@ -106,21 +107,13 @@ class Refiner:
         dt = np.linalg.norm(self.t - t_old, axis=1)
         dr = np.array([rotation_angle_deg(R_old[c], self.R[c]) for c in range(C)])
         self._record(active)
+        self.batched[active] = posterior
         return UpdateResult(dt, dr, scale)
 
     def _record(self, active: np.ndarray) -> None:
         for c in np.flatnonzero(active):
             self.cycles[c] += 1
             self.history[c].append((self.t[c].copy(), self.R[c].copy()))
-
-    def move(self, active: np.ndarray, R_new: np.ndarray, t_new: np.ndarray) -> UpdateResult:
-        """Take new poses for the active cameras without touching the covariance."""
-        R_old, t_old = self.R.copy(), self.t.copy()
-        self.R[active], self.t[active] = R_new[active], t_new[active]
-        scale = self.keep_scale(active) if self.cfg.keep_scale else 1.0
-        dt = np.linalg.norm(self.t - t_old, axis=1)
-        dr = np.array([rotation_angle_deg(R_old[c], self.R[c]) for c in range(len(self.R))])
-        return UpdateResult(dt, dr, scale)
 
     def relocate(self, c: int, R: np.ndarray, t: np.ndarray) -> None:
         """Camera c found elsewhere: new pose, the initial uncertainty, no history."""
@@ -169,9 +162,11 @@ class Refiner:
         ``converged_translation``/``converged_rotation`` and the std below
         ``converged_std_translation``/``converged_std_rotation``."""
         cfg = self.cfg
+        st, sr = self.std(c)
+        precise = st <= cfg.converged_std_translation and sr <= cfg.converged_std_rotation
+        if self.batched[c]:
+            return bool(self.cycles[c] > 0 and precise)
         if self.cycles[c] < cfg.converged_cycles:
             return False
         ct, cr = self.change(c)
-        st, sr = self.std(c)
-        return (ct <= cfg.converged_translation and cr <= cfg.converged_rotation
-                and st <= cfg.converged_std_translation and sr <= cfg.converged_std_rotation)
+        return ct <= cfg.converged_translation and cr <= cfg.converged_rotation and precise

@@ -86,4 +86,21 @@ def relocalize(frames, cam: int, R: np.ndarray, t: np.ndarray, focal: float, cfg
     if not ok:
         return None
     Rcw, _ = cv2.Rodrigues(rvec)
-    return Relocalization(cam, Rcw.T, (-Rcw.T @ tvec).ravel(), int(len(idx)), int(len(X)), used)
+    R_new, t_new = Rcw.T, (-Rcw.T @ tvec).ravel()
+    # Only a pose that explains the correspondences clearly better than the current one
+    # replaces it: early on a camera may associate poorly because everyone is still off.
+    thr = reprojection_px / focal
+    n_new = _inliers(X, x, R_new, t_new, thr)
+    n_old = _inliers(X, x, R[cam], t[cam], thr)
+    if n_new < max(min_inliers, 2 * n_old):
+        return None
+    return Relocalization(cam, R_new, t_new, int(n_new), int(len(X)), used)
+
+
+def _inliers(X: np.ndarray, x: np.ndarray, R: np.ndarray, t: np.ndarray, thr: float) -> int:
+    """Correspondences within ``thr`` (normalised units) of the projection with pose R, t."""
+    Xc = (X - t) @ R
+    z = Xc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = np.linalg.norm(Xc[:, :2] / z[:, None] - x, axis=1)
+    return int(np.sum((z > 0) & (e < thr)))

@@ -686,7 +686,7 @@ class Service:
                 rec.state, rec.reason = SessionState.converged, _converged_reason(state)
             else:
                 rec.state = SessionState.calibrating
-                rec.reason = _calibrating_reason(state, report, getattr(s.pipeline, "phase", None))
+                rec.reason = _calibrating_reason(state, report)
         self._write_cycle(rec, report, state, acc)
         due = time.monotonic() - s.last_snapshot >= self.settings.snapshot_interval
         self._persist(s, snapshot=due)
@@ -1227,10 +1227,8 @@ def _converged_reason(state: "CalibrationState") -> str:
     return msg
 
 
-def _calibrating_reason(state: "CalibrationState", report: "CycleReport", phase: str | None = None) -> str:
+def _calibrating_reason(state: "CalibrationState", report: "CycleReport") -> str:
     calibrated = [c for c in state.cameras if c.cycles > 0]
-    if phase in ("warmup", "handover"):
-        return f"warm-up: batch solve {report.cycle} over the frames so far, until the estimate settles"
     if not calibrated:
         return f"cycle {report.cycle}: no camera has an update yet" + (f" ({report.reason})" if report.reason else "")
     done = sum(1 for c in calibrated if c.converged)

@@ -122,7 +122,7 @@ def test_snapshot_and_restore_give_the_same_state(lab, run):
     np.testing.assert_array_equal(q.refiner.R0, p.refiner.R0)
     np.testing.assert_array_equal(q.refiner.t0, p.refiner.t0)
     np.testing.assert_array_equal(q.refiner.P, p.refiner.P)
-    assert q.phase == p.phase
+    np.testing.assert_array_equal(q.refiner.batched, p.refiner.batched)
     # a snapshot of other cameras is refused
     other = CameraSet(cams.names[:-1], {n: cams.intrinsics[n] for n in cams.names[:-1]},
                       {n: cams.extrinsics[n] for n in cams.names[:-1]})
