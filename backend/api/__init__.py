@@ -90,6 +90,28 @@ def create_app(settings: "ServiceSettings", service: "Service | None" = None) ->
     return app
 
 
+def _read_protected(inner: Any, app: "FastAPI") -> Any:
+    """An ASGI endpoint behind the read token (``protect_reads``), like the API's reads."""
+    import secrets
+
+    class Endpoint:  # a class instance: Starlette serves it as an ASGI app, not as a request handler
+        async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+            settings = app.state.settings
+            token = settings.token_value()
+            if settings.protect_reads and token is not None:
+                got = dict(scope.get("headers", ())).get(b"authorization", b"")
+                if not secrets.compare_digest(got, b"Bearer " + token.encode()):
+                    body = b'{"detail": "this endpoint needs \'Authorization: Bearer <token>\'"}'
+                    await send({"type": "http.response.start", "status": 401, "headers": [
+                        (b"content-type", b"application/json"), (b"www-authenticate", b"Bearer"),
+                        (b"content-length", str(len(body)).encode())]})
+                    await send({"type": "http.response.body", "body": body})
+                    return
+            await inner(scope, receive, send)
+
+    return Endpoint()
+
+
 MAX_BODY = 8 * 1024 * 1024  # bytes: camera files of a few hundred cameras fit many times over
 
 
@@ -178,6 +200,12 @@ def _optional_parts(app: "FastAPI", service: "Service") -> None:
         from .. import metrics
 
         m = metrics.Metrics()
-        metrics.mount(app, m, refresh=lambda: metrics.update_from_state(m, service.active_state(), service.status()))
+        from starlette.routing import Route
+
+        scrape = metrics.asgi_app(m, lambda: metrics.update_from_state(m, service.active_state(), service.status()))
+        # not metrics.mount(): with protect_reads the scrape needs the token as well (Prometheus
+        # sends it with `authorization: {credentials: ...}`); sensor names and progress are reads
+        app.router.routes.append(Route("/metrics", endpoint=_read_protected(scrape, app), methods=["GET", "HEAD"],
+                                       include_in_schema=False))
         service.cycle_listeners.append(lambda sid, report, wall: metrics.observe_cycle(m, report, wall, session=sid))
         app.state.metrics = m
