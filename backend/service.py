@@ -249,8 +249,10 @@ class Writer:
         self.errors = 0
         self.writes = 0
 
-    def submit(self, fn: Callable, *args: Any) -> None:
-        self._q.put_nowait((fn, args))
+    def submit(self, fn: Callable, *args: Any, storage: bool = True) -> None:
+        """``storage``: a write to the state directory, whose success clears ``error``
+        (a Zenoh publication through this queue says nothing about the disk)."""
+        self._q.put_nowait((fn, args, storage))
 
     async def run(self) -> None:
         while True:
@@ -258,11 +260,12 @@ class Writer:
             try:
                 if item is None:
                     return
-                fn, args = item
+                fn, args, storage = item
                 try:
                     await asyncio.to_thread(fn, *args)
-                    self.writes += 1
-                    self.error = None
+                    if storage:
+                        self.writes += 1
+                        self.error = None
                 except (OSError, ValueError) as e:
                     self.errors += 1
                     self.error = f"{type(e).__name__}: {e}"
@@ -774,7 +777,7 @@ class Service:
 
         # put() can block on a congested link: not on the loop. Through the writer task
         # so that updates go out in order.
-        self.writer.submit(put)
+        self.writer.submit(put, storage=False)
 
     async def _query_loop(self) -> None:
         while True:
@@ -992,6 +995,8 @@ class Service:
         d = rec.to_dict()
         d["live"] = live
         d["stopping"] = bool(live and s is not None and s.finishing)
+        # the running session's files are not being written: its progress is at risk
+        d["storage_error"] = self.writer.error if live else None
         d["cameras"] = state["cameras"] if state else []
         d["counters"] = state.get("counters") if state else None
         d["last_cycle"] = state.get("last_cycle") if state else None

@@ -79,6 +79,8 @@ class SessionDetail(SessionSummary):
     final_batch: dict[str, Any] | None
     live: bool = Field(description="the running session (else read from the state directory)")
     stopping: bool = Field(description="a stop was asked; the final batch adjustment runs")
+    storage_error: str | None = Field(None, description="the last write to the state directory failed (running "
+                                      "session only); clears when a write succeeds again")
     converged: bool
     data_time: float | None
     cameras: list[CameraOut]
