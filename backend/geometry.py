@@ -223,3 +223,29 @@ def triangulate_views(R: np.ndarray, t: np.ndarray, cams: np.ndarray, xy: np.nda
     bad |= np.any(valid & (Xc_z <= 0.05), axis=0)
     X[bad] = np.nan
     return X, n
+
+
+def triangulate_batch(R: np.ndarray, t: np.ndarray, cams: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Many points at once: cams (N, V) int and xy (N, V, 2) normalised, NaN = missing
+    (padding); returns (N, 3) world points, NaN where fewer than 2 views or behind a
+    camera. The DLT of each point ignores its missing rows."""
+    N, V, _ = xy.shape
+    if N == 0:
+        return np.zeros((0, 3))
+    valid = np.all(np.isfinite(xy), axis=2)  # (N, V)
+    c = np.where(valid, cams, 0)
+    Rt = np.transpose(R[c], (0, 1, 3, 2))  # (N, V, 3, 3) cam_R_world
+    tc = t[c]  # (N, V, 3)
+    P = np.concatenate([Rt, -np.einsum("nvij,nvj->nvi", Rt, tc)[..., None]], axis=3)  # (N, V, 3, 4)
+    x = np.nan_to_num(xy)
+    ru = x[..., 0, None] * P[:, :, 2, :] - P[:, :, 0, :]
+    rv = x[..., 1, None] * P[:, :, 2, :] - P[:, :, 1, :]
+    A = np.concatenate([ru, rv], axis=1) * np.concatenate([valid, valid], axis=1)[..., None]  # (N, 2V, 4)
+    _, _, Vt = np.linalg.svd(A)
+    Xh = Vt[:, -1, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = Xh[:, :3] / Xh[:, 3:4]
+    z = np.einsum("nvk,nvk->nv", Rt[:, :, 2, :], X[:, None, :] - tc)
+    bad = (valid.sum(1) < 2) | ~np.all(np.isfinite(X), axis=1) | np.any(valid & (z <= 0.05), axis=1)
+    X[bad] = np.nan
+    return X

@@ -21,7 +21,7 @@ import numpy as np
 
 from .associate import Associator, Hypothesis
 from .config import AssociateConfig, OptimizeConfig
-from .geometry import triangulate_views
+from .geometry import triangulate_batch
 from .preprocess import Detection
 from .selection import select_spaced
 
@@ -128,46 +128,59 @@ class Solution:
 
 def build_graph(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, config: OptimizeConfig) -> Graph:
     """Landmarks per (hypothesis, joint) triangulated with R, t; cameras with too few
-    observations are left out, and so are landmarks left with < 2 views."""
-    C = len(R)
-    obs_cam, obs_lm, obs_xy, obs_sig, lms, lm_hyp, lm_joint = [], [], [], [], [], [], []
-    L = 0
-    cos_min = np.cos(np.radians(config.min_triangulation_angle))
-    for hi, h in enumerate(hyps):
-        X, n = triangulate_views(R, t, h.cams, h.xy)
-        for j in range(17):
-            if not np.all(np.isfinite(X[j])) or n[j] < config.min_landmark_views:
-                continue
-            v = np.flatnonzero(np.all(np.isfinite(h.xy[:, j]), axis=1))
-            rays = X[j] - t[h.cams[v]]
-            rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-            if np.min(rays @ rays.T) > cos_min:  # all rays nearly parallel: depth unknown
-                continue
-            obs_cam.extend(h.cams[v])
-            obs_lm.extend([L] * len(v))
-            obs_xy.extend(h.xy[v, j])
-            obs_sig.extend(h.sigma[v, j])
-            lms.append(X[j])
-            lm_hyp.append(hi)
-            lm_joint.append(j)
-            L += 1
-    obs_cam_a = np.array(obs_cam, dtype=np.int64)
-    counts = np.bincount(obs_cam_a, minlength=C) if len(obs_cam_a) else np.zeros(C, int)
+    observations are left out, and so are landmarks left with < 2 views or whose rays
+    meet at less than ``min_triangulation_angle``."""
+    C, H = len(R), len(hyps)
+    empty = Graph(np.zeros(C, bool), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)),
+                  np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    if H == 0:
+        return empty
+    V = max(len(h.cams) for h in hyps)
+    cams = np.zeros((H, V), np.int64)
+    xy = np.full((H, V, 17, 2), np.nan)
+    sig = np.full((H, V, 17), np.nan)
+    for i, h in enumerate(hyps):
+        n = len(h.cams)
+        cams[i, :n], xy[i, :n], sig[i, :n] = h.cams, h.xy, h.sigma
+    # one landmark candidate per (hypothesis, joint): (H*17, V, ...)
+    lc = np.repeat(cams, 17, axis=0)
+    lxy = xy.transpose(0, 2, 1, 3).reshape(H * 17, V, 2)
+    lsig = sig.transpose(0, 2, 1).reshape(H * 17, V)
+    X = triangulate_batch(R, t, lc, lxy)
+    seen = np.all(np.isfinite(lxy), axis=2)
+    ok = np.all(np.isfinite(X), axis=1) & (seen.sum(1) >= config.min_landmark_views)
+    # the widest angle between two of a landmark's rays
+    rays = X[:, None, :] - t[lc]
+    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
+    cosines = np.einsum("lvk,lwk->lvw", rays, rays)
+    both = seen[:, :, None] & seen[:, None, :]
+    min_cos = np.where(both, cosines, 1.0).min(axis=(1, 2))
+    ok &= min_cos <= np.cos(np.radians(config.min_triangulation_angle))
+    obs = seen & ok[:, None]  # (H*17, V)
+    lm_of = np.cumsum(ok) - 1
+    li, vi = np.nonzero(obs)
+    obs_cam = lc[li, vi]
+    counts = np.bincount(obs_cam, minlength=C)
     active = counts >= config.min_camera_observations
-    keep = active[obs_cam_a] if len(obs_cam_a) else np.zeros(0, bool)
-    obs_lm_a = np.array(obs_lm, dtype=np.int64)[keep]
-    lm_ok = np.bincount(obs_lm_a, minlength=L) >= 2
-    keep2 = lm_ok[obs_lm_a]
+    keep = active[obs_cam]
+    li, vi, obs_cam = li[keep], vi[keep], obs_cam[keep]
+    lm_ok = np.zeros(len(ok), bool)
+    per = np.bincount(li, minlength=len(ok))
+    lm_ok[per >= 2] = True
+    keep2 = lm_ok[li]
+    li, vi, obs_cam = li[keep2], vi[keep2], obs_cam[keep2]
     remap = np.cumsum(lm_ok) - 1
+    idx = np.flatnonzero(lm_ok)
+    del lm_of
     return Graph(
         active=active,
-        obs_cam=obs_cam_a[keep][keep2],
-        obs_lm=remap[obs_lm_a[keep2]],
-        obs_xy=np.array(obs_xy, dtype=np.float64).reshape(-1, 2)[keep][keep2],
-        obs_sigma=np.array(obs_sig, dtype=np.float64)[keep][keep2],
-        landmarks=np.array(lms, dtype=np.float64).reshape(-1, 3)[lm_ok],
-        lm_hyp=np.array(lm_hyp, dtype=np.int64)[lm_ok],
-        lm_joint=np.array(lm_joint, dtype=np.int64)[lm_ok],
+        obs_cam=obs_cam,
+        obs_lm=remap[li],
+        obs_xy=lxy[li, vi],
+        obs_sigma=lsig[li, vi],
+        landmarks=X[idx],
+        lm_hyp=idx // 17,
+        lm_joint=idx % 17,
     )
 
 
@@ -288,15 +301,21 @@ def _failed(p: Problem, g: Graph, reason: str, initial: float | None, t0: float)
 def _retriangulate(g: Graph, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(L, 3) landmarks triangulated again from their observations with R, t."""
     L = len(g.landmarks)
-    out = g.landmarks.copy()
+    if L == 0:
+        return g.landmarks.copy()
     order = np.argsort(g.obs_lm, kind="stable")
-    starts = np.searchsorted(g.obs_lm[order], np.arange(L + 1))
-    for l in range(L):
-        o = order[starts[l]:starts[l + 1]]
-        X, _ = triangulate_views(R, t, g.obs_cam[o], g.obs_xy[o][:, None, :])
-        if np.all(np.isfinite(X[0])):
-            out[l] = X[0]
-    return out
+    lm = g.obs_lm[order]
+    starts = np.searchsorted(lm, np.arange(L))
+    slot = np.arange(len(lm)) - starts[lm]
+    V = int(slot.max()) + 1
+    cams = np.zeros((L, V), np.int64)
+    xy = np.full((L, V, 2), np.nan)
+    cams[lm, slot] = g.obs_cam[order]
+    xy[lm, slot] = g.obs_xy[order]
+    X = triangulate_batch(R, t, cams, xy)
+    bad = ~np.all(np.isfinite(X), axis=1)
+    X[bad] = g.landmarks[bad]
+    return X
 
 
 def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, marginals: bool,
