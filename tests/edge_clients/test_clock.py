@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import socket
 import struct
 import threading
@@ -71,7 +73,9 @@ def test_offset_is_measured_and_reported_but_not_applied_by_default(ntp_server):
         assert clock.offset() == pytest.approx(0.25, abs=0.01)
         assert abs(clock.now() - time.time()) < 0.01
         status = clock.status()
-        assert "offset +250" in status and "not corrected" in status and "beyond" in status
+        m = re.search(r"offset ([+-][0-9.]+) ms", status)
+        assert m is not None and abs(float(m.group(1)) - 250.0) < 15.0, status  # a busy host adds a few ms
+        assert "not corrected" in status and "beyond" in status
 
 
 def test_clock_correct_applies_the_offset(ntp_server):
