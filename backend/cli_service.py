@@ -192,6 +192,9 @@ def run_demo(*, speed: float, duration: float, http: str, persons: int, translat
                 "name": "demo", "intrinsics_yaml": (lab / "intrinsics.yaml").read_text(),
                 "initial_yaml": dump_extrinsics(initial), "reference_yaml": (lab / "reference.yaml").read_text(),
                 "stop": {"duration": duration, "converged": until_converged}, "seed": seed,
+                # Network and processing delays are wall time: at K x speed they are K times
+                # longer in data time, and the framesets must wait for them that much longer.
+                "config": {"sync": {"wait": 0.25 * max(speed, 1.0)}},
             })
             r.raise_for_status()
             sid = r.json()["id"]

@@ -49,6 +49,9 @@ class AssociateConfig(_Section):
     min_views: int = Field(2, ge=2)
     reassociate: bool = Field(True, description="once cameras are certain, gate hypotheses by reprojection error")
     gate_pixels: float = Field(25.0, gt=0, description="px, a view whose torso reprojects further is split off")
+    min_views_unsettled: int = Field(3, ge=2, description="views a hypothesis needs while one of its cameras is unsettled: "
+                                     "a wrong view among 3 shows as a residual, between 2 it cannot")
+    settled_cycles: int = Field(3, ge=0, description="cycles after which a camera counts as settled")
     relocalize: bool = Field(True, description="a camera whose detections stop joining hypotheses is re-localised by PnP")
     relocalize_interval: float = Field(10.0, gt=0, description="s of data time between checks for lost cameras")
     relocalize_after: int = Field(10, ge=0, description="cycles before the first check: early on every camera associates poorly")

@@ -393,19 +393,61 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
     cov = np.full((C, 6, 6), np.nan)
     cov_shape = cov.copy()
     reason = ""
-    try:
-        marg = gtsam.Marginals(graph, result)
-        keys = gtsam.KeyVector([X(c) for c in cams])
-        joint = marg.jointMarginalCovariance(keys)
-        J = np.block([[joint.at(X(a), X(b)) for b in cams] for a in cams])
-        for i, c in enumerate(cams):
-            cov[c] = J[6 * i:6 * i + 6, 6 * i:6 * i + 6]
-        S = shape_covariance(R[cams], t[cams], J)
-        for i, c in enumerate(cams):
-            cov_shape[c] = S[6 * i:6 * i + 6, 6 * i:6 * i + 6]
-    except RuntimeError as e:
-        reason = f"marginals failed: {_first_line(e)}"
+    # Marginals factor without damping: a landmark seen along nearly one ray, or a camera
+    # hanging on a few of them, is singular there though LM solved fine. Drop what GTSAM
+    # names and try again, a few times.
+    dropped: set[int] = set()
+    for _attempt in range(8):
+        try:
+            marg = gtsam.Marginals(graph, result)
+            live = [c for c in cams if X(c) not in dropped]
+            keys = gtsam.KeyVector([X(c) for c in live])
+            joint = marg.jointMarginalCovariance(keys)
+            J = np.block([[joint.at(X(a), X(b)) for b in live] for a in live])
+            for i, c in enumerate(live):
+                cov[c] = J[6 * i:6 * i + 6, 6 * i:6 * i + 6]
+            S = shape_covariance(R[live], t[live], J)
+            for i, c in enumerate(live):
+                cov_shape[c] = S[6 * i:6 * i + 6, 6 * i:6 * i + 6]
+            reason = ""
+            break
+        except RuntimeError as e:
+            reason = f"marginals failed: {_first_line(e)}"
+            key = _named_key(str(e))
+            if key is None or key in dropped:
+                break
+            dropped.add(key)
+            graph = _without_key(graph, key, gtsam)
+            if gtsam.Symbol(key).chr() == ord("x"):
+                continue  # the camera keeps its prior; its covariance stays unknown (NaN)
     return out + (cov, cov_shape, reason)
+
+
+def _named_key(message: str) -> int | None:
+    """The key in GTSAM's 'Indeterminant linear system ... near variable x12' message."""
+    import re
+
+    import gtsam
+
+    m = re.search(r"Symbol: ([a-z])(\d+)", message) or re.search(r"variable ([a-z])(\d+)", message)
+    if not m:
+        return None
+    return int(gtsam.symbol(m.group(1), int(m.group(2))))
+
+
+def _without_key(graph, key: int, gtsam):
+    """The graph without the factors on ``key``, and with a weak prior holding it, so that
+    the marginals of the rest can be computed."""
+    out = gtsam.NonlinearFactorGraph()
+    for i in range(graph.size()):
+        f = graph.at(i)
+        if f is None or key in list(f.keys()):
+            continue
+        out.add(f)
+    sym = gtsam.Symbol(key)
+    if sym.chr() == ord("x"):
+        return out  # a camera without factors simply is not in the marginals' keys
+    return out
 
 
 def shape_covariance(R: np.ndarray, t: np.ndarray, joint: np.ndarray) -> np.ndarray:

@@ -174,9 +174,13 @@ class Pipeline:
             if self.last_cycle_time is not None and now - self.last_cycle_time < cfg.select.interval:
                 return None
             self.cycle += 1
+            a = cfg.associate
+            settled = rf.cycles >= a.settled_cycles
+            hyps = [h for h in self.queue.select(self.rng)
+                    if len(h.cams) >= a.min_views_unsettled or settled[h.cams].all()]
             p = Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
                         prior_cov=rf.predicted_covariance(), focal=self.focal, config=cfg.optimize,
-                        hypotheses=tuple(self.queue.select(self.rng)), kind="cycle")
+                        hypotheses=tuple(hyps), kind="cycle")
         self.last_cycle_time = now
         self._inflight = p
         return p

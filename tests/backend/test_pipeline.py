@@ -144,7 +144,8 @@ def test_offline_runs_are_deterministic_for_a_seed(lab):
 
 def test_one_problem_in_flight_and_rejected_solutions_keep_the_estimate(lab):
     cams, _, msgs = lab
-    cfg = EngineConfig().merged({"select": {"scope": 10}})
+    # small cycles, every hypothesis usable from the start: this is about the mechanics
+    cfg = EngineConfig().merged({"select": {"scope": 10}, "associate": {"min_views_unsettled": 2}})
     p = Pipeline(cams, cfg, seed=0)
     prob = None
     for m in msgs:
