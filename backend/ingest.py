@@ -241,11 +241,29 @@ class SensorTable:
     def names(self) -> list[str]:
         return list(self._by_name)
 
-    def to_dict(self, now_wall: float | None = None) -> dict[str, Any]:
+    def to_dict(self, now_wall: float | None = None, *, max_offset: float = 0.025,
+                max_latency: float = 0.25) -> dict[str, Any]:
+        """Per-sensor status with ``warnings``: a clock set apart from the others' by more
+        than ``max_offset`` (the frameset std limit: its messages miss framesets or skew
+        them), or messages arriving later than ``max_latency`` (the framesets' wait)."""
         from .cameras import natural_key
 
         now_wall = time.time() if now_wall is None else now_wall
-        return {n: self._by_name[n].to_dict(now_wall) for n in sorted(self._by_name, key=natural_key)}
+        out = {n: self._by_name[n].to_dict(now_wall) for n in sorted(self._by_name, key=natural_key)}
+        offsets = [d["clock_offset"] for d in out.values() if d["clock_offset"] is not None]
+        typical = sorted(offsets)[len(offsets) // 2] if offsets else None
+        for d in out.values():
+            warnings = []
+            off = d["clock_offset"]
+            if off is not None and typical is not None and len(offsets) >= 3 and abs(off - typical) > max_offset:
+                warnings.append(f"clock {1000 * (typical - off):+.0f} ms from the other sensors' "
+                                f"(limit {1000 * max_offset:.0f} ms): check its NTP")
+            lat = d["latency"]
+            if lat is not None and lat["median"] > max_latency:
+                warnings.append(f"messages arrive {1000 * lat['median']:.0f} ms after capture, later than "
+                                f"framesets wait ({1000 * max_latency:.0f} ms)")
+            d["warnings"] = warnings
+        return out
 
 
 def finite_or_none(x: float | None) -> float | None:

@@ -1145,10 +1145,18 @@ class Service:
 
     # ------------------------------------------------------------ status (API)
 
+    def _sensor_limits(self) -> dict[str, float]:
+        """The running session's frameset limits, for the per-sensor warnings."""
+        s = self.active
+        if s is None:
+            return {}
+        sync = s.pipeline.cfg.sync
+        return {"max_offset": sync.max_std, "max_latency": sync.wait}
+
     def status_brief(self) -> dict[str, Any]:
         s = self.active
         now_wall = time.time()
-        sensors = self.sensors.to_dict(now_wall)
+        sensors = self.sensors.to_dict(now_wall, **self._sensor_limits())
         return clean_json({
             "clock": self.clock.now(),
             "sensors_online": sum(1 for x in sensors.values() if x["online"]),
@@ -1182,7 +1190,7 @@ class Service:
             "clock": self.clock.to_dict(),
             "zenoh": {"mode": self.settings.zenoh.mode, "listen": list(self.settings.zenoh.listen),
                       "connect": list(self.settings.zenoh.connect)},
-            "sensors": self.sensors.to_dict(now_wall),
+            "sensors": self.sensors.to_dict(now_wall, **self._sensor_limits()),
             "messages": {
                 "received": self.messages,
                 "rejected": dict(self.rejected),
