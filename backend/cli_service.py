@@ -45,6 +45,7 @@ def serve(
     token: Annotated[Optional[str], typer.Option(help="bearer token for POST endpoints (required off loopback)", envvar=None)] = None,
     clock: Annotated[Optional[str], typer.Option(help="wall (NTP-synchronised sensors) | data (replays, simulations)")] = None,
     log_level: Annotated[str, typer.Option(help="debug | info | warning | error")] = "info",
+    log_format: Annotated[str, typer.Option(help="text | json (one object per line, for log collectors)")] = "text",
 ) -> None:
     """Run the live calibration service: Zenoh ingest, pipeline, REST API, sessions.
 
@@ -56,7 +57,12 @@ def serve(
     from .service import serve as run
 
     settings = _settings(config, http, zenoh_listen, zenoh_connect, zenoh_mode, site, state_dir, token, clock)
-    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from .logs import setup as setup_logging
+
+    try:
+        setup_logging(log_level, log_format)
+    except ValueError as e:
+        raise fail(str(e))
 
     def started(service) -> None:
         host, port = service.http_address
