@@ -347,6 +347,26 @@ class Pipeline:
         converged = bool(calibrated) and all(c.converged for c in calibrated)
         return CalibrationState(self.clock, self.cycle, tuple(cams), converged, self.counters(), self.last_report)
 
+    def skeletons(self, n: int = 4) -> list[list[list[float] | None]]:
+        """The newest ``n`` hypotheses of distinct persons as 3D skeletons (17 joints, world
+        frame, None where a joint is not triangulated), for display."""
+        from .geometry import triangulate_batch
+
+        latest = self.queue.newest(8 * n)
+        out: list[list[list[float] | None]] = []
+        coms: list[np.ndarray] = []
+        rf = self.refiner
+        for h in reversed(latest):
+            if any(np.linalg.norm(h.com - c) < 0.5 for c in coms):
+                continue  # the same person a moment earlier
+            coms.append(h.com)
+            cams = np.repeat(h.cams[None], 17, axis=0)
+            X = triangulate_batch(rf.R, rf.t, cams, h.xy.transpose(1, 0, 2))
+            out.append([x.tolist() if np.all(np.isfinite(x)) else None for x in X])
+            if len(out) >= n:
+                break
+        return out
+
     def snapshot(self) -> dict:
         """JSON-able state to resume from: the estimate, not the buffered data."""
         rf = self.refiner

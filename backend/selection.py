@@ -32,6 +32,10 @@ class HypothesisQueue:
                 self.dropped += 1
             self._q.append(h)
 
+    def newest(self, n: int) -> list[Hypothesis]:
+        """The last ``n`` hypotheses queued, oldest first (the queue is left as it is)."""
+        return list(self._q)[-n:] if n > 0 else []
+
     def clear(self) -> None:
         self._q.clear()
 

@@ -691,6 +691,8 @@ class Service:
                 rec.state = SessionState.calibrating
                 rec.reason = _calibrating_reason(state, report)
         self._write_cycle(rec, report, state, acc)
+        if self.events.subscribers:
+            self.events.publish("hypotheses", {"session": rec.id, "persons": s.pipeline.skeletons()})
         due = time.monotonic() - s.last_snapshot >= self.settings.snapshot_interval
         self._persist(s, snapshot=due)
         self._publish_calibration(s)

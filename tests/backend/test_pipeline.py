@@ -194,3 +194,20 @@ def test_an_absurd_stamp_on_the_first_message_does_not_poison_the_run(lab, shift
     c = p.state().counters
     assert sum(c.rejected.values()) <= 1, c.rejected  # at most the absurd message itself
     assert c.framesets > 10
+
+
+def test_skeletons_are_the_newest_persons_triangulated_near_the_truth(lab):
+    cams, truth, msgs = lab
+    p = Pipeline(cams, EngineConfig(), seed=0)
+    for m in msgs[: len(msgs) // 2]:
+        p.push(m)
+        p.advance(p.clock)
+    sk = p.skeletons(4)
+    assert 1 <= len(sk) <= 4
+    for person in sk:
+        assert len(person) == 17
+        pts = np.array([j for j in person if j is not None])
+        # the torso (both shoulders and hips) is in every view of a hypothesis
+        assert all(person[j] is not None for j in (5, 6, 11, 12))
+        # a body: joints within 2.2 m of each other, not scattered over the room
+        assert np.ptp(pts, axis=0).max() < 2.2
