@@ -44,6 +44,7 @@ from proto.keys import sensor_of
 
 from .cameras import dump_extrinsics, parse_extrinsics, parse_intrinsics
 from .config import ConfigError, EngineConfig
+from .history import CalibrationHistory
 from .ingest import HandOff, SensorTable, ServiceClock
 from .session import (
     NotAvailable, SessionConflict, SessionInputError, SessionInputs, SessionRecord,
@@ -320,6 +321,7 @@ class Service:
     def __init__(self, settings: ServiceSettings):
         self.settings = settings
         self.store = SessionStore(settings.state_dir / "sessions")
+        self.versions = CalibrationHistory(settings.state_dir / "calibrations")
         self.base_config = EngineConfig.load(settings.engine_config) if settings.engine_config else EngineConfig()
         self.clock = self._new_clock(self.base_config)
         self.sensors = SensorTable()
@@ -788,6 +790,8 @@ class Service:
                 return
             s = self.active
             payload = dumps_json(self.calibration_dict(s)).encode() if s is not None else None
+            if payload is None and self.versions.active_doc() is not None:
+                payload = dumps_json(self.versions.active_doc()).encode()
             if payload is None:
                 last = self._latest_finished()
                 payload = dumps_json(last).encode() if last is not None else None
@@ -960,7 +964,7 @@ class Service:
             }.get(rec.stopped_by or "", f"stopped ({rec.stopped_by})")
             rec.ended_wall = time.time()
             self._persist(s, snapshot=True)
-            self._publish_calibration(s)
+            await self._record_version(s)
         finally:
             if self.active is s:
                 self.active = None
@@ -1100,6 +1104,8 @@ class Service:
     def calibration(self, sid: str | None, fmt: str) -> tuple[str | bytes | dict, str]:
         """The calibration of session ``sid`` (None: the current or latest) in ``fmt``."""
         s = self.active
+        if sid is None and s is None and self.versions.active is not None:
+            return self.version_calibration(self.versions.active, fmt)
         if sid is None:
             if s is None:
                 ids = self.store.ids()
@@ -1134,6 +1140,77 @@ class Service:
             return exporter.export(ext, intr, fmt)
         except ValueError as e:  # ExportError: unknown format, or the cameras do not fit it
             raise UnknownFormat(str(e)) from None
+
+    # ------------------------------------------------------------ calibration versions
+
+    async def _record_version(self, s: ActiveSession) -> None:
+        """A stopped session's result becomes a version; one that ran cycles becomes the
+        active calibration (one stopped before its first cycle only holds the initial
+        estimate: recorded, not activated). The publication follows the active version."""
+        rec, state = s.record, s.state
+        doc = self.calibration_dict(s)
+        text = dump_extrinsics(state.extrinsics(s.resolutions),
+                               comment=f"extrcal session {rec.id}, cycle {state.cycle}, {rec.state.value}")
+        activate = state.cycle > 0
+        why = f"session {rec.id} {rec.reason} after {state.cycle} cycles" + (
+            "" if activate else " (no cycle ran: recorded, not activated)")
+        try:
+            await asyncio.to_thread(self.versions.record, doc, text, s.inputs.intrinsics_yaml,
+                                    by=f"session {rec.id}", reason=why, activate=activate)
+        except OSError as e:
+            log.error("could not record the calibration of session %s as a version: %s", rec.id, e)
+            self.writer.error = self.writer.error or f"calibration history: {e}"
+        active = self.versions.active_doc()
+        if active is not None:
+            self._publish_doc(active)
+        else:
+            self._publish_calibration(s)
+
+    def _publish_doc(self, doc: dict[str, Any]) -> None:
+        pub = self._publisher
+        if pub is None:
+            return
+
+        def put() -> None:
+            with contextlib.suppress(Exception):
+                pub.put(dumps_json(doc).encode())
+
+        self.writer.submit(put, storage=False)
+
+    async def list_versions(self) -> list[dict[str, Any]]:
+        return self.versions.list()
+
+    async def version_view(self, v: int, fmt: str) -> tuple[str | bytes | dict, str]:
+        return await asyncio.to_thread(self.version_calibration, v, fmt)
+
+    def version_calibration(self, v: int, fmt: str) -> tuple[str | bytes | dict, str]:
+        """Version ``v`` in ``fmt`` (json, yaml or an export format)."""
+        if fmt == "json":
+            return self.versions.doc(v), "application/json"
+        text = self.versions.yaml(v)
+        if fmt == "yaml":
+            return text, "application/yaml"
+        try:
+            from . import export as exporter
+        except ModuleNotFoundError:
+            raise UnknownFormat(f"unknown format {fmt!r}: this build writes json and yaml") from None
+        ext = parse_extrinsics(text, f"calibration version {v}")
+        intr = parse_intrinsics(self.versions.intrinsics(v), f"calibration version {v} intrinsics")
+        try:
+            return exporter.export(ext, intr, fmt)
+        except ValueError as e:
+            raise UnknownFormat(str(e)) from None
+
+    async def activate_version(self, v: int, reason: str | None) -> dict[str, Any]:
+        """Make version ``v`` the active calibration (as a new version, a copy of it) and
+        publish it. While a session runs, its live estimate stays what /calibration shows."""
+        meta = await asyncio.to_thread(self.versions.activate, v, reason=reason)
+        log.info("calibration version %s activated as version %s: %s", v, meta["version"], meta["reason"])
+        self.events.publish("calibration", {"version": meta["version"], "source_version": v, "by": meta["by"]})
+        doc = self.versions.active_doc()
+        if doc is not None and self.active is None:
+            self._publish_doc(doc)
+        return meta
 
     def formats(self) -> list[str]:
         out = ["json", "yaml"]

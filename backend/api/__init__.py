@@ -23,6 +23,8 @@ Sensors publish keypoint messages over Zenoh; a **session** turns them into came
 Start one with `POST /sessions`, watch it with `GET /sessions/{id}` or the event stream
 `GET /events`, stop it with `POST /sessions/{id}/stop`, fetch the result with
 `GET /sessions/{id}/result` or the current calibration with `GET /calibration`.
+Every accepted calibration is a version (`GET /calibrations`); `POST
+/calibrations/{v}/activate` rolls back to one.
 
 **Convergence.** After every cycle each camera has a standard deviation (from the
 filter's covariance) and a recent pose change over its last `refine.converged_cycles`
@@ -43,7 +45,7 @@ def create_app(settings: "ServiceSettings", service: "Service | None" = None) ->
     from fastapi import FastAPI
 
     from . import errors
-    from .routers import calibration, events, health, sessions, status
+    from .routers import calibration, calibrations, events, health, sessions, status
 
     lifespan = None
     if service is None:
@@ -84,7 +86,7 @@ def create_app(settings: "ServiceSettings", service: "Service | None" = None) ->
     app.state.settings = settings
     app.add_middleware(BodyLimit, limit=MAX_BODY)
     errors.install(app)
-    for r in (sessions, calibration, status, events, health):
+    for r in (sessions, calibration, calibrations, status, events, health):
         app.include_router(r.router)
     _optional_parts(app, service)
     return app

@@ -113,6 +113,29 @@ class Calibration(BaseModel):
     converged: bool | None
     accuracy: dict[str, float | None] | None
     cameras: dict[str, CalibrationCamera]
+    version: int | None = Field(None, description="the calibration version shown (null: a running session's live estimate)")
+    source_version: int | None = Field(None, description="the version this one copies (an activation), or null")
+
+
+class CalibrationVersion(BaseModel):
+    """One recorded calibration version (GET /calibrations)."""
+
+    version: int
+    created: str = Field(description="UTC, ISO 8601")
+    by: str = Field(description="who or what recorded it: 'session <id>', 'rollback', 'api'")
+    reason: str
+    session: str | None = Field(description="the session that computed the poses")
+    source_version: int | None = Field(description="for an activation: the version it copies")
+    cycle: int | None
+    converged: bool | None
+    accuracy: dict[str, float | None] | None = Field(description="error against the session's reference, when it had one")
+    cameras: int
+    active: bool
+
+
+class Activate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    reason: str | None = Field(None, max_length=1000, description="why (kept in the history)")
 
 
 class SensorOut(BaseModel):
