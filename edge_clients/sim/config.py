@@ -52,6 +52,16 @@ class SimConfig:
       drift_std: std of each sensor's clock rate error (1e-6 = 1 ppm).
       delay: (min, max) s, each sensor's base network + processing delay.
       delay_jitter: s, mean of the extra per-message delay (gamma distributed).
+      clock_offsets: {sensor: s} constant clock offsets that replace the drawn NTP error
+        (a sensor whose NTP fails: stamp = capture + offset + drift x elapsed).
+      clock_drifts: {sensor: s/s} clock rate errors that replace the drawn drift.
+
+    Scenarios
+      bumps: ((time_s, sensor, translation_m, rotation_deg), ...): from true time
+        ``time_s`` (relative to the start) on, the sensor's camera is moved by
+        ``translation_m`` in a random direction and turned by ``rotation_deg`` about a
+        random axis through its optical centre (both drawn from (seed, "bump", sensor,
+        index)); several bumps of one sensor add up. The truth records the new poses.
 
     Detector
       sigma_torso, sigma_head, sigma_limb, sigma_extremity: px pixel noise std at
@@ -129,6 +139,10 @@ class SimConfig:
     hidden_drop: float = 0.5
     pixel_decimals: int | None = 3
     intrinsics_error: float = 0.002
+    # scenarios
+    clock_offsets: tuple[tuple[str, float], ...] = ()
+    clock_drifts: tuple[tuple[str, float], ...] = ()
+    bumps: tuple[tuple[float, str, float, float], ...] = ()
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> None:
@@ -136,6 +150,28 @@ class SimConfig:
 
         if isinstance(self.sensor_rates, dict):  # accept a mapping, store it hashable
             object.__setattr__(self, "sensor_rates", tuple(sorted(self.sensor_rates.items())))
+        for name in ("clock_offsets", "clock_drifts"):
+            v = getattr(self, name)
+            items = v.items() if isinstance(v, dict) else v
+            try:
+                norm = tuple(sorted((str(k), float(x)) for k, x in items))
+            except (TypeError, ValueError):
+                bad(name, f"expected {{sensor: seconds}}, got {v!r}")
+            if any(not math.isfinite(x) for _, x in norm):
+                bad(name, f"values must be finite, got {dict(norm)}")
+            object.__setattr__(self, name, norm)
+        bumps = []
+        for b in self.bumps:
+            try:
+                t, sensor, dt, dr = b
+                b = (float(t), str(sensor), float(dt), float(dr))
+            except (TypeError, ValueError):
+                bad("bumps", f"expected (time_s, sensor, translation_m, rotation_deg), got {b!r}")
+            if not (math.isfinite(b[0]) and b[0] >= 0 and math.isfinite(b[2]) and b[2] >= 0
+                    and math.isfinite(b[3]) and 0 <= b[3] <= 180):
+                bad("bumps", f"{b}: time >= 0, translation >= 0 m and rotation in [0, 180] deg expected")
+            bumps.append(b)
+        object.__setattr__(self, "bumps", tuple(sorted(bumps, key=lambda b: (b[0], b[1]))))
         if self.persons < 0:
             bad("persons", f"must be >= 0, got {self.persons}")
         if not (self.duration > 0):

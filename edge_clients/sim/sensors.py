@@ -70,6 +70,35 @@ class Detection:
     score: float
 
 
+def rotation(rotvec: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation matrix of a rotation vector (rad), Rodrigues."""
+    angle = float(np.linalg.norm(rotvec))
+    if angle == 0.0:
+        return np.eye(3)
+    k = rotvec / angle
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * (K @ K)
+
+
+def _unit(rng: np.random.Generator) -> np.ndarray:
+    v = rng.standard_normal(3)
+    return v / np.linalg.norm(v)
+
+
+def bump_poses(name: str, pose: Pose, cfg: SimConfig) -> list[tuple[float, np.ndarray, np.ndarray, Pose]]:
+    """The sensor's bumps in time order: (t_rel, displacement (3,) m, rotation vector (3,)
+    rad in the world frame, pose from then on). The camera turns about its optical centre:
+    R' = exp(rotvec) R, t' = t + displacement; bumps add up."""
+    out = []
+    for i, (tb, _, dt, dr) in enumerate(b for b in cfg.bumps if b[1] == name):
+        rng = rng_for(cfg.seed, "bump", name, i)
+        disp = _unit(rng) * dt
+        rotvec = _unit(rng) * math.radians(dr)
+        pose = Pose(rotation(rotvec) @ pose.R, pose.t + disp)
+        out.append((tb, disp, rotvec, pose))
+    return out
+
+
 def _sigmoid(x):
     return 1.0 / (1.0 + np.exp(-x))
 
@@ -99,6 +128,11 @@ class SensorSim:
         self.phase = t.uniform(0, 1 / self.rate)
         self.offset = t.normal(0, cfg.clock_std)
         self.drift = t.normal(0, cfg.drift_std)
+        # configured clocks replace the drawn ones (drawn anyway: the stream stays the same)
+        self.offset = float(dict(cfg.clock_offsets).get(name, self.offset))
+        self.drift = float(dict(cfg.clock_drifts).get(name, self.drift))
+        self.pose0 = pose
+        self.bumps = bump_poses(name, pose, cfg)  # [(t_rel, displacement, rotvec, new pose)]
         self.delay_base = t.uniform(*cfg.delay)
         self.seq0 = int(t.integers(0, 100000))
         self.k = 0  # next nominal frame
@@ -155,10 +189,35 @@ class SensorSim:
 
     # ------------------------------------------------------------------ detector
 
+    def pose_at(self, t_rel: float) -> Pose:
+        """The camera's true pose at true time ``t_rel`` (s since the start): bumps included."""
+        pose = self.pose0
+        for tb, _, _, p in self.bumps:
+            if t_rel >= tb:
+                pose = p
+        return pose
+
     def detect(self, frames: list[Frame], J: np.ndarray) -> list[list[Detection]]:
         """Detections of each frame, sorted by score. J: (n, P, 17, 3) true world joints
         at the frames' capture times. Vectorised over the frames of a chunk; the random
-        draws depend only on this sensor's stream, the frames and the world."""
+        draws depend only on this sensor's stream, the frames and the world. Frames on
+        either side of a bump are detected in separate blocks, each with its pose."""
+        if not self.bumps:
+            return self._detect(frames, J)
+        start = self.cfg.start_time
+        seg = np.array([sum(f.capture - start >= tb for tb, _, _, _ in self.bumps) for f in frames], dtype=int)
+        out: list[list[Detection]] = []
+        i = 0
+        while i < len(frames):
+            j = i
+            while j < len(frames) and seg[j] == seg[i]:
+                j += 1
+            self.pose = self.pose0 if seg[i] == 0 else self.bumps[seg[i] - 1][3]
+            out += self._detect(frames[i:j], J[i:j])
+            i = j
+        return out
+
+    def _detect(self, frames: list[Frame], J: np.ndarray) -> list[list[Detection]]:
         n, P = J.shape[:2]
         if n == 0:
             return []

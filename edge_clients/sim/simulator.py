@@ -60,6 +60,14 @@ class Simulator:
     def __init__(self, scene: Scene, config: SimConfig | None = None):
         self.scene = scene
         self.config = config if config is not None else SimConfig()
+        named = {"clock_offsets": [k for k, _ in self.config.clock_offsets],
+                 "clock_drifts": [k for k, _ in self.config.clock_drifts],
+                 "bumps": [b[1] for b in self.config.bumps]}
+        for what, names in named.items():
+            unknown = sorted(set(names) - set(scene.names))
+            if unknown:
+                raise ValueError(f"SimConfig.{what}: unknown sensors {', '.join(unknown)} "
+                                 f"(scene has {', '.join(scene.names)})")
         self.area: Area | None = build_area(scene, self.config.coverage_range) if self.config.persons else None
         self._truth: Truth | None = None
         self._stats: SimStats | None = None
@@ -239,6 +247,7 @@ class Simulator:
             floor_e1=scene.floor.e1.copy(),
             floor_e2=scene.floor.e2.copy(),
             floor_up=scene.floor.up.copy(),
+            **_bump_truth(sensors, cfg.start_time),
         )
         return truth, self._make_stats(truth, rec)
 
@@ -285,3 +294,17 @@ class Simulator:
             clock_offset_ms={s.name: 1000 * s.offset for s in rec.sensors},
             delay_ms={s.name: 1000 * s.delay_base for s in rec.sensors},
         )
+
+
+def _bump_truth(sensors: list[SensorSim], start_time: float) -> dict[str, np.ndarray]:
+    """The Truth's bump_* arrays, in time order."""
+    rows = sorted(((tb, s.index, disp, rot, pose) for s in sensors for tb, disp, rot, pose in s.bumps),
+                  key=lambda r: (r[0], r[1]))
+    return {
+        "bump_sensor": np.array([r[1] for r in rows], dtype=np.int32),
+        "bump_time": np.array([start_time + r[0] for r in rows], dtype=np.float64),
+        "bump_translation": np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 3),
+        "bump_rotation": np.array([r[3] for r in rows], dtype=np.float64).reshape(-1, 3),
+        "bump_R": np.array([r[4].R for r in rows], dtype=np.float64).reshape(-1, 3, 3),
+        "bump_t": np.array([r[4].t for r in rows], dtype=np.float64).reshape(-1, 3),
+    }

@@ -37,13 +37,19 @@ D detections):
                                  imaged with (at the message resolution; they differ
                                  from the calibration files by ``intrinsics_error``)
     floor_origin, floor_e1, floor_e2, floor_up  (3,) float64  the floor plane (world frame)
+    bump_sensor    (B,) int32    bumped cameras (SimConfig.bumps), index into ``sensors``, in time order
+    bump_time      (B,) float64  epoch s (true time) from which the new pose holds
+    bump_translation (B, 3) float64  the move of the optical centre, m (world frame)
+    bump_rotation  (B, 3) float64  rotation vector (rad, world frame): R_new = exp(rot) R_old
+    bump_R, bump_t (B, 3, 3), (B, 3) float64  the camera's true pose (world_R_cam, centre)
+                                 from ``bump_time`` on (``Truth.pose_at`` needs the scene's poses)
 """
 
 from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -103,6 +109,12 @@ class Truth:
     floor_e1: np.ndarray
     floor_e2: np.ndarray
     floor_up: np.ndarray
+    bump_sensor: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    bump_time: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    bump_translation: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    bump_rotation: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    bump_R: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    bump_t: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     def __post_init__(self) -> None:
         P, T = self.joints.shape[:2]
@@ -113,6 +125,15 @@ class Truth:
             assert getattr(self, name).shape == (M,), name
         for name in ("det_sensor", "det_seq", "det_index", "det_person", "det_capture", "det_flags"):
             assert getattr(self, name).shape == (D,), name
+
+    def pose_at(self, sensor: str, t: float, initial_R: np.ndarray, initial_t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(R, t) of ``sensor`` at epoch time ``t``, given its pose before any bump (the scene's)."""
+        s = self.sensors.index(sensor)
+        R, c = initial_R, initial_t
+        for k in np.flatnonzero(self.bump_sensor == s):
+            if t >= self.bump_time[k]:
+                R, c = self.bump_R[k], self.bump_t[k]
+        return R, c
 
     @property
     def persons(self) -> int:
@@ -160,11 +181,14 @@ class Truth:
         if not p.is_file():
             raise FileNotFoundError(f"truth file {p} does not exist")
         with np.load(p, allow_pickle=False) as z:
-            missing = [f.name for f in fields(Truth) if f.name not in z.files]
+            optional = {f.name for f in fields(Truth) if f.name.startswith("bump_")}  # older sidecars
+            missing = [f.name for f in fields(Truth) if f.name not in z.files and f.name not in optional]
             if missing:
                 raise ValueError(f"{p}: not a simulator truth file (missing {', '.join(missing)})")
             kw = {}
             for f in fields(Truth):
+                if f.name not in z.files:
+                    continue
                 v = z[f.name]
                 if f.name == "sensors":
                     v = tuple(str(s) for s in v)
