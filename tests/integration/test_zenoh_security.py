@@ -198,7 +198,8 @@ def test_peers_without_the_site_pki_cannot_connect(secure_service, pki, case):
         settings = _sensor_config(svc, pki, "rogue", **{"cam_0.pem": "rogue.pem", "cam_0.key": "rogue.key"})
     elif case == "no client certificate":
         settings = _sensor_config(svc, pki, "nocert", **{
-            'connect_certificate: "': '// connect_certificate: "', 'connect_private_key: "': '// connect_private_key: "'})
+            'connect_certificate: "': '// connect_certificate: "', 'connect_private_key: "': '// connect_private_key: "',
+            "enable_mtls: true": "enable_mtls: false"})  # the client offers none: the backend must refuse it
     elif case == "no CA (cannot verify the backend)":
         settings = _sensor_config(svc, pki, "noca", **{'root_ca_certificate: "': '// root_ca_certificate: "'})
     else:  # the TLS port spoken to in plain TCP
