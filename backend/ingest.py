@@ -108,9 +108,10 @@ class ServiceClock:
     runs on at ``speed`` data seconds per wall second, so that framesets waiting for
     late messages are closed and stop criteria by duration still fire; data arriving
     slower than ``speed`` (a simulator that cannot keep up) never lets the clock run
-    ahead of it. A stamp more
-    than ``max_jump`` seconds ahead does not move the clock (the pipeline rejects it as
-    from the future), so one sensor with a wrong clock cannot drag everyone along.
+    ahead of it. The clock follows the median of the sensors' newest stamps, not the
+    newest of all, so one sensor whose clock jumped ahead cannot drag everyone along
+    (and make their messages late); a stamp more than ``max_jump`` seconds ahead does not
+    count at all.
     """
 
     def __init__(self, mode: Literal["wall", "data"], *, speed: float = 1.0, grace: float = 1.0,
@@ -122,6 +123,7 @@ class ServiceClock:
         self.max_jump = max_jump
         self._high: float | None = None  # the clock's value at the last message (data mode)
         self._last = 0.0  # monotonic time of the last message
+        self._newest: dict[str, float] = {}  # sensor → its newest plausible stamp
 
     def now(self) -> float | None:
         """Current clock time, or None before the data clock has seen any message."""
@@ -132,18 +134,25 @@ class ServiceClock:
         idle = time.monotonic() - self._last - self.grace
         return self._high + self.speed * idle if idle > 0 else self._high
 
-    def observe(self, stamp: float) -> float:
-        """A message with ``stamp`` arrives; returns its arrival time on this clock."""
+    def observe(self, stamp: float, sensor: str | None = None) -> float:
+        """A message with ``stamp`` arrives (from ``sensor``); returns its arrival time on
+        this clock."""
         if self.mode == "wall":
             return time.time()
         now = self.now()
         # Data flows again: the run-on time (if any) is kept, so the clock never goes back.
         self._high = now
         self._last = time.monotonic()
-        if now is None or (stamp > now and stamp - now <= self.max_jump):
-            self._high = stamp
-            return stamp
-        return now
+        if now is not None and stamp - now > self.max_jump:
+            return now
+        key = sensor if sensor is not None else ""
+        if len(self._newest) < 4096 or key in self._newest:
+            self._newest[key] = max(stamp, self._newest.get(key, stamp))
+        stamps = sorted(self._newest.values())
+        typical = stamps[(len(stamps) - 1) // 2]  # the lower median: one sensor ahead is not enough
+        if now is None or typical > now:
+            self._high = typical
+        return self._high
 
     def to_dict(self) -> dict[str, Any]:
         return {"mode": self.mode, "speed": self.speed, "now": self.now()}

@@ -559,7 +559,7 @@ class Service:
         if name is not None and msg.sensor != name:
             self._reject(stats, "sensor_mismatch")
             return
-        arrival = self.clock.observe(msg.stamp) if self.clock.mode == "data" else wall
+        arrival = self.clock.observe(msg.stamp, msg.sensor) if self.clock.mode == "data" else wall
         if stats is not None:
             stats.timing(msg.stamp, arrival, msg.seq)
         s = self.active

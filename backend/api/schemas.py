@@ -150,6 +150,8 @@ class SensorOut(BaseModel):
     rate: float = Field(description="messages per second, recent")
     latency: dict[str, float] | None = Field(description="arrival − stamp, s (median, p95, max over the recent window)")
     clock_offset: float | None = Field(description="min(arrival − stamp) over the window: the sensor clock's lag behind ours plus the fastest transport delay")
+    warnings: list[str] = Field(default_factory=list, description="a clock set apart from the other sensors' by more than "
+                                "the frameset std limit, or messages arriving later than framesets wait")
 
 
 class Status(BaseModel):

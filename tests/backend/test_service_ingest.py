@@ -6,6 +6,8 @@ import asyncio
 import threading
 import time
 
+import pytest
+
 from backend.ingest import Arrival, HandOff, SensorStats, ServiceClock
 
 
@@ -110,3 +112,15 @@ def test_data_clock_never_runs_ahead_of_slow_data_nor_back():
     ran_on = c.now()
     assert ran_on > stamp - 0.3 + 5
     assert c.observe(stamp) >= ran_on and c.now() >= ran_on
+
+
+def test_data_clock_follows_the_typical_sensor_not_one_whose_clock_jumped():
+    c = ServiceClock("data", max_jump=5.0)
+    for k in range(10):
+        for s in ("cam_0", "cam_1", "cam_2"):
+            c.observe(1000.0 + 0.1 * k, s)
+    c.observe(1002.9, "cam_3")  # 2 s ahead: must not move the clock for the others
+    assert c.now() == pytest.approx(1000.9)
+    for s in ("cam_0", "cam_1", "cam_2"):
+        c.observe(1001.0, s)
+    assert c.now() == pytest.approx(1001.0)

@@ -141,10 +141,7 @@ def test_sensor_silent_then_back(tmp_path, lab_dir, lab_msgs):
 
 @pytest.mark.parametrize("max_future", [
     1.0,
-    pytest.param(None, marks=pytest.mark.xfail(strict=True, reason=(
-        "known bug: with the default sync.max_stamp_future (5 s) a +2 s jump is accepted and moves the data "
-        "clock, and every other sensor's messages are then rejected as `late` (measured: 21,329 of them, "
-        "only the jumped sensor taken)"))),
+    None,
 ], ids=["max_stamp_future=1s", "default"])
 def test_sensor_clock_jumps_ahead(tmp_path, lab_dir, lab_msgs, max_future):
     """+2 s on one sensor: its messages are rejected by reason, the data clock is not
@@ -160,10 +157,16 @@ def test_sensor_clock_jumps_ahead(tmp_path, lab_dir, lab_msgs, max_future):
             jumped = "cam_15"
             before = c.get("/status").json()
             rp.shift[jumped] = 2.0
-            status = _poll(c, "/status", lambda x: sum(_sensor(x, jumped)["rejected"].values()) >= 30, 20,
-                           "the jumped sensor's messages are not rejected")
-            reasons = _sensor(status, jumped)["rejected"]
-            assert set(reasons) <= {"stamp_in_future"}, reasons
+            if max_future:  # beyond the limit: rejected by reason
+                status = _poll(c, "/status", lambda x: sum(_sensor(x, jumped)["rejected"].values()) >= 30, 20,
+                               "the jumped sensor's messages are not rejected")
+                reasons = _sensor(status, jumped)["rejected"]
+                assert set(reasons) <= {"stamp_in_future"}, reasons
+            else:  # within it: taken, but /status warns about that sensor's clock, and only that one
+                status = _poll(c, "/status", lambda x: bool(_sensor(x, jumped).get("warnings")), 20,
+                               "no warning about the jumped sensor's clock")
+                assert "from the other sensors" in _sensor(status, jumped)["warnings"][0]
+                assert not any(_sensor(status, s).get("warnings") for s in CAMS if s != jumped)
             others = [s for s in CAMS if s != jumped]
             taken = {s: _sensor(status, s)["accepted"] for s in others}
             cycles = c.get(f"/sessions/{sid}").json()["cycles"]
@@ -174,7 +177,8 @@ def test_sensor_clock_jumps_ahead(tmp_path, lab_dir, lab_msgs, max_future):
                 assert _sensor(after, o)["accepted"] > taken[o], o
                 late = _sensor(after, o)["rejected"].get("late", 0) - _sensor(before, o)["rejected"].get("late", 0)
                 assert late <= 3, (o, _sensor(after, o)["rejected"])
-            assert after["messages"]["rejected"].get("stamp_in_future", 0) >= 30
+            if max_future:
+                assert after["messages"]["rejected"].get("stamp_in_future", 0) >= 30
             assert c.get("/healthz").json()["ok"]
             assert rp.error is None, rp.error
         finally:
