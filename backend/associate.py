@@ -195,7 +195,8 @@ class Associator:
                 proj = Xc[:, :2] / np.where(behind, 1.0, Xc[:, 2])[:, None]
                 err = np.linalg.norm(proj - centres, axis=1) * focal
                 err[behind] = np.inf
-                excess = err / gate_px[cams]
+                with np.errstate(invalid="ignore"):  # inf / inf: not gated
+                    excess = np.nan_to_num(err / gate_px[cams], nan=0.0)
                 excess[~keep] = -1
                 worst = int(np.argmax(excess))
                 if excess[worst] <= 1.0:
