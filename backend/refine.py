@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import RefineConfig
-from .geometry import pose_local, pose_retract, rotation_angle_deg, umeyama
+from .geometry import pose_local, pose_retract, rotation_angle_deg
 
 
 @dataclass(frozen=True)
@@ -125,13 +125,24 @@ class Refiner:
 
     def keep_scale(self, active: np.ndarray | None = None) -> float:
         """Rescale the calibrated cameras' centres about their centroid to the initial
-        estimate's scale. Cameras that never had data keep their initial pose exactly."""
+        estimate's scale. Cameras that never had data keep their initial pose exactly.
+
+        The scale is the median ratio of pairwise camera distances (initial / current), a
+        similarity scale that one badly placed camera cannot move: with a least-squares
+        fit, a single camera metres off rescaled everyone."""
         m = self.cycles > 0
         if active is not None:
             m = m | active
-        if m.sum() < 3:
+        idx = np.flatnonzero(m)
+        if len(idx) < 3:
             return 1.0
-        s, _, _ = umeyama(self.t[m], self.t0[m], with_scale=True)
+        i, j = np.triu_indices(len(idx), 1)
+        d = np.linalg.norm(self.t[idx][i] - self.t[idx][j], axis=1)
+        d0 = np.linalg.norm(self.t0[idx][i] - self.t0[idx][j], axis=1)
+        ok = (d > 0.2) & (d0 > 0.2)  # co-located cameras say nothing about scale
+        if not ok.any():
+            return 1.0
+        s = float(np.median(d0[ok] / d[ok]))
         c = self.t[m].mean(0)
         self.t[m] = c + s * (self.t[m] - c)
         # The uncertainty of a position scales with it.
@@ -139,7 +150,7 @@ class Refiner:
             M[m, 3:, 3:] *= s * s
             M[m, :3, 3:] *= s
             M[m, 3:, :3] *= s
-        return float(s)
+        return s
 
     def change(self, c: int) -> tuple[float, float]:
         """Net pose change (m, deg) of camera c over its last ``converged_cycles`` cycles:
