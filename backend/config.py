@@ -52,9 +52,9 @@ class AssociateConfig(_Section):
     min_views_unsettled: int = Field(3, ge=2, description="views a hypothesis needs while one of its cameras is unsettled: "
                                      "a wrong view among 3 shows as a residual, between 2 it cannot")
     settled_cycles: int = Field(3, ge=0, description="cycles after which a camera counts as settled")
-    relocalize: bool = Field(False, description="a camera whose detections stop joining hypotheses is re-localised by PnP "
-                             "(opt-in: with two persons a lost camera's lone detection may be the other person, and in "
-                             "bench/accuracy it pulled 1 of 3 runs from 0.25 m / 10° starts off by metres)")
+    relocalize: bool = Field(True, description="a camera whose detections stop joining hypotheses is re-localised by PnP "
+                             "against persons the others triangulate; a pose beyond 6 sigma of the initial estimate "
+                             "(its uncertainty) is refused: a lone detection may be the other person")
     relocalize_interval: float = Field(10.0, gt=0, description="s of data time between checks for lost cameras")
     relocalize_after: int = Field(10, ge=0, description="cycles before the first check: early on every camera associates poorly")
     lost_ratio: float = Field(0.15, ge=0, le=1, description="a camera is lost when less than this share of its detections is associated ...")

@@ -21,7 +21,7 @@ import numpy as np
 
 from .associate import Associator, Hypothesis
 from .config import AssociateConfig, OptimizeConfig
-from .geometry import triangulate_batch
+from .geometry import rotation_angle_deg, triangulate_batch
 from .preprocess import Detection
 from .selection import select_spaced
 
@@ -271,9 +271,20 @@ def _relocalize(p: Problem) -> Solution:
     found = []
     for c in p.lost:
         r = relocalize(p.frames, c, p.R, p.t, float(p.focal[c]), p.associate, seed=p.seed)
-        if r is not None:
-            R[c], t[c], active[c] = r.R, r.t, True
-            found.append(f"{c}: {r.inliers}/{r.correspondences} inliers")
+        if r is None:
+            continue
+        # The prior (the initial estimate and its uncertainty) bounds where the camera can
+        # be: a pose beyond 6 sigma of it (the frame may drift a little meanwhile) is a wrong
+        # correspondence (the other person).
+        P = p.prior_cov[c]
+        max_t = 6.0 * float(np.sqrt(np.trace(P[3:, 3:]) / 3))
+        max_r = 6.0 * float(np.sqrt(np.trace(P[:3, :3]) / 3))
+        moved_t = float(np.linalg.norm(r.t - p.prior_t[c]))
+        moved_r = float(np.radians(rotation_angle_deg(r.R, p.prior_R[c])))
+        if moved_t > max_t or moved_r > max_r:
+            continue
+        R[c], t[c], active[c] = r.R, r.t, True
+        found.append(f"{c}: {r.inliers}/{r.correspondences} inliers")
     nan = np.full((C, 6, 6), np.nan)
     reason = "" if found else "no lost camera could be re-localised"
     return Solution(bool(found), reason, R, t, nan, nan.copy(), active, np.zeros(C, np.int64), 0,

@@ -186,9 +186,12 @@ class Pipeline:
         return p
 
     def _relocalize_problem(self, lost, frames) -> Problem:
+        """Prior = the initial estimate and its uncertainty: where a lost camera can be
+        (the filter may have dragged it anywhere)."""
         rf = self.refiner
-        return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
-                       prior_cov=rf.predicted_covariance(), focal=self.focal, config=self.cfg.optimize,
+        P0 = np.repeat(initial_covariance(self.cfg.refine)[None], len(self.names), axis=0)
+        return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R0.copy(), prior_t=rf.t0.copy(),
+                       prior_cov=P0, focal=self.focal, config=self.cfg.optimize,
                        frames=tuple(frames), associate=self.cfg.associate, seed=int(self.rng.integers(2**31)),
                        kind="relocalize", lost=tuple(int(c) for c in lost))
 
