@@ -429,8 +429,6 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
                 break
             dropped.add(key)
             graph = _without_key(graph, key, gtsam)
-            if gtsam.Symbol(key).chr() == ord("x"):
-                continue  # the camera keeps its prior; its covariance stays unknown (NaN)
     return out + (cov, cov_shape, reason)
 
 
@@ -447,17 +445,13 @@ def _named_key(message: str) -> int | None:
 
 
 def _without_key(graph, key: int, gtsam):
-    """The graph without the factors on ``key``, and with a weak prior holding it, so that
-    the marginals of the rest can be computed."""
+    """The graph without the factors on ``key``: the variable drops out of the marginals
+    (a camera left out keeps NaN covariance), the rest can be computed."""
     out = gtsam.NonlinearFactorGraph()
     for i in range(graph.size()):
         f = graph.at(i)
-        if f is None or key in list(f.keys()):
-            continue
-        out.add(f)
-    sym = gtsam.Symbol(key)
-    if sym.chr() == ord("x"):
-        return out  # a camera without factors simply is not in the marginals' keys
+        if f is not None and key not in list(f.keys()):
+            out.add(f)
     return out
 
 
