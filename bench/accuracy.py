@@ -19,7 +19,7 @@ The 20-camera lab (shared/data/ais_lab20), simulated walkers of 1.96 m (and 1.70
   left between the engine and the limit is association and the online schedule; what is
   left in the limit is detector noise and the scale of the initial estimate.
 
-    python bench/accuracy.py                            # everything: 5 seeds, ~1 h on one core
+    python bench/accuracy.py                            # everything: 5 seeds, ~40 min on a quiet machine
     python bench/accuracy.py --persons 2 --seeds 3 --starts none --out a.json
     python bench/accuracy.py --persons none --starts 0.75/20 --seeds 1
     python bench/accuracy.py --quick                    # smoke run: 1 seed, 60 s, 2 persons
@@ -582,7 +582,7 @@ def main(argv: list[str] | None = None) -> None:
 
     from rich.console import Console
 
-    console = Console(width=250, highlight=False)
+    console = Console(width=250, highlight=False, markup=False)
     if args.report is not None:
         runs = []
         for f in args.report:
