@@ -67,6 +67,11 @@ class SelectConfig(_Section):
     queue_size: int = Field(5000, ge=10)
     newer_bias: float = Field(3.0, ge=0, description="selection weight grows as exp(bias * age rank in [0, 1])")
     interval: float = Field(0.5, gt=0, description="s of data time between cycles")
+    first_scope: int = Field(150, ge=0, description="hypotheses of the first cycle, which waits until the queue holds "
+                             "that many with associate.min_views_unsettled views, min_spacing apart, or first_wait has passed: from a rough "
+                             "start a few wrong associations outweigh a cycle's worth of data and drag cameras metres "
+                             "off; many hypotheses outvote them (0 = the first cycle is like any other)")
+    first_wait: float = Field(20.0, ge=0, description="s of data time after the first hypothesis that the first cycle waits at most")
 
 
 class OptimizeConfig(_Section):

@@ -54,7 +54,7 @@ class Problem:
     spacing: float = 0.0
     seed: int = 0
     marginals: bool = True
-    kind: str = "cycle"  # cycle | batch | relocalize
+    kind: str = "cycle"  # cycle | first | batch | relocalize
     lost: tuple[int, ...] = ()  # relocalize: the cameras to find again
 
     def __post_init__(self) -> None:

@@ -18,6 +18,7 @@ live it is the wall clock. ``run_offline`` drives it synchronously; the service 
 from __future__ import annotations
 
 from collections import Counter, deque
+from dataclasses import replace
 from typing import Callable, Iterable
 
 import numpy as np
@@ -63,6 +64,7 @@ class Pipeline:
         self.detected_total = np.zeros(C, dtype=np.int64)
         self.associated_total = np.zeros(C, dtype=np.int64)
         self.last_lost_check: float | None = None
+        self.first_passes = 0  # passes of the first adjustment done (select.first_scope)
         self.relocalized: list[str] = []
         self.clock: float | None = None
         self.cycle = 0
@@ -158,8 +160,9 @@ class Pipeline:
 
     def next_problem(self, now: float | None) -> Problem | None:
         """A cycle's problem when one is due, else None. Only one is in flight at a time:
-        re-localisation of lost cameras when one is due, else the paper's cycle over the
-        queue's newest hypotheses with the filter's predicted state as the prior."""
+        re-localisation of lost cameras when one is due; at the start the first adjustment
+        (two passes, see ``_first_problem``); else the paper's cycle over the queue's
+        newest hypotheses with the filter's predicted state as the prior."""
         if self._inflight is not None or now is None:
             return None
         rf, cfg = self.refiner, self.cfg
@@ -169,21 +172,41 @@ class Pipeline:
             horizon = self.frames[-1][0] - 180.0 if self.frames else 0.0
             p = self._relocalize_problem(lost, [f for f in self.frames if f[0] >= horizon])
         else:
-            if not self.queue.ready():
-                return None
             if self.last_cycle_time is not None and now - self.last_cycle_time < cfg.select.interval:
                 return None
-            self.cycle += 1
             a = cfg.associate
-            settled = rf.cycles >= a.settled_cycles
-            hyps = [h for h in self.queue.select(self.rng)
-                    if len(h.cams) >= a.min_views_unsettled or settled[h.cams].all()]
-            p = Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
-                        prior_cov=rf.predicted_covariance(), focal=self.focal, config=cfg.optimize,
-                        hypotheses=tuple(hyps), kind="cycle")
+            if cfg.select.first_scope > 0 and self.first_passes < 2:
+                if self.first_passes == 0 and (not self.queue.ready() or (
+                        now - self.queue.first_time < cfg.select.first_wait
+                        and self.queue.spread(a.min_views_unsettled) < cfg.select.first_scope)):
+                    self.last_cycle_time = now  # look again an interval later
+                    return None
+                p = self._first_problem()
+            else:
+                if not self.queue.ready():
+                    return None
+                self.cycle += 1
+                settled = rf.cycles >= a.settled_cycles
+                hyps = self.queue.select(self.rng, None,
+                                         lambda h: len(h.cams) >= a.min_views_unsettled or settled[h.cams].all())
+                p = Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
+                            prior_cov=rf.predicted_covariance(), focal=self.focal, config=cfg.optimize,
+                            hypotheses=tuple(hyps), kind="cycle")
         self.last_cycle_time = now
         self._inflight = p
         return p
+
+    def _first_problem(self) -> Problem:
+        """The first adjustment, in two passes over every frame so far, each associated
+        with the estimate the pass before left (min_views_unsettled views): from a rough
+        start a cycle of a few dozen hypotheses lets a handful of wrong associations drag
+        a camera metres off, and even a hundred can pull one that sees little; the second
+        association, with everyone else about right, no longer makes those mistakes."""
+        a, s = self.cfg.associate, self.cfg.select
+        p = self._batch_problem(s.first_scope, s.min_spacing)
+        self.first_passes += 1
+        self.queue.clear()  # their data are in this adjustment: a cycle must not count them again
+        return replace(p, associate=a.model_copy(update={"min_views": a.min_views_unsettled}), kind="first")
 
     def _relocalize_problem(self, lost, frames) -> Problem:
         """Prior = the initial estimate and its uncertainty: where a lost camera can be
@@ -248,13 +271,14 @@ class Pipeline:
         accepted = reason == ""
         change_t = change_r = 0.0
         batch = problem.kind == "batch"
+        first = problem.kind == "first"  # the posterior of all data so far, but not the final word
         if accepted and problem.kind == "relocalize":
             for c in np.flatnonzero(solution.active):
                 self.refiner.relocate(c, solution.R[c], solution.t[c])
                 self.relocalized.append(self.names[c])
         elif accepted:
-            upd = self.refiner.update(solution.active, solution.R, solution.t, solution.cov, posterior=batch,
-                                      cov_shape=solution.cov_shape)
+            upd = self.refiner.update(solution.active, solution.R, solution.t, solution.cov, posterior=batch or first,
+                                      cov_shape=solution.cov_shape, final=batch)
             change_t = float(upd.changed_translation.max())
             change_r = float(upd.changed_rotation.max())
             if batch:
@@ -381,6 +405,7 @@ class Pipeline:
             "cycles": rf.cycles.tolist(),
             "history": [[[t.tolist(), R.tolist()] for t, R in h] for h in rf.history],
             "cycle": self.cycle,
+            "first_passes": self.first_passes,
             "batched": rf.batched.tolist(),
             "observations": self.observations.tolist(),
             "observations_batch": self.observations_batch.tolist(),
@@ -399,6 +424,8 @@ class Pipeline:
         for h, items in zip(rf.history, snapshot["history"]):
             h.extend((np.array(t, dtype=np.float64), np.array(R, dtype=np.float64)) for t, R in items)
         p.cycle = int(snapshot["cycle"])
+        # a snapshot from before first passes existed had its first cycles long ago
+        p.first_passes = int(snapshot.get("first_passes", 2))
         rf.batched = np.array(snapshot.get("batched", [False] * len(p.names)), dtype=bool)
         p.observations = np.array(snapshot["observations"], dtype=np.int64)
         p.observations_batch = np.array(snapshot.get("observations_batch", [0] * len(p.names)), dtype=np.int64)

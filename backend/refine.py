@@ -75,11 +75,13 @@ class Refiner:
         return self.P + self.Q[None]
 
     def update(self, active: np.ndarray, R_new: np.ndarray, t_new: np.ndarray, cov: np.ndarray,
-               *, posterior: bool = False, cov_shape: np.ndarray | None = None) -> UpdateResult:
+               *, posterior: bool = False, cov_shape: np.ndarray | None = None, final: bool | None = None) -> UpdateResult:
         """Fold in one cycle's solution for the cameras in ``active`` (C,) bool.
 
         ``posterior``: the solution is already the full posterior (a batch whose prior
-        was the initial estimate): take it as the state whatever the measurement mode."""
+        was the initial estimate): take it as the state whatever the measurement mode.
+        ``final`` (default: ``posterior``): a batch over all the data, after which the
+        std alone decides convergence."""
         C = len(self.R)
         R_old, t_old = self.R.copy(), self.t.copy()
         Pp = self.predicted_covariance()
@@ -107,7 +109,7 @@ class Refiner:
         dt = np.linalg.norm(self.t - t_old, axis=1)
         dr = np.array([rotation_angle_deg(R_old[c], self.R[c]) for c in range(C)])
         self._record(active)
-        self.batched[active] = posterior
+        self.batched[active] = posterior if final is None else final
         return UpdateResult(dt, dr, scale)
 
     def _record(self, active: np.ndarray) -> None:

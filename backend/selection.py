@@ -9,6 +9,7 @@ covariance stays honest.
 from __future__ import annotations
 
 from collections import deque
+from typing import Callable
 
 import numpy as np
 
@@ -21,12 +22,14 @@ class HypothesisQueue:
         self.cfg = config
         self._q: deque[Hypothesis] = deque()
         self.dropped = 0
+        self.first_time = float("inf")  # data time of the first hypothesis ever queued
 
     def __len__(self) -> int:
         return len(self._q)
 
     def extend(self, hyps: list[Hypothesis]) -> None:
         for h in hyps:
+            self.first_time = min(self.first_time, h.time)
             if len(self._q) >= self.cfg.queue_size:
                 self._q.popleft()  # oldest first: the newest data describes the scene now
                 self.dropped += 1
@@ -42,7 +45,17 @@ class HypothesisQueue:
     def ready(self) -> bool:
         return len(self._q) >= 2 * self.cfg.scope
 
-    def select(self, rng: np.random.Generator) -> list[Hypothesis]:
+    def spread(self, min_views: int) -> int:
+        """How many queued hypotheses with at least ``min_views`` views are min_spacing
+        apart: what a selection could take."""
+        hyps = [h for h in self._q if len(h.cams) >= min_views]
+        return len(select_spaced(hyps, len(hyps), self.cfg.min_spacing, np.random.default_rng(0)))
+
+    def select(self, rng: np.random.Generator, scope: int | None = None,
+               usable: Callable[[Hypothesis], bool] | None = None) -> list[Hypothesis]:
+        """Up to ``scope`` (default the config's) hypotheses, taken out of the queue; only
+        ``usable`` ones are taken, the others stay for later cycles."""
+        scope = scope or self.cfg.scope
         n = len(self._q)
         if n == 0:
             return []
@@ -56,12 +69,14 @@ class HypothesisQueue:
         coms = np.zeros((0, 3))
         min_sq = self.cfg.min_spacing**2
         for i in order:
+            if usable is not None and not usable(items[i]):
+                continue
             c = items[i].com
             if len(coms) and np.min(((coms - c) ** 2).sum(1)) < min_sq:
                 continue
             taken.append(int(i))
             coms = np.vstack([coms, c])
-            if len(taken) >= self.cfg.scope:
+            if len(taken) >= scope:
                 break
         keep = np.ones(n, bool)
         keep[taken] = False
