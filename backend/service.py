@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import math
 import multiprocessing
@@ -307,6 +308,11 @@ class ActiveSession:
     def __post_init__(self) -> None:
         self.idle.set()
 
+    @functools.cached_property
+    def names(self) -> frozenset[str]:
+        """The session's sensors (its cameras)."""
+        return frozenset(self.inputs.cameras.names)
+
     @property
     def resolutions(self) -> dict[str, tuple[int, int]]:
         return {n: self.inputs.cameras.extrinsics[n].resolution for n in self.inputs.cameras.names}
@@ -328,7 +334,7 @@ class Service:
         self.events = EventBus()
         self.writer = Writer()
         self.solver = Solver(settings.solver_start)
-        self.active: ActiveSession | None = None
+        self._active: ActiveSession | None = None
         self.ignored = Counter()  # decoded but not for any session, by reason
         self.rejected = Counter()  # all rejections of messages, by reason
         self.messages = 0
@@ -355,6 +361,17 @@ class Service:
         # Called on the loop after every applied cycle with (session id, report, wall s);
         # metrics and other observers hook in here. They must be quick.
         self.cycle_listeners: list[Callable[[str, "CycleReport", float], None]] = []
+
+    @property
+    def active(self) -> ActiveSession | None:
+        """The running session (None: none)."""
+        return self._active
+
+    @active.setter
+    def active(self, s: ActiveSession | None) -> None:
+        self._active = s
+        if self.handoff is not None:  # sensors outside the session are refused on Zenoh's threads
+            self.handoff.accept(None if s is None else s.names)
 
     def _new_clock(self, cfg: EngineConfig) -> ServiceClock:
         return ServiceClock(self.settings.clock, speed=self.settings.speed,
@@ -532,7 +549,22 @@ class Service:
             with self.work.measure("ingest"):
                 for a in batch:
                     self._ingest_one(a.key, a.payload, a.wall)
+                self._fold_refused()
             await asyncio.sleep(0)
+
+    def _fold_refused(self) -> None:
+        """Count what the Zenoh threads refused by key (sensors outside the session)."""
+        if self.handoff is None:
+            return
+        for name, r in self.handoff.take_refused().items():
+            self.messages += r.count
+            self.rejected["unknown_sensor"] += r.count
+            stats = self.sensors.get(name)
+            if stats is None:
+                self.sensors.unattributed["unknown_sensor"] += r.count
+                continue
+            stats.seen(r.last_wall, r.count)
+            stats.rejected["unknown_sensor"] += r.count
 
     def _reject(self, stats: Any, reason: str) -> None:
         self.rejected[reason] += 1
@@ -559,10 +591,16 @@ class Service:
         if name is not None and msg.sensor != name:
             self._reject(stats, "sensor_mismatch")
             return
-        arrival = self.clock.observe(msg.stamp, msg.sensor) if self.clock.mode == "data" else wall
+        s = self.active
+        if self.clock.mode == "wall":
+            arrival = wall
+        elif s is None or msg.sensor in s.names:
+            arrival = self.clock.observe(msg.stamp, msg.sensor)
+        else:  # a sensor outside the session must not move the session's clock (a flood of them would)
+            now = self.clock.now()
+            arrival = msg.stamp if now is None else now
         if stats is not None:
             stats.timing(msg.stamp, arrival, msg.seq)
-        s = self.active
         if s is None or s.finishing:
             self.ignored["no_session"] += 1
             return
@@ -1233,6 +1271,7 @@ class Service:
         return {"max_offset": sync.max_std, "max_latency": sync.wait}
 
     def status_brief(self) -> dict[str, Any]:
+        self._fold_refused()
         s = self.active
         now_wall = time.time()
         sensors = self.sensors.to_dict(now_wall, **self._sensor_limits())
@@ -1250,6 +1289,11 @@ class Service:
         })
 
     def status(self) -> dict[str, Any]:
+        with self.work.measure("status"):
+            return self._status()
+
+    def _status(self) -> dict[str, Any]:
+        self._fold_refused()
         s = self.active
         now_wall = time.time()
         lag = sorted(self.lag)
@@ -1282,7 +1326,8 @@ class Service:
             "pipeline": None if counters is None else asdict(counters),
             "queues": {
                 "ingest": {"length": len(self.handoff), "capacity": self.handoff.capacity,
-                           "received": self.handoff.received, "dropped": self.handoff.dropped},
+                           "received": self.handoff.received, "dropped": self.handoff.dropped,
+                           "refused_by_key": self.handoff.refused, "wakeups": self.handoff.wakeups},
                 "hypotheses": None if counters is None else {"length": counters.queue_length, "dropped": counters.queue_dropped},
                 "writer": len(self.writer),
                 "event_subscribers": self.events.subscribers,
@@ -1369,7 +1414,9 @@ def _finite(x: float) -> float | None:
 def bind_socket(host: str, port: int) -> socket.socket:
     """The HTTP listening socket, bound before anything else starts: a clear error if taken."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    sock = socket.socket(family, socket.SOCK_STREAM)
+    # IPPROTO_TCP, not 0: asyncio sets TCP_NODELAY only on sockets that say they are TCP,
+    # and without it every response (headers, then body) waits ~40 ms for a delayed ACK
+    sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
         sock.bind((host, port))

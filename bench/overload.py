@@ -134,6 +134,8 @@ def main() -> int:
     ap.add_argument("--publishers", type=int, default=4, help="publisher processes (one for the session's cameras)")
     ap.add_argument("--persons", type=int, default=2)
     ap.add_argument("--sim-seconds", type=float, default=60.0, help="data seconds simulated (replayed in a loop)")
+    ap.add_argument("--profile", type=Path, default=None,
+                    help="run the service under cProfile (its main thread: the event loop) and write the stats here")
     a = ap.parse_args()
     log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
 
@@ -159,7 +161,8 @@ def main() -> int:
         endpoint = f"tcp/127.0.0.1:{zport}"
         env = {k: v for k, v in os.environ.items() if not k.startswith("EXTRCAL_")}
         out = open(work / "serve.log", "w")
-        server = subprocess.Popen([sys.executable, "-m", "backend.cli", "serve", "--http", f"127.0.0.1:{hport}",
+        prof = ["-m", "cProfile", "-o", str(a.profile.resolve())] if a.profile else []
+        server = subprocess.Popen([sys.executable, *prof, "-m", "backend.cli", "serve", "--http", f"127.0.0.1:{hport}",
                                    "--zenoh-listen", endpoint, "--state-dir", str(work / "state"), "--site", SITE,
                                    "--clock", "data", "--log-level", "warning"],
                                   cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
@@ -301,6 +304,10 @@ def main() -> int:
           f"| {final['cycles']} | {fmt(first['pos'], 100)} / {fmt(first['rot'], 1, 2)} → "
           f"{fmt(final['pos'], 100)} / {fmt(final['rot'], 1, 2)} |")
     print()
+    print(f"event loop lag p99 / max: {fmt(st['loop_lag']['p99'], 1000)} / {fmt(st['loop_lag']['max'], 1000)} ms; "
+          "work on the loop (count, mean / max ms, CPU share of the wall): " + "; ".join(
+              f"{k} {v['count']}, {v['mean'] * 1000:.2f} / {v['max'] * 1000:.1f}, {v['cpu_mean'] / v['mean']:.0%}"
+              for k, v in st["loop_work"].items() if v["mean"] > 0))
     print("rejected by reason during the overload: " + ", ".join(f"{k} {v}" for k, v in sorted(rej.items(), key=lambda x: -x[1])))
     return 0
 
