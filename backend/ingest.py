@@ -170,8 +170,9 @@ class ServiceClock:
     slower than ``speed`` (a simulator that cannot keep up) never lets the clock run
     ahead of it. The clock follows the median of the sensors' newest stamps, not the
     newest of all, so one sensor whose clock jumped ahead cannot drag everyone along
-    (and make their messages late); a stamp more than ``max_jump`` seconds ahead does not
-    count at all.
+    (and make their messages late). A lone stream's stamp more than ``max_jump`` seconds
+    ahead does not count at all; with several sensors it counts towards the median, so
+    that the clock follows when most of them are ahead (it had fallen behind).
     """
 
     def __init__(self, mode: Literal["wall", "data"], *, speed: float = 1.0, grace: float = 1.0,
@@ -203,9 +204,12 @@ class ServiceClock:
         # Data flows again: the run-on time (if any) is kept, so the clock never goes back.
         self._high = now
         self._last = time.monotonic()
-        if now is not None and stamp - now > self.max_jump:
-            return now
         key = sensor if sensor is not None else ""
+        if now is not None and stamp - now > self.max_jump and (len(self._newest) < 2 or sensor is None):
+            return now  # a lone stream far ahead: nothing confirms it
+        # Far-ahead stamps of many sensors are recorded too: the median moves only when
+        # most sensors are ahead, and then the clock is behind (the loop stalled while
+        # data runs many times faster than real time, and the hand-off dropped the oldest).
         if len(self._newest) < 4096 or key in self._newest:
             self._newest[key] = max(stamp, self._newest.get(key, stamp))
         stamps = sorted(self._newest.values())

@@ -60,6 +60,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("extrcal.service")
 
 MAX_CONSECUTIVE_FAILURES = 10  # failed solves in a row before a session is marked failed
+STATUS_WAIT = 0.03  # s the HTTP thread waits for a fresh status before it serves the snapshot
 INGEST_BATCH = 32  # messages taken per turn of the ingest task before it yields (~5 ms)
 ADVANCE_SLICE = 0.25  # s of data time per advance() call when catching up
 
@@ -350,6 +351,7 @@ class Service:
         self.started = asyncio.Event()
         self.http_address: tuple[str, int] | None = None
         self.handoff: HandOff | None = None
+        self._status_snapshot: dict[str, Any] | None = None  # published by status(), read by any thread
         self._closing = False
         self._stop = asyncio.Event()
         self._wake = asyncio.Event()  # front end advanced: the optimizer may find a problem
@@ -865,6 +867,7 @@ class Service:
                     self._save_record(s)
             if self.events.subscribers:
                 self.events.publish("status", self.status_brief())
+            self.status()  # the snapshot /status serves while the loop is too busy to answer
 
     async def _lag_loop(self) -> None:
         """How late the loop wakes up: the number that says whether it ever stalls."""
@@ -1289,8 +1292,36 @@ class Service:
         })
 
     def status(self) -> dict[str, Any]:
+        """The full status, computed now (on the service loop); also published as the
+        snapshot that other threads may read."""
         with self.work.measure("status"):
-            return self._status()
+            d = self._status()
+        self._status_snapshot = d  # a new dict every time, never changed after: safe to share
+        return d
+
+    async def status_view(self) -> dict[str, Any]:
+        """/status from any loop. On the service loop: ``status()``. From the HTTP thread:
+        a fresh status if the service loop computes one within ``STATUS_WAIT``, else the
+        last published snapshot (``as_of`` says when it was made): under overload the
+        service loop can be busy for longer than a status request may take."""
+        loop = self._loop
+        if loop is None or asyncio.get_running_loop() is loop:
+            return self.status()
+        snap = self._status_snapshot
+        if snap is not None and self.lag and self.lag[-1] > STATUS_WAIT:
+            return snap  # the loop is busy now: asking it would only add to its work
+
+        async def fresh() -> dict[str, Any]:
+            return self.status()
+
+        fut = asyncio.run_coroutine_threadsafe(fresh(), loop)
+        try:
+            return await asyncio.wait_for(asyncio.wrap_future(fut), STATUS_WAIT)
+        except TimeoutError:
+            snap = self._status_snapshot
+            if snap is None:  # none yet (the first second of the service): wait for it
+                return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(fresh(), loop))
+            return snap
 
     def _status(self) -> dict[str, Any]:
         self._fold_refused()
@@ -1308,6 +1339,7 @@ class Service:
 
         assert self.handoff is not None
         return clean_json({
+            "as_of": now_wall,
             "site": self.settings.site,
             "uptime": now_wall - self.started_wall,
             "clock": self.clock.to_dict(),
@@ -1450,11 +1482,15 @@ async def serve(settings: ServiceSettings, *, install_signals: bool = True,
     """Run the whole service (Zenoh, pipeline, REST) until SIGTERM/SIGINT or request_stop()."""
     from .api import create_app
 
+    from .api.bridge import LoopBridge
+
     service = service or Service(settings)
     sock = bind_socket(settings.http.host, settings.http.port)
     service.http_address = sock.getsockname()[:2]
     app = create_app(settings, service)
-    server = make_server(app, sock, log_level=log_level)
+    # the HTTP server runs on a thread of its own: see backend/api/bridge.py
+    bridged = LoopBridge(app, asyncio.get_running_loop(), HTTP_LOCAL_PATHS)
+    server = make_server(bridged, sock, log_level=log_level)
 
     server_proxy = _ServerWithSocket(server, sock)
     if on_started is not None:
@@ -1471,14 +1507,19 @@ async def serve(settings: ServiceSettings, *, install_signals: bool = True,
     return service
 
 
+HTTP_LOCAL_PATHS = frozenset({"/status", "/healthz"})  # answered on the HTTP thread (Service.status_view)
+
+
 class _ServerWithSocket:
-    """uvicorn.Server serving a socket we bound, as the service's ``server``."""
+    """uvicorn.Server serving a socket we bound, on its own thread, as the service's ``server``."""
 
     def __init__(self, server: Any, sock: socket.socket):
         self._server, self._sock = server, sock
 
     async def serve(self) -> None:
-        await self._server.serve(sockets=[self._sock])
+        from .api.bridge import ServerThread
+
+        await ServerThread(self._server, self._sock).run()
 
     @property
     def started(self) -> bool:

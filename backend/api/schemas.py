@@ -155,6 +155,7 @@ class SensorOut(BaseModel):
 
 
 class Status(BaseModel):
+    as_of: float = Field(description="wall time (s since the epoch) the status was made")
     site: str
     uptime: float
     clock: dict[str, Any] = Field(description="the pipeline's clock: mode (wall or data), speed, now")
