@@ -60,6 +60,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("extrcal.service")
 
 MAX_CONSECUTIVE_FAILURES = 10  # failed solves in a row before a session is marked failed
+SWITCH_INTERVAL = 0.001  # s: how soon a thread waiting for the GIL gets it (the HTTP thread)
 STATUS_WAIT = 0.03  # s the HTTP thread waits for a fresh status before it serves the snapshot
 INGEST_BATCH = 32  # messages taken per turn of the ingest task before it yields (~5 ms)
 ADVANCE_SLICE = 0.25  # s of data time per advance() call when catching up
@@ -303,6 +304,9 @@ class ActiveSession:
     in_cycle: bool = False
     failures: int = 0
     last_snapshot: float = 0.0
+    # the optimizer's last failure in this session (None: none yet); replaced, never changed
+    solver_fault: dict[str, Any] | None = None
+    last_accepted: int | None = None  # the last cycle folded into the estimate
     idle: asyncio.Event = field(default_factory=asyncio.Event)  # no cycle in flight
     done: asyncio.Event = field(default_factory=asyncio.Event)  # stopped or failed, persisted
 
@@ -335,6 +339,8 @@ class Service:
         self.events = EventBus()
         self.writer = Writer()
         self.solver = Solver(settings.solver_start)
+        self.solve_fn: Callable | None = None  # optimize.solve; a picklable stand-in for fault tests
+        self.solver_faults = 0  # cycles whose solve raised, crashed the worker or failed numerically
         self._active: ActiveSession | None = None
         self.ignored = Counter()  # decoded but not for any session, by reason
         self.rejected = Counter()  # all rejections of messages, by reason
@@ -686,10 +692,11 @@ class Service:
                 from .optimize import solve
 
                 try:
-                    solution = await self.solver.run(solve, problem)
+                    solution = await self.solver.run(self.solve_fn or solve, problem)
                 except Exception as e:  # SolverCrashed, or solve raised in the worker
                     log.warning("cycle %d: solve failed: %s", problem.cycle, e)
                     solution = failed_solution(problem, f"solve failed: {type(e).__name__}: {e}")
+                self._solver_outcome(s, problem.cycle, None if solution.ok else solution.reason)
                 if s is not self.active or not s.record.state.active:
                     continue  # the session failed meanwhile: nothing to fold in
                 with self.work.measure("apply"):
@@ -708,6 +715,21 @@ class Service:
                 s.in_cycle = False
                 s.idle.set()
 
+    def _solver_outcome(self, s: ActiveSession, cycle: int, error: str | None) -> None:
+        """Track the optimizer's failures (an exception or a dead worker, or a numerical
+        failure such as an indeterminant system): /status and the session show the last
+        one, how many cycles in a row failed, and the cycle that recovered."""
+        f = s.solver_fault
+        if error is None:
+            if f is not None and f["failing"]:
+                s.solver_fault = {**f, "failing": 0, "recovered_cycle": cycle}
+                log.info("cycle %d: the optimizer works again after %d failed cycles", cycle, f["failing"])
+            return
+        self.solver_faults += 1
+        s.solver_fault = {"cycle": cycle, "error": error, "wall": time.time(),
+                          "failing": (f["failing"] if f else 0) + 1, "count": (f["count"] if f else 0) + 1,
+                          "recovered_cycle": None, "kept_cycle": s.last_accepted}
+
     def _after_cycle(self, s: ActiveSession, report: "CycleReport") -> None:
         with self.work.measure("state"):
             state = s.pipeline.state()
@@ -716,6 +738,7 @@ class Service:
         rec.cycles = state.cycle
         if report.accepted:
             s.failures = 0
+            s.last_accepted = report.cycle
         else:
             s.failures += 1
         acc = self._accuracy(s, state)
@@ -732,6 +755,10 @@ class Service:
             else:
                 rec.state = SessionState.calibrating
                 rec.reason = _calibrating_reason(state, report)
+            f = s.solver_fault
+            if f is not None and f["failing"]:
+                rec.reason += (f"; the optimizer failed in the last {f['failing']} cycle(s) ({f['error']}): "
+                               f"the estimate of the last good cycle is kept")
         self._write_cycle(rec, report, state, acc)
         if self.events.subscribers:
             self.events.publish("hypotheses", {"session": rec.id, "persons": s.pipeline.skeletons()})
@@ -1044,6 +1071,7 @@ class Service:
         d["stopping"] = bool(live and s is not None and s.finishing)
         # the running session's files are not being written: its progress is at risk
         d["storage_error"] = self.writer.error if live else None
+        d["solver_fault"] = s.solver_fault if live else None
         d["cameras"] = state["cameras"] if state else []
         d["counters"] = state.get("counters") if state else None
         d["last_cycle"] = state.get("last_cycle") if state else None
@@ -1369,6 +1397,7 @@ class Service:
                 "rejected": None if counters is None else counters.cycles_rejected,
                 "wall_seconds": stats(self.cycle_wall), "solve_seconds": stats(self.cycle_solve),
                 "solver_busy": self.solver.busy, "solver_restarts": self.solver.restarts,
+                "solver_faults": self.solver_faults, "solver_fault": None if s is None else s.solver_fault,
             },
             "frameset_delay": stats(self.frameset_delay),
             "loop_lag": {"max": self.lag_max, "p99": lag[int(0.99 * (len(lag) - 1))] if lag else None},
@@ -1482,8 +1511,13 @@ async def serve(settings: ServiceSettings, *, install_signals: bool = True,
     """Run the whole service (Zenoh, pipeline, REST) until SIGTERM/SIGINT or request_stop()."""
     from .api import create_app
 
+    import sys
+
     from .api.bridge import LoopBridge
 
+    # The HTTP thread waits for the GIL each time it wakes up; the loop thread is CPU-bound
+    # under overload and gives the GIL up every switch interval (5 ms by default).
+    sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL))
     service = service or Service(settings)
     sock = bind_socket(settings.http.host, settings.http.port)
     service.http_address = sock.getsockname()[:2]

@@ -81,6 +81,9 @@ class SessionDetail(SessionSummary):
     stopping: bool = Field(description="a stop was asked; the final batch adjustment runs")
     storage_error: str | None = Field(None, description="the last write to the state directory failed (running "
                                       "session only); clears when a write succeeds again")
+    solver_fault: dict[str, Any] | None = Field(None, description="the optimizer's last failure in the running "
+                                                "session: cycle, error, failing (cycles in a row, 0 once it "
+                                                "works again), count, recovered_cycle, kept_cycle (the estimate kept)")
     converged: bool
     data_time: float | None
     cameras: list[CameraOut]
