@@ -61,6 +61,7 @@ log = logging.getLogger("extrcal.service")
 
 MAX_CONSECUTIVE_FAILURES = 10  # failed solves in a row before a session is marked failed
 SWITCH_INTERVAL = 0.001  # s: how soon a thread waiting for the GIL gets it (the HTTP thread)
+LINK_CHECK = 1.0  # s between checks of the Zenoh session's links
 STATUS_WAIT = 0.03  # s the HTTP thread waits for a fresh status before it serves the snapshot
 INGEST_BATCH = 32  # messages taken per turn of the ingest task before it yields (~5 ms)
 ADVANCE_SLICE = 0.25  # s of data time per advance() call when catching up
@@ -345,6 +346,7 @@ class Service:
         self.ignored = Counter()  # decoded but not for any session, by reason
         self.rejected = Counter()  # all rejections of messages, by reason
         self.messages = 0
+        self._last_arrival: float | None = None  # wall time of the newest message taken from Zenoh
         self.cycle_wall: deque[float] = deque(maxlen=200)  # s from problem to applied, per cycle
         self.cycle_solve: deque[float] = deque(maxlen=200)
         self.frameset_delay: deque[float] = deque(maxlen=500)
@@ -358,6 +360,9 @@ class Service:
         self.http_address: tuple[str, int] | None = None
         self.handoff: HandOff | None = None
         self._status_snapshot: dict[str, Any] | None = None  # published by status(), read by any thread
+        # Zenoh links of this session (routers, peers), checked every LINK_CHECK s; the wall
+        # time they all went, while endpoints to connect to are configured
+        self.links: dict[str, Any] = {"routers": None, "peers": None, "lost_since": None, "losses": 0}
         self._closing = False
         self._stop = asyncio.Event()
         self._wake = asyncio.Event()  # front end advanced: the optimizer may find a problem
@@ -420,6 +425,7 @@ class Service:
                 tg.create_task(self._query_loop(), name="queries")
                 tg.create_task(self._status_loop(), name="status")
                 tg.create_task(self._lag_loop(), name="lag")
+                tg.create_task(self._link_loop(zs), name="zenoh-links")
                 warm = tg.create_task(self._warm(), name="warm-up")
                 server_task = tg.create_task(server.serve(), name="http") if server is not None else None
                 if server is not None:
@@ -566,6 +572,7 @@ class Service:
             return
         for name, r in self.handoff.take_refused().items():
             self.messages += r.count
+            self._last_arrival = max(self._last_arrival or 0.0, r.last_wall)
             self.rejected["unknown_sensor"] += r.count
             stats = self.sensors.get(name)
             if stats is None:
@@ -583,6 +590,7 @@ class Service:
 
     def _ingest_one(self, key: str, payload: bytes, wall: float) -> None:
         self.messages += 1
+        self._last_arrival = wall
         name = sensor_of(key)
         stats = self.sensors.get(name)
         if stats is not None:
@@ -895,6 +903,34 @@ class Service:
             if self.events.subscribers:
                 self.events.publish("status", self.status_brief())
             self.status()  # the snapshot /status serves while the loop is too busy to answer
+
+    async def _link_loop(self, zs: Any) -> None:
+        """Are we still linked to the routers / peers we connect to? A restarted router or
+        peer drops the link; Zenoh reconnects by itself (connect/retry), and /status says
+        meanwhile that the link is gone and since when."""
+
+        def count() -> tuple[int, int]:  # Zenoh calls: in a thread
+            return len(list(zs.info.routers_zid())), len(list(zs.info.peers_zid()))
+
+        while not self._closing:
+            try:
+                routers, peers = await asyncio.to_thread(count)
+            except Exception as e:  # a closing session
+                log.debug("reading the Zenoh links failed: %s", e)
+                routers = peers = None
+            if routers is not None:
+                lost = self.links["lost_since"]
+                down = bool(self.settings.zenoh.connect) and routers + peers == 0
+                if down and lost is None:
+                    lost = time.time()
+                    log.warning("Zenoh: no link to %s; reconnecting", ", ".join(self.settings.zenoh.connect))
+                    self.links = {**self.links, "losses": self.links["losses"] + 1}
+                elif not down and lost is not None:
+                    log.info("Zenoh: linked again after %.1f s", time.time() - lost)
+                    lost = None
+                self.links = {**self.links, "routers": routers, "peers": peers, "lost_since": lost}
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), LINK_CHECK)
 
     async def _lag_loop(self) -> None:
         """How late the loop wakes up: the number that says whether it ever stalls."""
@@ -1372,7 +1408,8 @@ class Service:
             "uptime": now_wall - self.started_wall,
             "clock": self.clock.to_dict(),
             "zenoh": {"mode": self.settings.zenoh.mode, "listen": list(self.settings.zenoh.listen),
-                      "connect": list(self.settings.zenoh.connect)},
+                      "connect": list(self.settings.zenoh.connect), **self.links,
+                      "last_message_ago": None if self._last_arrival is None else max(now_wall - self._last_arrival, 0.0)},
             "sensors": self.sensors.to_dict(now_wall, **self._sensor_limits()),
             "messages": {
                 "received": self.messages,

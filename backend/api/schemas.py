@@ -162,7 +162,8 @@ class Status(BaseModel):
     site: str
     uptime: float
     clock: dict[str, Any] = Field(description="the pipeline's clock: mode (wall or data), speed, now")
-    zenoh: dict[str, Any]
+    zenoh: dict[str, Any] = Field(description="mode, endpoints; routers and peers linked now; lost_since: wall time "
+                                  "the links to the connect endpoints went (null: linked), losses; last_message_ago (s)")
     sensors: dict[str, SensorOut]
     messages: dict[str, Any] = Field(description="received, rejected by reason, ignored (no session)")
     framesets: dict[str, Any] | None = Field(description="accepted, rejected by reason")
