@@ -47,7 +47,12 @@ def test_unwritable_state_dir_and_silent_sensors(tmp_path, lab_dir):
             # and no read-only mount or full disk can be made here): every write fails
             aside = tmp_path / "aside"
             shutil.move(d, aside)
-            d.write_text("not a directory")
+            while True:  # the writer thread may make the directory again before the file is there
+                try:
+                    d.write_text("not a directory")
+                    break
+                except IsADirectoryError:
+                    shutil.rmtree(d)  # only what was written after the move
             s = live._poll(c, f"/sessions/{sid}", lambda s: s["storage_error"], 60, "the fault is not reported")
             at_fault = s["cycles"]
             status = c.get("/status").json()
