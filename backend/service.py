@@ -1,13 +1,15 @@
 """The live service: one asyncio process around the synchronous pipeline.
 
-    Zenoh threads ──call_soon_threadsafe──► HandOff (bounded, drops oldest, counted)
+    Zenoh threads: refuse sensors outside the session (counted), queue the rest
+        ──► HandOff (bounded, drops oldest, counted; the loop woken once per batch)
         │                                        │
         │ liveliness, queries                    ▼ ingest task: decode, pipeline.push
         ▼                                   front-end task: pipeline.advance(clock)
     loop callbacks                          optimizer task: next_problem → solve in a
                                               worker *process* → apply → persist, publish
                                             writer task: files, one at a time, in a thread
-                                            uvicorn: REST API and server-sent events
+    HTTP thread (its own loop): uvicorn; /status and /healthz answered there from what
+    the service publishes, every other request run on the service loop (api/bridge.py)
 
 Why a process for the solver: gtsam holds Python's GIL while it optimises, so a solve in
 a thread stalls the loop for about as long as the solve (0.32 s of a 0.37 s solve,

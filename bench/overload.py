@@ -12,7 +12,8 @@ plus 80 more sensors on the same network at 300 Hz each (copies of the lab's mes
 under other names: sensors that are not in the session, as on a shared network).
 Publishers are separate processes with their own Zenoh sessions (the 20 session cameras in
 one, so their stamps stay consistent with each other, the 80 others spread over the rest),
-publishing as fast as they can up to the target rate.
+publishing as fast as they can up to the target rate, at nice 19 (sensors are other
+machines in a deployment: the load generator must not take the service's CPU).
 
 While it runs, the bench samples every second the service's RSS (and its solver
 process's) from /proc/<pid>/status, polls GET /status from a client (latency p50/p99 over
