@@ -1,15 +1,18 @@
 """From Zenoh's threads to the event loop: hand-off queue, service clock, sensor statistics.
 
-Zenoh calls subscriber callbacks on its own threads. A callback here only copies the
-payload, reads the wall clock and hands both to the loop with
-``loop.call_soon_threadsafe``; the loop puts them into a bounded queue that drops the
-oldest item when full and counts it. Decoding and the pipeline run on the loop.
+Zenoh calls subscriber callbacks on its own threads. A callback here reads the key and
+the wall clock; a payload from a sensor the running session does not use is only counted
+(by sensor, on the Zenoh thread: no copy, no hand-over); any other payload is copied into
+a bounded queue that drops the oldest item when full and counts it. The loop is woken
+once per batch (``loop.call_soon_threadsafe`` when it waits for an empty queue), not once
+per message. Decoding and the pipeline run on the loop.
 """
 
 from __future__ import annotations
 
 import asyncio
 import math
+import threading
 import time
 from collections import Counter, deque
 from dataclasses import dataclass, field
@@ -29,42 +32,89 @@ class Arrival:
     wall: float
 
 
+@dataclass(frozen=True, slots=True)
+class Refused:
+    """Payloads of one sensor refused by key on the Zenoh threads since the last ``take_refused``:
+    how many, the wall time of the first and the last."""
+
+    count: int
+    first_wall: float
+    last_wall: float
+
+
 class HandOff:
-    """Bounded queue on the loop fed from any thread; drops the oldest and counts it.
+    """Bounded queue fed from Zenoh's threads, drained by the loop; drops the oldest and counts it.
 
     Newest data is worth more to an online calibration than old data, so overflow
-    discards from the front.
+    discards from the front. ``accept(names)`` (from the loop) sets the sensors whose
+    payloads are queued; the others are refused on the Zenoh thread and only counted,
+    so that a flood from sensors outside the session costs the loop nothing. A lock
+    guards the queue; it is held for an append or a pop, never across an await.
     """
+
+    MAX_REFUSED_NAMES = 4096  # names refused per interval; beyond that they count under None
 
     def __init__(self, loop: asyncio.AbstractEventLoop, capacity: int):
         assert capacity > 0
         self._loop = loop
+        self._lock = threading.Lock()
         self._items: deque[Arrival] = deque()
         self._capacity = capacity
         self._ready = asyncio.Event()
-        self.received = 0
+        self._waiting = False  # the loop waits for an item: the next one wakes it
+        self._accept: frozenset[str] | None = None  # None: every sensor's payloads are queued
+        self._refused: dict[str | None, list] = {}  # sensor -> [count, first wall, last wall]
+        self.received = 0  # queued (dropped ones included)
         self.dropped = 0
+        self.refused = 0  # refused by key, in all
+        self.wakeups = 0  # hand-overs to the loop
         self.closed = False
 
     # Zenoh thread ------------------------------------------------------------
     def on_sample(self, sample: Any) -> None:
-        """Zenoh subscriber callback: copy, stamp, hand over. Never blocks, never calls Zenoh."""
-        item = Arrival(str(sample.key_expr), sample.payload.to_bytes(), time.time())
-        try:
-            self._loop.call_soon_threadsafe(self._put, item)
-        except RuntimeError:  # the loop is closed: the service is shutting down
-            pass
+        """Zenoh subscriber callback: filter, copy, stamp, queue. Never blocks (the lock
+        is only held for an append), never calls Zenoh."""
+        key = str(sample.key_expr)
+        wall = time.time()
+        accept = self._accept
+        if accept is not None:
+            name = sensor_of(key)
+            if name is not None and name not in accept:
+                with self._lock:
+                    self.refused += 1
+                    r = self._refused.get(name)
+                    if r is None and len(self._refused) >= self.MAX_REFUSED_NAMES:
+                        name, r = None, self._refused.get(None)
+                    if r is None:
+                        self._refused[name] = [1, wall, wall]
+                    else:
+                        r[0] += 1
+                        r[2] = wall
+                return
+        self._put(Arrival(key, sample.payload.to_bytes(), wall))
+
+    def _put(self, item: Arrival) -> None:
+        with self._lock:
+            if self.closed:
+                return
+            self.received += 1
+            if len(self._items) >= self._capacity:
+                self._items.popleft()
+                self.dropped += 1
+            self._items.append(item)
+            wake, self._waiting = self._waiting, False
+        if wake:
+            self.wakeups += 1
+            try:
+                self._loop.call_soon_threadsafe(self._ready.set)
+            except RuntimeError:  # the loop is closed: the service is shutting down
+                pass
 
     # loop ----------------------------------------------------------------------
-    def _put(self, item: Arrival) -> None:
-        if self.closed:
-            return
-        self.received += 1
-        if len(self._items) >= self._capacity:
-            self._items.popleft()
-            self.dropped += 1
-        self._items.append(item)
-        self._ready.set()
+    def accept(self, names: frozenset[str] | None) -> None:
+        """Queue only payloads whose key names one of ``names`` (None: all). Keys without a
+        sensor name are always queued (the loop counts them)."""
+        self._accept = names
 
     def put_nowait(self, item: Arrival) -> None:
         """For producers already on the loop."""
@@ -72,16 +122,26 @@ class HandOff:
 
     async def get_batch(self, limit: int) -> list[Arrival]:
         """Wait for at least one item, return up to ``limit`` (FIFO)."""
-        while not self._items:
-            if self.closed:
-                return []
-            self._ready.clear()
+        while True:
+            with self._lock:
+                if self._items:
+                    n = min(limit, len(self._items))
+                    return [self._items.popleft() for _ in range(n)]
+                if self.closed:
+                    return []
+                self._ready.clear()
+                self._waiting = True
             await self._ready.wait()
-        n = min(limit, len(self._items))
-        return [self._items.popleft() for _ in range(n)]
+
+    def take_refused(self) -> dict[str | None, Refused]:
+        """What was refused by key since the last call, by sensor (None: names beyond the cap)."""
+        with self._lock:
+            r, self._refused = self._refused, {}
+        return {k: Refused(*v) for k, v in r.items()}
 
     def close(self) -> None:
-        self.closed = True
+        with self._lock:
+            self.closed = True
         self._ready.set()
 
     def __len__(self) -> int:
@@ -110,8 +170,9 @@ class ServiceClock:
     slower than ``speed`` (a simulator that cannot keep up) never lets the clock run
     ahead of it. The clock follows the median of the sensors' newest stamps, not the
     newest of all, so one sensor whose clock jumped ahead cannot drag everyone along
-    (and make their messages late); a stamp more than ``max_jump`` seconds ahead does not
-    count at all.
+    (and make their messages late). A lone stream's stamp more than ``max_jump`` seconds
+    ahead does not count at all; with several sensors it counts towards the median, so
+    that the clock follows when most of them are ahead (it had fallen behind).
     """
 
     def __init__(self, mode: Literal["wall", "data"], *, speed: float = 1.0, grace: float = 1.0,
@@ -143,9 +204,12 @@ class ServiceClock:
         # Data flows again: the run-on time (if any) is kept, so the clock never goes back.
         self._high = now
         self._last = time.monotonic()
-        if now is not None and stamp - now > self.max_jump:
-            return now
         key = sensor if sensor is not None else ""
+        if now is not None and stamp - now > self.max_jump and (len(self._newest) < 2 or sensor is None):
+            return now  # a lone stream far ahead: nothing confirms it
+        # Far-ahead stamps of many sensors are recorded too: the median moves only when
+        # most sensors are ahead, and then the clock is behind (the loop stalled while
+        # data runs many times faster than real time, and the hand-off dropped the oldest).
         if len(self._newest) < 4096 or key in self._newest:
             self._newest[key] = max(stamp, self._newest.get(key, stamp))
         stamps = sorted(self._newest.values())
@@ -173,13 +237,15 @@ class SensorStats:
     last_stamp: float | None = None
     last_seq: int | None = None
     online: bool | None = None  # from liveliness; None: the sensor declares no token
-    _arrivals: deque = field(default_factory=lambda: deque(maxlen=256))  # wall times
+    _arrivals: deque = field(default_factory=lambda: deque(maxlen=256))  # (wall time, messages)
     _latency: deque = field(default_factory=lambda: deque(maxlen=256))  # arrival - stamp
 
-    def seen(self, wall: float) -> None:
-        self.messages += 1
+    def seen(self, wall: float, n: int = 1) -> None:
+        """``n`` messages arrived, the last at ``wall`` (n > 1: counted together, e.g.
+        refused on a Zenoh thread)."""
+        self.messages += n
         self.last_seen_wall = wall
-        self._arrivals.append(wall)
+        self._arrivals.append((wall, n))
 
     def timing(self, stamp: float, arrival: float, seq: int) -> None:
         self.last_stamp = stamp
@@ -192,10 +258,10 @@ class SensorStats:
     def rate(self, now_wall: float) -> float:
         """Messages per wall second over the recent window (0 once the sensor went quiet)."""
         a = self._arrivals
-        if len(a) < 2 or now_wall - a[-1] > 5.0:
+        if len(a) < 2 or now_wall - a[-1][0] > 5.0:
             return 0.0
-        span = a[-1] - a[0]
-        return (len(a) - 1) / span if span > 0 else 0.0
+        span = a[-1][0] - a[0][0]
+        return (sum(n for _, n in a) - a[0][1]) / span if span > 0 else 0.0
 
     def to_dict(self, now_wall: float) -> dict[str, Any]:
         lat = sorted(self._latency)

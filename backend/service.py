@@ -1,13 +1,15 @@
 """The live service: one asyncio process around the synchronous pipeline.
 
-    Zenoh threads ──call_soon_threadsafe──► HandOff (bounded, drops oldest, counted)
+    Zenoh threads: refuse sensors outside the session (counted), queue the rest
+        ──► HandOff (bounded, drops oldest, counted; the loop woken once per batch)
         │                                        │
         │ liveliness, queries                    ▼ ingest task: decode, pipeline.push
         ▼                                   front-end task: pipeline.advance(clock)
     loop callbacks                          optimizer task: next_problem → solve in a
                                               worker *process* → apply → persist, publish
                                             writer task: files, one at a time, in a thread
-                                            uvicorn: REST API and server-sent events
+    HTTP thread (its own loop): uvicorn; /status and /healthz answered there from what
+    the service publishes, every other request run on the service loop (api/bridge.py)
 
 Why a process for the solver: gtsam holds Python's GIL while it optimises, so a solve in
 a thread stalls the loop for about as long as the solve (0.32 s of a 0.37 s solve,
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import math
 import multiprocessing
@@ -59,6 +62,9 @@ if TYPE_CHECKING:
 log = logging.getLogger("extrcal.service")
 
 MAX_CONSECUTIVE_FAILURES = 10  # failed solves in a row before a session is marked failed
+SWITCH_INTERVAL = 0.001  # s: how soon a thread waiting for the GIL gets it (the HTTP thread)
+LINK_CHECK = 1.0  # s between checks of the Zenoh session's links
+STATUS_WAIT = 0.03  # s the HTTP thread waits for a fresh status before it serves the snapshot
 INGEST_BATCH = 32  # messages taken per turn of the ingest task before it yields (~5 ms)
 ADVANCE_SLICE = 0.25  # s of data time per advance() call when catching up
 
@@ -301,11 +307,19 @@ class ActiveSession:
     in_cycle: bool = False
     failures: int = 0
     last_snapshot: float = 0.0
+    # the optimizer's last failure in this session (None: none yet); replaced, never changed
+    solver_fault: dict[str, Any] | None = None
+    last_accepted: int | None = None  # the last cycle folded into the estimate
     idle: asyncio.Event = field(default_factory=asyncio.Event)  # no cycle in flight
     done: asyncio.Event = field(default_factory=asyncio.Event)  # stopped or failed, persisted
 
     def __post_init__(self) -> None:
         self.idle.set()
+
+    @functools.cached_property
+    def names(self) -> frozenset[str]:
+        """The session's sensors (its cameras)."""
+        return frozenset(self.inputs.cameras.names)
 
     @property
     def resolutions(self) -> dict[str, tuple[int, int]]:
@@ -328,10 +342,13 @@ class Service:
         self.events = EventBus()
         self.writer = Writer()
         self.solver = Solver(settings.solver_start)
-        self.active: ActiveSession | None = None
+        self.solve_fn: Callable | None = None  # optimize.solve; a picklable stand-in for fault tests
+        self.solver_faults = 0  # cycles whose solve raised, crashed the worker or failed numerically
+        self._active: ActiveSession | None = None
         self.ignored = Counter()  # decoded but not for any session, by reason
         self.rejected = Counter()  # all rejections of messages, by reason
         self.messages = 0
+        self._last_arrival: float | None = None  # wall time of the newest message taken from Zenoh
         self.cycle_wall: deque[float] = deque(maxlen=200)  # s from problem to applied, per cycle
         self.cycle_solve: deque[float] = deque(maxlen=200)
         self.frameset_delay: deque[float] = deque(maxlen=500)
@@ -344,6 +361,10 @@ class Service:
         self.started = asyncio.Event()
         self.http_address: tuple[str, int] | None = None
         self.handoff: HandOff | None = None
+        self._status_snapshot: dict[str, Any] | None = None  # published by status(), read by any thread
+        # Zenoh links of this session (routers, peers), checked every LINK_CHECK s; the wall
+        # time they all went, while endpoints to connect to are configured
+        self.links: dict[str, Any] = {"routers": None, "peers": None, "lost_since": None, "losses": 0}
         self._closing = False
         self._stop = asyncio.Event()
         self._wake = asyncio.Event()  # front end advanced: the optimizer may find a problem
@@ -355,6 +376,17 @@ class Service:
         # Called on the loop after every applied cycle with (session id, report, wall s);
         # metrics and other observers hook in here. They must be quick.
         self.cycle_listeners: list[Callable[[str, "CycleReport", float], None]] = []
+
+    @property
+    def active(self) -> ActiveSession | None:
+        """The running session (None: none)."""
+        return self._active
+
+    @active.setter
+    def active(self, s: ActiveSession | None) -> None:
+        self._active = s
+        if self.handoff is not None:  # sensors outside the session are refused on Zenoh's threads
+            self.handoff.accept(None if s is None else s.names)
 
     def _new_clock(self, cfg: EngineConfig) -> ServiceClock:
         return ServiceClock(self.settings.clock, speed=self.settings.speed,
@@ -395,6 +427,7 @@ class Service:
                 tg.create_task(self._query_loop(), name="queries")
                 tg.create_task(self._status_loop(), name="status")
                 tg.create_task(self._lag_loop(), name="lag")
+                tg.create_task(self._link_loop(zs), name="zenoh-links")
                 warm = tg.create_task(self._warm(), name="warm-up")
                 server_task = tg.create_task(server.serve(), name="http") if server is not None else None
                 if server is not None:
@@ -532,7 +565,23 @@ class Service:
             with self.work.measure("ingest"):
                 for a in batch:
                     self._ingest_one(a.key, a.payload, a.wall)
+                self._fold_refused()
             await asyncio.sleep(0)
+
+    def _fold_refused(self) -> None:
+        """Count what the Zenoh threads refused by key (sensors outside the session)."""
+        if self.handoff is None:
+            return
+        for name, r in self.handoff.take_refused().items():
+            self.messages += r.count
+            self._last_arrival = max(self._last_arrival or 0.0, r.last_wall)
+            self.rejected["unknown_sensor"] += r.count
+            stats = self.sensors.get(name)
+            if stats is None:
+                self.sensors.unattributed["unknown_sensor"] += r.count
+                continue
+            stats.seen(r.last_wall, r.count)
+            stats.rejected["unknown_sensor"] += r.count
 
     def _reject(self, stats: Any, reason: str) -> None:
         self.rejected[reason] += 1
@@ -543,6 +592,7 @@ class Service:
 
     def _ingest_one(self, key: str, payload: bytes, wall: float) -> None:
         self.messages += 1
+        self._last_arrival = wall
         name = sensor_of(key)
         stats = self.sensors.get(name)
         if stats is not None:
@@ -559,10 +609,16 @@ class Service:
         if name is not None and msg.sensor != name:
             self._reject(stats, "sensor_mismatch")
             return
-        arrival = self.clock.observe(msg.stamp, msg.sensor) if self.clock.mode == "data" else wall
+        s = self.active
+        if self.clock.mode == "wall":
+            arrival = wall
+        elif s is None or msg.sensor in s.names:
+            arrival = self.clock.observe(msg.stamp, msg.sensor)
+        else:  # a sensor outside the session must not move the session's clock (a flood of them would)
+            now = self.clock.now()
+            arrival = msg.stamp if now is None else now
         if stats is not None:
             stats.timing(msg.stamp, arrival, msg.seq)
-        s = self.active
         if s is None or s.finishing:
             self.ignored["no_session"] += 1
             return
@@ -646,10 +702,11 @@ class Service:
                 from .optimize import solve
 
                 try:
-                    solution = await self.solver.run(solve, problem)
+                    solution = await self.solver.run(self.solve_fn or solve, problem)
                 except Exception as e:  # SolverCrashed, or solve raised in the worker
                     log.warning("cycle %d: solve failed: %s", problem.cycle, e)
                     solution = failed_solution(problem, f"solve failed: {type(e).__name__}: {e}")
+                self._solver_outcome(s, problem.cycle, None if solution.ok else solution.reason)
                 if s is not self.active or not s.record.state.active:
                     continue  # the session failed meanwhile: nothing to fold in
                 with self.work.measure("apply"):
@@ -668,6 +725,21 @@ class Service:
                 s.in_cycle = False
                 s.idle.set()
 
+    def _solver_outcome(self, s: ActiveSession, cycle: int, error: str | None) -> None:
+        """Track the optimizer's failures (an exception or a dead worker, or a numerical
+        failure such as an indeterminant system): /status and the session show the last
+        one, how many cycles in a row failed, and the cycle that recovered."""
+        f = s.solver_fault
+        if error is None:
+            if f is not None and f["failing"]:
+                s.solver_fault = {**f, "failing": 0, "recovered_cycle": cycle}
+                log.info("cycle %d: the optimizer works again after %d failed cycles", cycle, f["failing"])
+            return
+        self.solver_faults += 1
+        s.solver_fault = {"cycle": cycle, "error": error, "wall": time.time(),
+                          "failing": (f["failing"] if f else 0) + 1, "count": (f["count"] if f else 0) + 1,
+                          "recovered_cycle": None, "kept_cycle": s.last_accepted}
+
     def _after_cycle(self, s: ActiveSession, report: "CycleReport") -> None:
         with self.work.measure("state"):
             state = s.pipeline.state()
@@ -676,6 +748,7 @@ class Service:
         rec.cycles = state.cycle
         if report.accepted:
             s.failures = 0
+            s.last_accepted = report.cycle
         else:
             s.failures += 1
         acc = self._accuracy(s, state)
@@ -692,6 +765,10 @@ class Service:
             else:
                 rec.state = SessionState.calibrating
                 rec.reason = _calibrating_reason(state, report)
+            f = s.solver_fault
+            if f is not None and f["failing"]:
+                rec.reason += (f"; the optimizer failed in the last {f['failing']} cycle(s) ({f['error']}): "
+                               f"the estimate of the last good cycle is kept")
         self._write_cycle(rec, report, state, acc)
         if self.events.subscribers:
             self.events.publish("hypotheses", {"session": rec.id, "persons": s.pipeline.skeletons()})
@@ -827,6 +904,35 @@ class Service:
                     self._save_record(s)
             if self.events.subscribers:
                 self.events.publish("status", self.status_brief())
+            self.status()  # the snapshot /status serves while the loop is too busy to answer
+
+    async def _link_loop(self, zs: Any) -> None:
+        """Are we still linked to the routers / peers we connect to? A restarted router or
+        peer drops the link; Zenoh reconnects by itself (connect/retry), and /status says
+        meanwhile that the link is gone and since when."""
+
+        def count() -> tuple[int, int]:  # Zenoh calls: in a thread
+            return len(list(zs.info.routers_zid())), len(list(zs.info.peers_zid()))
+
+        while not self._closing:
+            try:
+                routers, peers = await asyncio.to_thread(count)
+            except Exception as e:  # a closing session
+                log.debug("reading the Zenoh links failed: %s", e)
+                routers = peers = None
+            if routers is not None:
+                lost = self.links["lost_since"]
+                down = bool(self.settings.zenoh.connect) and routers + peers == 0
+                if down and lost is None:
+                    lost = time.time()
+                    log.warning("Zenoh: no link to %s; reconnecting", ", ".join(self.settings.zenoh.connect))
+                    self.links = {**self.links, "losses": self.links["losses"] + 1}
+                elif not down and lost is not None:
+                    log.info("Zenoh: linked again after %.1f s", time.time() - lost)
+                    lost = None
+                self.links = {**self.links, "routers": routers, "peers": peers, "lost_since": lost}
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), LINK_CHECK)
 
     async def _lag_loop(self) -> None:
         """How late the loop wakes up: the number that says whether it ever stalls."""
@@ -1003,6 +1109,7 @@ class Service:
         d["stopping"] = bool(live and s is not None and s.finishing)
         # the running session's files are not being written: its progress is at risk
         d["storage_error"] = self.writer.error if live else None
+        d["solver_fault"] = s.solver_fault if live else None
         d["cameras"] = state["cameras"] if state else []
         d["counters"] = state.get("counters") if state else None
         d["last_cycle"] = state.get("last_cycle") if state else None
@@ -1233,6 +1340,7 @@ class Service:
         return {"max_offset": sync.max_std, "max_latency": sync.wait}
 
     def status_brief(self) -> dict[str, Any]:
+        self._fold_refused()
         s = self.active
         now_wall = time.time()
         sensors = self.sensors.to_dict(now_wall, **self._sensor_limits())
@@ -1250,6 +1358,39 @@ class Service:
         })
 
     def status(self) -> dict[str, Any]:
+        """The full status, computed now (on the service loop); also published as the
+        snapshot that other threads may read."""
+        with self.work.measure("status"):
+            d = self._status()
+        self._status_snapshot = d  # a new dict every time, never changed after: safe to share
+        return d
+
+    async def status_view(self) -> dict[str, Any]:
+        """/status from any loop. On the service loop: ``status()``. From the HTTP thread:
+        a fresh status if the service loop computes one within ``STATUS_WAIT``, else the
+        last published snapshot (``as_of`` says when it was made): under overload the
+        service loop can be busy for longer than a status request may take."""
+        loop = self._loop
+        if loop is None or asyncio.get_running_loop() is loop:
+            return self.status()
+        snap = self._status_snapshot
+        if snap is not None and self.lag and self.lag[-1] > STATUS_WAIT:
+            return snap  # the loop is busy now: asking it would only add to its work
+
+        async def fresh() -> dict[str, Any]:
+            return self.status()
+
+        fut = asyncio.run_coroutine_threadsafe(fresh(), loop)
+        try:
+            return await asyncio.wait_for(asyncio.wrap_future(fut), STATUS_WAIT)
+        except TimeoutError:
+            snap = self._status_snapshot
+            if snap is None:  # none yet (the first second of the service): wait for it
+                return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(fresh(), loop))
+            return snap
+
+    def _status(self) -> dict[str, Any]:
+        self._fold_refused()
         s = self.active
         now_wall = time.time()
         lag = sorted(self.lag)
@@ -1264,11 +1405,13 @@ class Service:
 
         assert self.handoff is not None
         return clean_json({
+            "as_of": now_wall,
             "site": self.settings.site,
             "uptime": now_wall - self.started_wall,
             "clock": self.clock.to_dict(),
             "zenoh": {"mode": self.settings.zenoh.mode, "listen": list(self.settings.zenoh.listen),
-                      "connect": list(self.settings.zenoh.connect)},
+                      "connect": list(self.settings.zenoh.connect), **self.links,
+                      "last_message_ago": None if self._last_arrival is None else max(now_wall - self._last_arrival, 0.0)},
             "sensors": self.sensors.to_dict(now_wall, **self._sensor_limits()),
             "messages": {
                 "received": self.messages,
@@ -1282,7 +1425,8 @@ class Service:
             "pipeline": None if counters is None else asdict(counters),
             "queues": {
                 "ingest": {"length": len(self.handoff), "capacity": self.handoff.capacity,
-                           "received": self.handoff.received, "dropped": self.handoff.dropped},
+                           "received": self.handoff.received, "dropped": self.handoff.dropped,
+                           "refused_by_key": self.handoff.refused, "wakeups": self.handoff.wakeups},
                 "hypotheses": None if counters is None else {"length": counters.queue_length, "dropped": counters.queue_dropped},
                 "writer": len(self.writer),
                 "event_subscribers": self.events.subscribers,
@@ -1292,6 +1436,7 @@ class Service:
                 "rejected": None if counters is None else counters.cycles_rejected,
                 "wall_seconds": stats(self.cycle_wall), "solve_seconds": stats(self.cycle_solve),
                 "solver_busy": self.solver.busy, "solver_restarts": self.solver.restarts,
+                "solver_faults": self.solver_faults, "solver_fault": None if s is None else s.solver_fault,
             },
             "frameset_delay": stats(self.frameset_delay),
             "loop_lag": {"max": self.lag_max, "p99": lag[int(0.99 * (len(lag) - 1))] if lag else None},
@@ -1369,7 +1514,9 @@ def _finite(x: float) -> float | None:
 def bind_socket(host: str, port: int) -> socket.socket:
     """The HTTP listening socket, bound before anything else starts: a clear error if taken."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    sock = socket.socket(family, socket.SOCK_STREAM)
+    # IPPROTO_TCP, not 0: asyncio sets TCP_NODELAY only on sockets that say they are TCP,
+    # and without it every response (headers, then body) waits ~40 ms for a delayed ACK
+    sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
         sock.bind((host, port))
@@ -1403,11 +1550,20 @@ async def serve(settings: ServiceSettings, *, install_signals: bool = True,
     """Run the whole service (Zenoh, pipeline, REST) until SIGTERM/SIGINT or request_stop()."""
     from .api import create_app
 
+    import sys
+
+    from .api.bridge import LoopBridge
+
+    # The HTTP thread waits for the GIL each time it wakes up; the loop thread is CPU-bound
+    # under overload and gives the GIL up every switch interval (5 ms by default).
+    sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL))
     service = service or Service(settings)
     sock = bind_socket(settings.http.host, settings.http.port)
     service.http_address = sock.getsockname()[:2]
     app = create_app(settings, service)
-    server = make_server(app, sock, log_level=log_level)
+    # the HTTP server runs on a thread of its own: see backend/api/bridge.py
+    bridged = LoopBridge(app, asyncio.get_running_loop(), HTTP_LOCAL_PATHS)
+    server = make_server(bridged, sock, log_level=log_level)
 
     server_proxy = _ServerWithSocket(server, sock)
     if on_started is not None:
@@ -1424,14 +1580,19 @@ async def serve(settings: ServiceSettings, *, install_signals: bool = True,
     return service
 
 
+HTTP_LOCAL_PATHS = frozenset({"/status", "/healthz"})  # answered on the HTTP thread (Service.status_view)
+
+
 class _ServerWithSocket:
-    """uvicorn.Server serving a socket we bound, as the service's ``server``."""
+    """uvicorn.Server serving a socket we bound, on its own thread, as the service's ``server``."""
 
     def __init__(self, server: Any, sock: socket.socket):
         self._server, self._sock = server, sock
 
     async def serve(self) -> None:
-        await self._server.serve(sockets=[self._sock])
+        from .api.bridge import ServerThread
+
+        await ServerThread(self._server, self._sock).run()
 
     @property
     def started(self) -> bool:

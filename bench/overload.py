@@ -12,7 +12,8 @@ plus 80 more sensors on the same network at 300 Hz each (copies of the lab's mes
 under other names: sensors that are not in the session, as on a shared network).
 Publishers are separate processes with their own Zenoh sessions (the 20 session cameras in
 one, so their stamps stay consistent with each other, the 80 others spread over the rest),
-publishing as fast as they can up to the target rate.
+publishing as fast as they can up to the target rate, at nice 19 (sensors are other
+machines in a deployment: the load generator must not take the service's CPU).
 
 While it runs, the bench samples every second the service's RSS (and its solver
 process's) from /proc/<pid>/status, polls GET /status from a client (latency p50/p99 over
@@ -68,6 +69,10 @@ def publisher(path: str, endpoint: str, names: dict, seconds: float, start, read
     """
     from edge_clients.publisher import SensorPublisher, zenoh_session
     from proto.transport import ZenohSettings
+
+    # Sensors are other machines in a deployment: here the load generator must not take
+    # the CPU the service under test would have (it still competes, at the lowest priority).
+    os.nice(19)
 
     with open(path, "rb") as f:
         msgs = pickle.load(f)
@@ -134,6 +139,8 @@ def main() -> int:
     ap.add_argument("--publishers", type=int, default=4, help="publisher processes (one for the session's cameras)")
     ap.add_argument("--persons", type=int, default=2)
     ap.add_argument("--sim-seconds", type=float, default=60.0, help="data seconds simulated (replayed in a loop)")
+    ap.add_argument("--profile", type=Path, default=None,
+                    help="run the service under cProfile (its main thread: the event loop) and write the stats here")
     a = ap.parse_args()
     log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
 
@@ -159,7 +166,8 @@ def main() -> int:
         endpoint = f"tcp/127.0.0.1:{zport}"
         env = {k: v for k, v in os.environ.items() if not k.startswith("EXTRCAL_")}
         out = open(work / "serve.log", "w")
-        server = subprocess.Popen([sys.executable, "-m", "backend.cli", "serve", "--http", f"127.0.0.1:{hport}",
+        prof = ["-m", "cProfile", "-o", str(a.profile.resolve())] if a.profile else []
+        server = subprocess.Popen([sys.executable, *prof, "-m", "backend.cli", "serve", "--http", f"127.0.0.1:{hport}",
                                    "--zenoh-listen", endpoint, "--state-dir", str(work / "state"), "--site", SITE,
                                    "--clock", "data", "--log-level", "warning"],
                                   cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
@@ -207,14 +215,17 @@ def main() -> int:
 
             # ------------------------------------------------ measuring while it runs
             lat: list[float] = []
+            age: list[float] = []  # s since the status served was made
             stop = threading.Event()
 
             def poll_status() -> None:
                 with httpx.Client(base_url=f"http://127.0.0.1:{hport}", timeout=60) as c:
                     while not stop.is_set():
                         t0 = time.perf_counter()
-                        c.get("/status").raise_for_status()
+                        r = c.get("/status")
+                        r.raise_for_status()
                         lat.append(time.perf_counter() - t0)
+                        age.append(time.time() - r.json()["as_of"])
                         stop.wait(0.1)
 
             poller = threading.Thread(target=poll_status, daemon=True)
@@ -301,6 +312,12 @@ def main() -> int:
           f"| {final['cycles']} | {fmt(first['pos'], 100)} / {fmt(first['rot'], 1, 2)} → "
           f"{fmt(final['pos'], 100)} / {fmt(final['rot'], 1, 2)} |")
     print()
+    print(f"age of the /status served (now - as_of) p50 / p99 / max: {fmt(pct(age, 50), 1000)} / "
+          f"{fmt(pct(age, 99), 1000)} / {fmt(max(age) if age else None, 1000)} ms")
+    print(f"event loop lag p99 / max: {fmt(st['loop_lag']['p99'], 1000)} / {fmt(st['loop_lag']['max'], 1000)} ms; "
+          "work on the loop (count, mean / max ms, CPU share of the wall): " + "; ".join(
+              f"{k} {v['count']}, {v['mean'] * 1000:.2f} / {v['max'] * 1000:.1f}, {v['cpu_mean'] / v['mean']:.0%}"
+              for k, v in st["loop_work"].items() if v["mean"] > 0))
     print("rejected by reason during the overload: " + ", ".join(f"{k} {v}" for k, v in sorted(rej.items(), key=lambda x: -x[1])))
     return 0
 

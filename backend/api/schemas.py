@@ -81,6 +81,9 @@ class SessionDetail(SessionSummary):
     stopping: bool = Field(description="a stop was asked; the final batch adjustment runs")
     storage_error: str | None = Field(None, description="the last write to the state directory failed (running "
                                       "session only); clears when a write succeeds again")
+    solver_fault: dict[str, Any] | None = Field(None, description="the optimizer's last failure in the running "
+                                                "session: cycle, error, failing (cycles in a row, 0 once it "
+                                                "works again), count, recovered_cycle, kept_cycle (the estimate kept)")
     converged: bool
     data_time: float | None
     cameras: list[CameraOut]
@@ -155,10 +158,12 @@ class SensorOut(BaseModel):
 
 
 class Status(BaseModel):
+    as_of: float = Field(description="wall time (s since the epoch) the status was made")
     site: str
     uptime: float
     clock: dict[str, Any] = Field(description="the pipeline's clock: mode (wall or data), speed, now")
-    zenoh: dict[str, Any]
+    zenoh: dict[str, Any] = Field(description="mode, endpoints; routers and peers linked now; lost_since: wall time "
+                                  "the links to the connect endpoints went (null: linked), losses; last_message_ago (s)")
     sensors: dict[str, SensorOut]
     messages: dict[str, Any] = Field(description="received, rejected by reason, ignored (no session)")
     framesets: dict[str, Any] | None = Field(description="accepted, rejected by reason")

@@ -124,3 +124,47 @@ def test_data_clock_follows_the_typical_sensor_not_one_whose_clock_jumped():
     for s in ("cam_0", "cam_1", "cam_2"):
         c.observe(1001.0, s)
     assert c.now() == pytest.approx(1001.0)
+
+
+def test_data_clock_follows_when_most_sensors_are_far_ahead():
+    """Under overload with data 10x faster than real time, a loop stall of half a second
+    while the hand-off drops the oldest makes every sensor's next stamp > max_jump ahead:
+    the clock must follow (it froze, and every message was `stamp_in_future`), while one
+    sensor far ahead still does not drag it."""
+    c = ServiceClock("data", speed=1.0, grace=60.0, max_jump=5.0)
+    for k in range(5):
+        c.observe(1000.0, f"s{k}")
+    assert c.observe(1100.0, "s0") == 1000.0  # one sensor's clock jumped: ignored
+    assert c.observe(1020.0, "s1") == 1000.0  # two of five ahead: not yet
+    assert c.observe(1020.0, "s2") == 1020.0  # most are ahead: the clock was behind
+    assert c.observe(1020.5, "s3") == 1020.0 and c.now() == 1020.0
+
+
+def test_handoff_refuses_sensors_outside_the_session_on_the_zenoh_thread():
+    async def main():
+        h = HandOff(asyncio.get_running_loop(), capacity=10)
+        h.accept(frozenset({"cam_1"}))
+
+        def produce() -> None:
+            for i in range(50):
+                h.on_sample(_Sample("extrcal/default/sensors/intruder/keypoints", b"junk"))
+                h.on_sample(_Sample(f"extrcal/default/sensors/other_{i}/keypoints", b"junk"))
+            h.on_sample(_Sample("extrcal/default/sensors/cam_1/keypoints", b"good"))
+
+        t = threading.Thread(target=produce)
+        t.start()
+        t.join()
+        batch = await asyncio.wait_for(h.get_batch(100), 5)
+        assert [a.payload for a in batch] == [b"good"]  # only the session's sensor was queued
+        assert h.received == 1 and h.dropped == 0 and h.refused == 100
+        refused = h.take_refused()
+        assert refused["intruder"].count == 50 and sum(r.count for r in refused.values()) == 100
+        assert refused["intruder"].first_wall <= refused["intruder"].last_wall
+        assert h.take_refused() == {}  # taken once
+        h.accept(None)  # no session: everything is queued (and counted on the loop)
+        h.on_sample(_Sample("extrcal/default/sensors/intruder/keypoints", b"x"))
+        assert len(h) == 1 and h.refused == 100
+        # one wake-up per batch, not per message: the consumer was not waiting
+        assert h.wakeups <= 2
+
+    asyncio.run(main())
