@@ -111,6 +111,20 @@ class RefineConfig(_Section):
     archive_frames: int = Field(10000, ge=100, description="preprocessed framesets kept for re-localisation and the final batch")
 
 
+class MonitorConfig(_Section):
+    """Cameras that move after they converged (backend/monitor.py)."""
+
+    enabled: bool = True
+    min_views: int = Field(3, ge=1, description="views a camera needs in a cycle for its residual to count")
+    min_baseline: int = Field(5, ge=1, description="cycles of a converged camera before it is watched")
+    baseline_cycles: int = Field(50, ge=1, description="cycles its baseline residual ratio is the median of")
+    ratio: float = Field(2.0, gt=1, description="a cycle is suspect when the camera's residual ratio exceeds its baseline this many times ...")
+    margin_px: float = Field(1.5, ge=0, description="... and its residual exceeds the baseline's by this many px")
+    consecutive: int = Field(3, ge=1, description="suspect cycles in a row that flag the camera")
+    reopen_std_translation: float = Field(0.10, gt=0, description="m: the flagged camera's uncertainty from then on")
+    reopen_std_rotation: float = Field(5.0, gt=0, description="deg")
+
+
 class EngineConfig(_Section):
     sync: SyncConfig = SyncConfig()
     preprocess: PreprocessConfig = PreprocessConfig()
@@ -118,6 +132,7 @@ class EngineConfig(_Section):
     select: SelectConfig = SelectConfig()
     optimize: OptimizeConfig = OptimizeConfig()
     refine: RefineConfig = RefineConfig()
+    monitor: MonitorConfig = MonitorConfig()
 
     @staticmethod
     def from_dict(d: dict[str, Any], source: str = "config") -> "EngineConfig":

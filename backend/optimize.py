@@ -121,6 +121,8 @@ class Solution:
     final_error: float
     iterations: int
     seconds: float
+    camera_residual_px: np.ndarray | None = None  # (C,) median residual of each camera's observations, NaN = none
+    camera_views: np.ndarray | None = None  # (C,) int views (hypotheses) of each camera
 
 
 # ------------------------------------------------------------------ building
@@ -255,9 +257,22 @@ def solve(p: Problem) -> Solution:
         return _failed(p, g, out, first_error, t0)
     R, t, lms, _, final_error, its, cov, cov_shape, reason = out
     res = residuals_px(R, t, lms, g.obs_cam, g.obs_lm, g.obs_xy, p.focal)
+    cam_res, cam_views = per_camera(g, res, C)
     return Solution(reason == "", reason, R, t, cov, cov_shape, g.active, np.bincount(g.obs_cam, minlength=C),
                     int(len(np.unique(g.lm_hyp))), res, float(first_error), float(final_error),
-                    iterations + its, time.perf_counter() - t0)
+                    iterations + its, time.perf_counter() - t0, cam_res, cam_views)
+
+
+def per_camera(g: Graph, res: np.ndarray, C: int) -> tuple[np.ndarray, np.ndarray]:
+    """(C,) median residual px of each camera's observations (NaN = none) and (C,) int
+    number of its views (hypotheses)."""
+    med = np.full(C, np.nan)
+    views = np.zeros(C, np.int64)
+    for c in np.unique(g.obs_cam):
+        m = g.obs_cam == c
+        med[c] = float(np.median(res[m]))
+        views[c] = len(np.unique(g.lm_hyp[g.obs_lm[m]]))
+    return med, views
 
 
 def _relocalize(p: Problem) -> Solution:

@@ -8,6 +8,7 @@
             ─► select      one cycle's hypotheses (every `select.interval` s of data time)
             ─► optimize    GTSAM factor graph → poses + marginals   (pure function, any process)
             ─► refine      Kalman update on SE(3), scale kept from the initial estimate
+            ─► monitor     converged cameras that moved are flagged and calibrated again
             ─► state       CalibrationState
 
 The clock is the caller's: offline it is the recording's data time (the newest stamp),
@@ -28,6 +29,7 @@ from proto import KeypointMessage
 from .associate import Associator
 from .cameras import CameraSet
 from .config import EngineConfig
+from .monitor import Alarm, Monitor
 from .optimize import Problem, Solution, solve
 from .preprocess import Detection, Preprocessor
 from .refine import Refiner, initial_covariance
@@ -54,6 +56,7 @@ class Pipeline:
         self.associate = Associator(self.cfg.associate)
         self.queue = HypothesisQueue(self.cfg.select)
         self.refiner = Refiner(self.cfg.refine, R0, t0)
+        self.monitor = Monitor(self.cfg.monitor, C)
         # preprocessed framesets, re-associated with a better estimate by warm-up and final batch
         self.frames: deque[tuple[float, tuple[tuple[Detection, ...], ...]]] = deque(
             maxlen=self.cfg.refine.archive_frames)
@@ -270,6 +273,7 @@ class Pipeline:
             reason = "solver did not move the estimate"
         accepted = reason == ""
         change_t = change_r = 0.0
+        alarms: list[str] = []
         batch = problem.kind == "batch"
         first = problem.kind == "first"  # the posterior of all data so far, but not the final word
         if accepted and problem.kind == "relocalize":
@@ -277,6 +281,8 @@ class Pipeline:
                 self.refiner.relocate(c, solution.R[c], solution.t[c])
                 self.relocalized.append(self.names[c])
         elif accepted:
+            # converged before this cycle: the ones the monitor watches
+            watched = np.array([self.refiner.converged(c) for c in range(len(self.names))])
             upd = self.refiner.update(solution.active, solution.R, solution.t, solution.cov, posterior=batch or first,
                                       cov_shape=solution.cov_shape, final=batch)
             change_t = float(upd.changed_translation.max())
@@ -285,6 +291,12 @@ class Pipeline:
                 self.observations_batch = solution.obs_per_camera.copy()
             else:
                 self.observations += solution.obs_per_camera
+            if problem.kind == "cycle" and solution.camera_residual_px is not None:
+                m = self.cfg.monitor
+                for alarm in self.monitor.observe(float(self.clock or 0.0), watched, solution.camera_residual_px,
+                                                  solution.camera_views):
+                    self.refiner.reopen(alarm.cam, m.reopen_std_translation, m.reopen_std_rotation)
+                    alarms.append(self.names[alarm.cam])
         else:
             self.cycles_rejected += 1
         finite = solution.residual_px[np.isfinite(solution.residual_px)]
@@ -304,6 +316,7 @@ class Pipeline:
             max_change_translation=change_t,
             max_change_rotation=change_r,
             reprojection_px=float(np.median(finite)) if len(finite) else float("nan"),
+            moved_cameras=tuple(alarms),
         )
         self.last_report = report
         return report
@@ -361,6 +374,7 @@ class Pipeline:
 
     def state(self) -> CalibrationState:
         rf = self.refiner
+        moved = {a.cam: a.time for a in self.monitor.alarms}
         cams = []
         for c, n in enumerate(self.names):
             ct, cr = rf.change(c)
@@ -368,9 +382,10 @@ class Pipeline:
                 name=n, R=rf.R[c].copy(), t=rf.t[c].copy(), cov=rf.S[c].copy(),
                 observations=int(self.observations[c] + self.observations_batch[c]), cycles=int(rf.cycles[c]),
                 change_translation=ct, change_rotation=cr, converged=rf.converged(c),
-                last_seen=self.last_seen.get(n),
+                last_seen=self.last_seen.get(n), moved_at=moved.get(c),
             ))
-        calibrated = [c for c in cams if c.cycles > 0]
+        # a camera found moved counts while it is calibrated again (its cycles start over)
+        calibrated = [c for c in cams if c.cycles > 0 or c.moved_at is not None]
         converged = bool(calibrated) and all(c.converged for c in calibrated)
         return CalibrationState(self.clock, self.cycle, tuple(cams), converged, self.counters(), self.last_report)
 
@@ -406,6 +421,7 @@ class Pipeline:
             "history": [[[t.tolist(), R.tolist()] for t, R in h] for h in rf.history],
             "cycle": self.cycle,
             "first_passes": self.first_passes,
+            "moved": [[a.time, a.cam, a.ratio, a.baseline, a.residual_px] for a in self.monitor.alarms],
             "batched": rf.batched.tolist(),
             "observations": self.observations.tolist(),
             "observations_batch": self.observations_batch.tolist(),
@@ -426,6 +442,7 @@ class Pipeline:
         p.cycle = int(snapshot["cycle"])
         # a snapshot from before first passes existed had its first cycles long ago
         p.first_passes = int(snapshot.get("first_passes", 2))
+        p.monitor.alarms = [Alarm(float(a[0]), int(a[1]), *map(float, a[2:])) for a in snapshot.get("moved", [])]
         rf.batched = np.array(snapshot.get("batched", [False] * len(p.names)), dtype=bool)
         p.observations = np.array(snapshot["observations"], dtype=np.int64)
         p.observations_batch = np.array(snapshot.get("observations_batch", [0] * len(p.names)), dtype=np.int64)

@@ -125,6 +125,15 @@ class Refiner:
         self.history[c].clear()
         self.cycles[c] = 0
 
+    def reopen(self, c: int, std_translation: float, std_rotation: float) -> None:
+        """Camera c moved: its pose stays the starting point, its uncertainty is re-opened
+        and it counts as uncalibrated until cycles have calibrated it again."""
+        self.P[c] = _diag(std_rotation, std_translation)
+        self.S[c] = self.P[c].copy()
+        self.history[c].clear()
+        self.cycles[c] = 0
+        self.batched[c] = False
+
     def keep_scale(self, active: np.ndarray | None = None) -> float:
         """Rescale the calibrated cameras' centres about their centroid to the initial
         estimate's scale. Cameras that never had data keep their initial pose exactly.

@@ -769,6 +769,11 @@ class Service:
             if f is not None and f["failing"]:
                 rec.reason += (f"; the optimizer failed in the last {f['failing']} cycle(s) ({f['error']}): "
                                f"the estimate of the last good cycle is kept")
+        for name in report.moved_cameras:
+            log.warning("session %s: camera %s moved (its residuals jumped after it had converged): "
+                        "calibrating it again", rec.id, name)
+            self.events.publish("camera_moved", {"session": rec.id, "camera": name, "data_time": state.data_time,
+                                                 "cycle": report.cycle})
         self._write_cycle(rec, report, state, acc)
         if self.events.subscribers:
             self.events.publish("hypotheses", {"session": rec.id, "persons": s.pipeline.skeletons()})
@@ -1471,7 +1476,9 @@ def _calibrating_reason(state: "CalibrationState", report: "CycleReport") -> str
     done = sum(1 for c in calibrated if c.converged)
     pending = sorted((c for c in calibrated if not c.converged), key=lambda c: -c.std_translation)
     worst = f"; least certain: {pending[0].name}" if pending else ""
-    return f"{done}/{len(calibrated)} cameras converged{worst}"
+    moved = [c.name for c in state.cameras if c.moved_at is not None and not c.converged]
+    again = f"; moved, calibrating again: {', '.join(moved)}" if moved else ""
+    return f"{done}/{len(calibrated)} cameras converged{worst}{again}"
 
 
 def _waiting_reason(counters: Any, cfg: EngineConfig, sensors: SensorTable, names: tuple[str, ...]) -> str:

@@ -32,6 +32,7 @@ class CameraState:
     change_rotation: float  # deg
     converged: bool
     last_seen: float | None  # data time of its last message
+    moved_at: float | None = None  # data time the monitor last found it moved (re-calibrated since)
 
     @property
     def std_translation(self) -> float:
@@ -60,6 +61,7 @@ class CameraState:
             "change_rotation": self.change_rotation,
             "converged": self.converged,
             "last_seen": self.last_seen,
+            "moved_at": self.moved_at,
         }
 
 
@@ -82,10 +84,12 @@ class CycleReport:
     max_change_translation: float  # m over cameras
     max_change_rotation: float  # deg
     reprojection_px: float  # median reprojection error of the cycle's projections after the solve
+    moved_cameras: tuple[str, ...] = ()  # converged cameras the monitor found moved in this cycle
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["cameras"] = list(self.cameras)
+        d["moved_cameras"] = list(self.moved_cameras)
         return d
 
 

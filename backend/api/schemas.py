@@ -48,6 +48,8 @@ class CameraOut(BaseModel):
     change_rotation: float | None = Field(description="deg")
     converged: bool
     last_seen: float | None = Field(description="stamp of its last accepted message")
+    moved_at: float | None = Field(None, description="data time the monitor last found this converged camera moved "
+                                   "(bumped): its uncertainty was re-opened and it is calibrated again")
 
 
 SessionStateName = Literal["waiting_for_data", "calibrating", "converged", "stopped", "failed"]
