@@ -45,11 +45,11 @@ import numpy as np
 
 from proto import KeypointMessage
 
-from .associate import Associator, Hypothesis, torso_centre
+from .associate import Hypothesis, torso_centre
 from .cameras import CameraSet, Extrinsics, Intrinsics, Pose
 from .config import BootstrapConfig, EngineConfig
 from .geometry import hat, rotation_angle_deg, so3_exp, triangulate_batch
-from .people import ANKLE_HEIGHT, ScaleEstimate, Segments, estimate_scale, persons, segments
+from .people import ANKLE_HEIGHT, ScaleEstimate, Segments, measure_scale, segments
 from .preprocess import Detection, Preprocessor
 from .sync import Synchronizer
 
@@ -327,6 +327,35 @@ def spanning_tree(cameras: int, edges: Sequence[tuple[int, int, float]]) -> list
     return out
 
 
+def triangle_check(pairs: Sequence[PairPose], tol_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Cycle consistency of the relative rotations: for every triangle of pairs (a, b),
+    (b, c), (a, c), R_ac must equal R_bc R_ab. Returns (consistent, inconsistent) (P,)
+    int counts of each pair's triangles. A pair whose triangles all disagree is wrong (its
+    frames mixed two people, or RANSAC took a wrong model); one without triangles cannot
+    be checked here (the bundle adjustment is its check)."""
+    index = {(p.a, p.b): k for k, p in enumerate(pairs)}
+    nbr: dict[int, set[int]] = defaultdict(set)
+    for p in pairs:
+        nbr[p.a].add(p.b)
+        nbr[p.b].add(p.a)
+    good = np.zeros(len(pairs), np.int64)
+    bad = np.zeros(len(pairs), np.int64)
+    for (a, b), kab in index.items():
+        for c in nbr[a] & nbr[b]:
+            if c <= b:
+                continue  # each triangle once, a < b < c
+            kbc, kac = index[(b, c)], index.get((a, c))
+            if kac is None:
+                continue
+            err = rotation_angle_deg(pairs[kbc].R @ pairs[kab].R, pairs[kac].R)
+            for k in (kab, kbc, kac):
+                if err <= tol_deg:
+                    good[k] += 1
+                else:
+                    bad[k] += 1
+    return good, bad
+
+
 def average_rotations(cameras: int, pairs: Sequence[PairPose], *, root: int | None = None,
                       sigma_deg: float = 2.0, sweeps: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """World_R_cam (C, 3, 3) of the cameras connected to ``root`` (default: the camera
@@ -576,8 +605,12 @@ def handover(cfg: EngineConfig, result: BootstrapResult) -> EngineConfig:
 
 
 def camera_set(intrinsics: Mapping[str, Intrinsics], result: BootstrapResult) -> CameraSet:
-    """The CameraSet the online pipeline starts from."""
-    return CameraSet.combine(intrinsics, result.extrinsics({n: intrinsics[n].resolution for n in result.names}))
+    """The CameraSet the online pipeline starts from: the cameras the bootstrap placed (a
+    camera without a pose would only feed wrong associations; its messages are counted
+    as from an unknown sensor)."""
+    names = [n for c, n in enumerate(result.names) if result.located[c]]
+    ext = result.extrinsics({n: intrinsics[n].resolution for n in result.names})
+    return CameraSet.combine({n: intrinsics[n] for n in names}, {n: ext[n] for n in names})
 
 
 # ------------------------------------------------------------------ the whole bootstrap
@@ -697,6 +730,8 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
 
     # 2. rotations, 3. scales and centres
     t0 = _time.perf_counter()
+    ok_tri, bad_tri = triangle_check(pairs, 2 * cfg.rotation_outlier)
+    pairs = [p for p, g, b in zip(pairs, ok_tri, bad_tri) if g > 0 or b == 0]
     R, connected, rres = average_rotations(C, pairs, sigma_deg=cfg.rotation_outlier / 2)
     inl = rres <= cfg.rotation_outlier
     good = [p for p, ok in zip(pairs, inl) if ok]
@@ -768,21 +803,15 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
 
     # 6. people: scale, then the floor
     t0 = _time.perf_counter()
-    assoc = Associator(config.associate)
-    gate = np.full(C, config.associate.gate_pixels)
-    fr = _without(frames, located)
-    hyps = [h for time_, views in fr for h in assoc(time_, views, R, t, gate)]
-    seg = segments(hyps, R, t)
-    people = persons(seg)
-    scale = None
-    if people:
-        scale = estimate_scale(people, heights=heights, height_mean=cfg.height_mean, height_std=cfg.height_std,
-                               ratio_std=cfg.ratio_std, torso_ratio=config.associate.torso_ratio)
+    scale, seg = measure_scale(frames, R, t, config.associate, cfg, heights=heights, cameras=located)
+    if scale is not None:
         t = t * scale.factor
         std_t = std_t * scale.factor
         seg = Segments(seg.time, seg.com * scale.factor, seg.shank * scale.factor, seg.thigh * scale.factor,
                        seg.torso * scale.factor, seg.ankles * scale.factor, seg.up * scale.factor)
         say(scale.summary())
+    else:
+        say("no person measured well enough for the scale: the rough scale is kept")
     mean_h = float(np.mean(scale.heights)) if scale else cfg.height_mean
     F, o, note = floor_frame(seg, t, located, mean_h, names)
     R = np.einsum("ij,cjk->cik", F, R)

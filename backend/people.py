@@ -42,7 +42,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .associate import Hypothesis
+from .associate import Associator, Hypothesis
+from .config import AssociateConfig, BootstrapConfig
 from .geometry import triangulate_batch
 
 # COCO-17 joints
@@ -314,3 +315,28 @@ def estimate_scale(people: Sequence[Person], *, heights: Sequence[float] = (), h
     rel = float(np.sqrt(var.sum()) / n)
     s = float(np.exp(log_s))
     return ScaleEstimate(s, rel, method, K, tuple(float(h) for h in s * u), note)
+
+
+def measure_scale(frames, R: np.ndarray, t: np.ndarray, associate: AssociateConfig, prior: BootstrapConfig, *,
+                  heights: Sequence[float] = (), cameras: np.ndarray | None = None
+                  ) -> tuple[ScaleEstimate | None, Segments]:
+    """The scale of poses R (C, 3, 3), t (C, 3) from the people in ``frames`` (time,
+    detections per view): every frame associated with the poses (gated), the persons'
+    bones measured and told apart, and the scale estimated (None when no person was
+    measured well enough). ``cameras`` (C,) bool: use only these cameras' detections.
+    Also returns the measured segments (in the units of t)."""
+    assoc = Associator(associate)
+    C = len(R)
+    gate = np.full(C, associate.gate_pixels)
+    keep = np.ones(C, bool) if cameras is None else cameras
+    hyps = []
+    for time_, views in frames:
+        vs = [v for v in views if keep[v[0].cam]]
+        if len(vs) >= 2:
+            hyps.extend(assoc(time_, vs, R, t, gate))
+    seg = segments(hyps, R, t)
+    people = persons(seg)
+    if not people:
+        return None, seg
+    return estimate_scale(people, heights=heights, height_mean=prior.height_mean, height_std=prior.height_std,
+                          ratio_std=prior.ratio_std, torso_ratio=associate.torso_ratio), seg
