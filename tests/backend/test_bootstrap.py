@@ -3,9 +3,15 @@ people (backend/people.py): the pieces on synthetic data, and the whole bootstra
 short seeded simulation of the lab's west room.
 
 Whole run (7 cameras, 2 walkers of 1.96 m / 1.70 m, 60 s, seed 0), measured when the bars
-were set (similarity-aligned error per camera; scale error vs the truth):
+were set (similarity-aligned "shape" error over the cameras; scale error vs the truth):
 
-    see FIGURES below; the bars are about 2x those figures.
+                         placed  shape mean  orientation mean / max  scale (known heights)
+    bootstrap            7/7     0.0121 m    0.126° / 0.211°         -0.45 % (reported ± 1.4 %)
+    + online pipeline    7/7     0.0121 m    0.132° / 0.217°
+
+The bars are the issue's targets (every camera within 0.05 m / 0.5°, scale within 1 %);
+they fail when, e.g., a wrong pair is chained into the view graph (a camera tens of
+degrees off) or the scale loses a segment.
 """
 
 from __future__ import annotations
