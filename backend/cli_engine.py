@@ -14,11 +14,15 @@ def register(app: typer.Typer) -> None:
 
 def calibrate(
     intrinsics: Annotated[Path, typer.Option(help="intrinsics YAML (FORMATS.md)")],
-    initial: Annotated[Path, typer.Option(help="initial extrinsics estimate YAML; its world frame and scale are kept")],
     recording: Annotated[Path, typer.Option(help="keypoint recording: .jsonl, .jsonl.gz or .msgpack")],
     output: Annotated[Path, typer.Option(help="where to write the resulting extrinsics YAML (atomically)")],
+    initial: Annotated[Optional[Path], typer.Option(help="initial extrinsics estimate YAML; its world frame and scale are kept. "
+                                                    "Without it the cameras are found from the people alone (docs/bootstrap.md)")] = None,
+    distrust_initial: Annotated[bool, typer.Option("--distrust-initial", help="ignore the initial estimate's poses: bootstrap as without one")] = False,
+    person_height: Annotated[Optional[str], typer.Option(help="known height(s) of the walkers in m, e.g. 1.85 or 1.96,1.70: "
+                                                         "metric scale from them (else from a population prior)")] = None,
     reference: Annotated[Optional[Path], typer.Option(help="reference extrinsics: report the error against it")] = None,
-    config: Annotated[Optional[Path], typer.Option(help="TOML file with engine parameters (sections sync, preprocess, associate, select, optimize, refine)")] = None,
+    config: Annotated[Optional[Path], typer.Option(help="TOML file with engine parameters (sections sync, preprocess, associate, select, optimize, refine, bootstrap)")] = None,
     set_: Annotated[Optional[list[str]], typer.Option("--set", help="override one parameter, e.g. --set select.scope=80 (repeatable)")] = None,
     seed: Annotated[int, typer.Option(help="seed of the hypothesis selection")] = 0,
     history: Annotated[Optional[Path], typer.Option(help="write one JSON line per cycle: poses, std, cycle time, error vs reference")] = None,
@@ -28,34 +32,81 @@ def calibrate(
     """Calibrate offline: run the full online pipeline on a recording as fast as the CPU
     allows (an optimisation cycle every 0.5 s of data time, like the live service) and
     write the result with per-camera std. Cameras that never got enough observations keep
-    their initial pose and are named as not calibrated."""
+    their initial pose and are named as not calibrated.
+
+    Without --initial (or with --distrust-initial) the first bootstrap.max_seconds of the
+    recording find the cameras first (relative poses from single persons seen by camera
+    pairs, a bundle adjustment, metric scale from the people, the floor as the world
+    frame); the online pipeline then runs on the whole recording from that estimate."""
     import json
     import time
+
+    import numpy as np
 
     from rich.console import Console
 
     from proto import ReadStats, RecordingError, read_recording
 
-    from .cameras import CameraFileError, CameraSet, load_extrinsics, save_extrinsics
+    from .cameras import CameraFileError, CameraSet, load_extrinsics, load_intrinsics, save_extrinsics
     from .cli import fail
     from .config import ConfigError, EngineConfig
     from .evaluate import evaluate
     from .pipeline import run_offline
 
     console = Console(stderr=True)
+    heights: list[float] = []
+    if person_height:
+        try:
+            heights = [float(x) for x in person_height.split(",") if x.strip()]
+        except ValueError:
+            raise fail(f"--person-height: expected heights in m separated by commas, got {person_height!r}")
+        if not heights or any(not 0.5 <= h <= 2.8 for h in heights):
+            raise fail(f"--person-height: heights must lie in 0.5-2.8 m, got {person_height!r}")
     try:
         cfg = EngineConfig.load(config, set_ or [])
-        cams = CameraSet.load(intrinsics, initial)
+        if initial is not None:
+            cams = CameraSet.load(intrinsics, initial)
         ref = {k: v.pose for k, v in load_extrinsics(reference).items()} if reference else None
+        intr = load_intrinsics(intrinsics)
     except (ConfigError, CameraFileError) as e:
         raise fail(str(e))
+    if not recording.is_file():
+        raise fail(f"recording {recording} does not exist")
+    boot = None
+    if initial is None or distrust_initial:
+        from .bootstrap import BootstrapError, bootstrap, camera_set, collect_frames, handover
+        from .cameras import natural_key
+
+        names = tuple(sorted(intr, key=natural_key))
+        if not quiet:
+            console.print(f"no initial estimate{' (distrusted)' if initial is not None else ''}: bootstrapping from "
+                          f"the first {cfg.bootstrap.max_seconds:g} s of data" if cfg.bootstrap.max_seconds
+                          else "no initial estimate: bootstrapping from the whole recording", highlight=False)
+        say = (lambda m: None) if quiet else (lambda m: console.print(f"bootstrap: {m}", highlight=False))
+        try:
+            frames = collect_frames(names, intr, cfg, read_recording(recording, skip_bad=skip_bad),
+                                    max_seconds=cfg.bootstrap.max_seconds, progress=say)
+            focal = [0.5 * (intr[n].fx + intr[n].fy) for n in names]
+            boot = bootstrap(frames, names, np.array(focal), cfg, heights=heights, seed=seed,
+                             progress=say)
+        except RecordingError as e:
+            raise fail(f"{e} (use --skip-bad to skip malformed records)")
+        except BootstrapError as e:
+            raise fail(f"bootstrap failed: {e}")
+        cams = camera_set(intr, boot)
+        cfg = handover(cfg, boot)
+        lost = [n for c, n in enumerate(names) if not boot.located[c]]
+        if not quiet:
+            console.print(f"bootstrap: {int(boot.located.sum())}/{len(names)} cameras placed from "
+                          f"{boot.data_seconds:.0f} s of data in {boot.seconds:.1f} s"
+                          + (f"; not placed: {', '.join(lost)}" if lost else ""), highlight=False)
+            if ref is not None and boot.located.sum() >= 3:
+                console.print(f"bootstrap vs reference: {evaluate(boot.poses(), ref).summary()}", highlight=False)
     if ref is not None:
         common = set(ref) & set(cams.names)
         if len(common) < 3:
             raise fail(f"the reference {reference} shares {len(common)} cameras with the calibration; "
                        "at least 3 cameras are needed to compare them")
-    if not recording.is_file():
-        raise fail(f"recording {recording} does not exist")
 
     stats = ReadStats()
     hist_f = open(history, "w") if history else None
@@ -116,8 +167,29 @@ def calibrate(
                f"converged: {sum(c.converged for c in state.cameras)}/{len(state.cameras)}")
     if not_calibrated:
         comment += f"\nnot calibrated (kept initial pose): {', '.join(not_calibrated)}"
+    scale = boot.scale if boot is not None else None
+    if boot is not None:
+        comment += f"\nno initial estimate: {boot.frame}"
+        if scale is not None:
+            comment += f"\nmetric scale from people: {scale.summary()}"
+    elif len(p.frames):
+        # a check of the initial estimate's scale: what the people say about it
+        from .people import measure_scale
+
+        rf = p.refiner
+        scale, _ = measure_scale(p.frames, rf.R, rf.t, cfg.associate, cfg.bootstrap, heights=heights,
+                                 cameras=rf.cycles > 0)
+        if scale is not None:
+            comment += f"\nscale check (people): the initial estimate's metres are {scale.factor:.4f} ± " \
+                       f"{100 * scale.rel_std:.1f} % true metres ({scale.method})"
     extra = {n: {"calibrated": n not in not_calibrated} for n in cams.names}
     save_extrinsics(output, extr, comment=comment, extra=extra)
+    if boot is not None:
+        from .cameras import write_atomic
+
+        meta = {**boot.to_dict(), "online": {"initial_std_translation": cfg.refine.initial_std_translation,
+                                             "initial_std_rotation": cfg.refine.initial_std_rotation}}
+        write_atomic(Path(f"{output}.bootstrap.json"), json.dumps(meta, indent=1) + "\n")
 
     span = (state.data_time or 0) - (first_stamp[0] if first_stamp else 0)
     c = state.counters
@@ -129,6 +201,13 @@ def calibrate(
     )
     if not_calibrated:
         console.print(f"[yellow]not calibrated (too few observations, initial pose kept): {', '.join(not_calibrated)}[/]")
+    if scale is not None:
+        if boot is not None:
+            console.print(f"metric {scale.summary()}", highlight=False)
+        else:
+            console.print(f"scale check from the people: the initial estimate's scale x {scale.factor:.4f} "
+                          f"± {100 * scale.rel_std:.1f} % ({scale.method}; {len(scale.heights)} persons of "
+                          f"{', '.join(f'{h:.2f}' for h in scale.heights)} m)", highlight=False)
     if ref is not None:
         console.print(f"vs reference: {evaluate(state.poses(), ref).summary()}", highlight=False)
     typer.echo(f"wrote {output}")

@@ -125,6 +125,28 @@ class MonitorConfig(_Section):
     reopen_std_rotation: float = Field(5.0, gt=0, description="deg")
 
 
+class BootstrapConfig(_Section):
+    """Calibration without an initial estimate (backend/bootstrap.py, docs/bootstrap.md)."""
+
+    max_seconds: float = Field(120.0, ge=0, description="s of data the bootstrap of `extrcal calibrate` uses (0: the whole recording)")
+    min_pair_frames: int = Field(30, ge=8, description="frames a camera pair needs in which each sees one person, the same one")
+    ransac_px: float = Field(3.0, gt=0, description="px: RANSAC threshold (Sampson error) of a pair's essential matrix")
+    frame_px: float = Field(4.0, gt=0, description="px: a frame is a pair's correspondence when its joints' median Sampson error is below this")
+    min_consistent_ratio: float = Field(0.3, ge=0, le=1, description="share of a pair's single-person frames that must agree with its geometry")
+    min_triangulation_angle: float = Field(3.0, ge=0, description="deg: median angle between a pair's rays; below it the baseline is unknown")
+    min_shared_points: int = Field(40, ge=5, description="joints two pairs triangulate at the same instants to relate their scales")
+    rotation_outlier: float = Field(5.0, gt=0, description="deg: a pair disagreeing more with the averaged rotations is dropped")
+    batch_rounds: int = Field(3, ge=1, description="bundle adjustments, each re-associating all frames with the previous result")
+    batch_hypotheses: int = Field(800, ge=10, description="most hypotheses per bundle adjustment")
+    prior_std_translation: float = Field(1.0, gt=0, description="m: the weak prior of the bundle adjustment (a gauge, not information)")
+    prior_std_rotation: float = Field(10.0, gt=0, description="deg")
+    handover_std_translation: float = Field(0.10, gt=0, description="m: least std the online pipeline starts from (3x the bootstrap's own std if larger)")
+    handover_std_rotation: float = Field(2.0, gt=0, description="deg")
+    height_mean: float = Field(1.72, gt=0, description="m: population prior of adult height (mixed sexes; docs/bootstrap.md)")
+    height_std: float = Field(0.10, gt=0, description="m: its spread between persons")
+    ratio_std: float = Field(0.02, ge=0, description="relative spread between persons of leg + torso length / height")
+
+
 class EngineConfig(_Section):
     sync: SyncConfig = SyncConfig()
     preprocess: PreprocessConfig = PreprocessConfig()
@@ -133,6 +155,7 @@ class EngineConfig(_Section):
     optimize: OptimizeConfig = OptimizeConfig()
     refine: RefineConfig = RefineConfig()
     monitor: MonitorConfig = MonitorConfig()
+    bootstrap: BootstrapConfig = BootstrapConfig()
 
     @staticmethod
     def from_dict(d: dict[str, Any], source: str = "config") -> "EngineConfig":

@@ -255,6 +255,9 @@ def solve(p: Problem) -> Solution:
     out = _solve_graph(p, g, R, t, marginals=p.marginals)
     if isinstance(out, str):
         return _failed(p, g, out, first_error, t0)
+    if len(out) == 6:  # marginals not asked for
+        nan = np.full((C, 6, 6), np.nan)
+        out = out + (nan, nan.copy(), "")
     R, t, lms, _, final_error, its, cov, cov_shape, reason = out
     res = residuals_px(R, t, lms, g.obs_cam, g.obs_lm, g.obs_xy, p.focal)
     cam_res, cam_views = per_camera(g, res, C)

@@ -176,3 +176,22 @@ def test_bad_inputs_give_one_clear_error(cli, files, tmp_path):
                                  "--recording", str(d / "rec.jsonl.gz"), "--output", str(out)])
     assert r.exit_code == 2 and f"{broken}:2" in r.output and "translation" in r.output
     assert not out.exists()
+
+
+def test_without_an_initial_estimate_too_little_data_is_a_clear_error(cli, files, tmp_path):
+    d = files
+    out = tmp_path / "o.yaml"
+    args = ["calibrate", "--intrinsics", str(d / "intrinsics.yaml"), "--recording", str(d / "rec.jsonl.gz"),
+            "--output", str(out)]
+    # 2 s of data cannot hold the frames a camera pair needs: one clear error, no file
+    r = CliRunner().invoke(cli, [*args, "--set", "bootstrap.max_seconds=2"])
+    assert r.exit_code == 2, r.output
+    assert "bootstrap failed" in r.output and "too few" in r.output
+    assert not out.exists()
+    # --distrust-initial takes the same path
+    r = CliRunner().invoke(cli, [*args, "--initial", str(d / "initial.yaml"), "--distrust-initial", "--quiet",
+                                 "--set", "bootstrap.max_seconds=2"])
+    assert r.exit_code == 2 and "bootstrap failed" in r.output
+    for bad in ("tall", "0.2", "1.85,3.5", ","):
+        r = CliRunner().invoke(cli, [*args, "--person-height", bad])
+        assert r.exit_code == 2 and "--person-height" in r.output, (bad, r.output)

@@ -1,0 +1,824 @@
+"""Calibration without an initial estimate: the camera network from people alone.
+
+The online pipeline needs a rough initial estimate (its association cuts rays to depth
+intervals in a known world). This module finds one from the preprocessed framesets
+(``Detection`` tuples, as ``Pipeline.frames`` archives them), synchronously:
+
+1. Pairs. In a frame where camera a and camera b each see exactly one person, the 17
+   joints are correspondences, if it is the same person. Over time they give an essential
+   matrix (MAGSAC on undistorted, normalised coordinates), relative pose b_R_a and the
+   direction of the baseline. Frames whose joints agree with it (median Sampson error
+   below ``frame_px``) are the pair's correspondences (with two people in the room, a
+   and b may each see a different one); the pose is refined on them (robust
+   least squares of the Sampson error) and the frames classified again.
+2. View graph. Pairs with enough agreeing frames and a baseline the rays can see are
+   edges; rotations are chained along the maximum-weight spanning tree, then averaged
+   over all edges (iteratively reweighted chordal averaging); pairs that disagree with
+   the average are dropped.
+3. Scales. A pair's triangulation has its own unknown scale (unit baseline). Two pairs
+   that share a camera and triangulate the same person's joints at the same instants see
+   them at depths whose ratio is the ratio of their scales; a least-squares fit of the
+   log-scales over all such relations, then of the camera centres from the scaled
+   baselines (pairs without a scale still constrain the direction), places every camera.
+4. Metric scale from people (``backend.people``): bone lengths of the triangulated
+   persons against a known height or a population prior. A rough figure first, so that
+   the pipeline's association (which assumes persons of 1.70-2.00 m) works.
+5. Bundle adjustment (``optimize.solve``, a 'batch' Problem with weak priors): all frames
+   re-associated with the estimate, outlier views dropped, a few rounds. Cameras no pair
+   placed are re-localised by PnP against the persons the others triangulate.
+6. The scale from people again (now with multi-view persons, told apart by tracking) and
+   the world frame from the floor: the plane of the ankles over time, z up, origin under
+   the first camera, x towards the second.
+
+The result goes to the online pipeline as its initial estimate, with an honest, large
+uncertainty (``handover``).
+"""
+
+from __future__ import annotations
+
+import time as _time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from proto import KeypointMessage
+
+from .associate import Hypothesis, torso_centre
+from .cameras import CameraSet, Extrinsics, Intrinsics, Pose
+from .config import BootstrapConfig, EngineConfig
+from .geometry import hat, rotation_angle_deg, so3_exp, triangulate_batch
+from .people import ANKLE_HEIGHT, ScaleEstimate, Segments, measure_scale, segments
+from .preprocess import Detection, Preprocessor
+from .sync import Synchronizer
+
+Frame = tuple[float, tuple[tuple[Detection, ...], ...]]
+Progress = Callable[[str], None]
+
+
+class BootstrapError(RuntimeError):
+    """The data do not determine the cameras (too few people seen by pairs of cameras)."""
+
+
+# ------------------------------------------------------------------ front end
+
+
+def collect_frames(names: Sequence[str], intrinsics: Mapping[str, Intrinsics], config: EngineConfig,
+                   messages: Iterable[KeypointMessage], *, max_seconds: float = 0.0,
+                   progress: Progress | None = None) -> list[Frame]:
+    """The pipeline's front end (sync, preprocess) on messages in arrival order: the
+    preprocessed framesets with >= 2 views, up to ``max_seconds`` of data (0: all).
+
+    The clock is the newest plausible stamp, found as the pipeline finds it: the first
+    messages are held back and their median decides which stamps are absurd."""
+    sync = Synchronizer(config.sync, tuple(names))
+    pre = Preprocessor(config.preprocess, tuple(names), intrinsics)
+    frames: list[Frame] = []
+    pending: list[KeypointMessage] = []
+    clock: float | None = None
+    first: float | None = None
+    last_report = 0.0
+
+    def take(now: float) -> bool:
+        nonlocal first, last_report
+        for fs in sync.pop_ready(now):
+            dets = pre(fs)
+            if len(dets) < 2:
+                continue
+            frames.append((fs.time, tuple(tuple(v) for v in dets)))
+            first = fs.time if first is None else first
+            if max_seconds and fs.time - first > max_seconds:
+                frames.pop()
+                return True
+            if progress is not None and fs.time - first - last_report >= 10.0:
+                last_report = fs.time - first
+                progress(f"reading: {last_report:.0f} s of data, {len(frames)} framesets")
+        return False
+
+    def push(m: KeypointMessage) -> None:
+        nonlocal clock
+        if sync.push(m, clock) is None and (clock is None or m.stamp > clock):
+            clock = m.stamp
+
+    for m in messages:
+        if clock is None:
+            pending.append(m)
+            if len(pending) < 16:
+                continue
+            med = float(np.median([p.stamp for p in pending]))
+            ok = [p.stamp for p in pending if abs(p.stamp - med) <= config.sync.max_stamp_future]
+            clock = max(ok) if ok else med
+            for p in sorted(pending, key=lambda p: p.stamp):
+                push(p)
+            pending = []
+        else:
+            push(m)
+        if take(clock):
+            return frames
+    if pending:
+        clock = float(np.median([p.stamp for p in pending]))
+        for p in sorted(pending, key=lambda p: p.stamp):
+            push(p)
+    if clock is not None:
+        take(clock + config.sync.wait + 1.0 / config.sync.rate)
+    return frames
+
+
+# ------------------------------------------------------------------ pairs
+
+
+@dataclass(frozen=True, eq=False)
+class PairPose:
+    """Relative pose of camera b to camera a from one person's joints over time.
+
+    R: (3, 3) b_R_a; t: (3,) unit vector; X_b = R X_a + s t for an unknown s > 0.
+    frames: (F,) int indices (into the frames given) of the frames whose joints agree.
+    depths: {camera: (N,) float64} depth of each triangulated joint in that camera for
+    s = 1, keyed by ``keys`` (N,) int = frame index * 17 + joint.
+    """
+
+    a: int
+    b: int
+    R: np.ndarray
+    t: np.ndarray
+    frames: np.ndarray
+    candidates: int
+    inliers: int
+    residual_px: float
+    angle_deg: float
+    keys: np.ndarray = field(repr=False)
+    depths: Mapping[int, np.ndarray] = field(repr=False)
+
+    def __post_init__(self) -> None:
+        assert self.R.shape == (3, 3) and self.t.shape == (3,)
+        assert all(d.shape == self.keys.shape for d in self.depths.values())
+
+
+def single_views(frames: Sequence[Frame]) -> list[dict[int, Detection]]:
+    """Per frame: camera → its detection, for the cameras that see exactly one person."""
+    return [{v[0].cam: v[0] for v in views if len(v) == 1} for _, views in frames]
+
+
+def sampson_px(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, focal: float) -> np.ndarray:
+    """(N,) signed Sampson error in px of correspondences xa, xb (N, 2) normalised under
+    X_b = R X_a + s t."""
+    E = hat(t) @ R
+    ha = np.c_[xa, np.ones(len(xa))]
+    hb = np.c_[xb, np.ones(len(xb))]
+    Ex = ha @ E.T
+    Etx = hb @ E
+    num = np.sum(hb * Ex, axis=1)
+    den = np.sqrt(Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2)
+    return num / np.maximum(den, 1e-15) * focal
+
+
+def _refine(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, focal: float,
+            scale_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Robust (Huber) least squares of the Sampson error over R and the baseline direction."""
+    from scipy.optimize import least_squares
+
+    # the direction on its tangent plane: two coordinates
+    u = np.cross(t, [1.0, 0, 0] if abs(t[0]) < 0.9 else [0, 1.0, 0])
+    u /= np.linalg.norm(u)
+    v = np.cross(t, u)
+
+    def pose(p):
+        tn = t + p[3] * u + p[4] * v
+        return so3_exp(p[:3]) @ R, tn / np.linalg.norm(tn)
+
+    def res(p):
+        return sampson_px(*pose(p), xa, xb, focal)
+
+    r = least_squares(res, np.zeros(5), loss="huber", f_scale=scale_px, max_nfev=50)
+    return pose(r.x)
+
+
+def _triangulate_pair(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points of a pair with unit baseline: depth in a, depth in b, ray angle (deg), each (N,)."""
+    C = len(xa)
+    Rs = np.stack([np.eye(3), R.T])  # world = camera a: world_R_cam
+    ts = np.stack([np.zeros(3), -R.T @ t])  # centre of b in a's frame
+    X = triangulate_batch(Rs, ts, np.tile([0, 1], (C, 1)), np.stack([xa, xb], axis=1))
+    za = X[:, 2]
+    zb = (X @ R.T + t)[:, 2]
+    ra = X / np.linalg.norm(X, axis=1, keepdims=True)
+    rb = X - ts[1]
+    rb /= np.linalg.norm(rb, axis=1, keepdims=True)
+    ang = np.degrees(np.arccos(np.clip(np.sum(ra * rb, axis=1), -1, 1)))
+    return za, zb, ang
+
+
+def relative_pose(xa: np.ndarray, xb: np.ndarray, fid: np.ndarray, focal: float, cfg: BootstrapConfig,
+                  *, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Relative pose from correspondences xa, xb (N, 2) normalised, grouped by frame id
+    fid (N,). Returns (R (3, 3), t (3,), agreeing frame ids (F,), inlier mask (N,)) or
+    None. A frame agrees when its joints' median Sampson error is below ``frame_px``; a
+    joint is an inlier of an agreeing frame within 3 ``frame_px`` (left/right swaps and
+    stray joints are not)."""
+    import cv2
+
+    if len(xa) < 8:
+        return None
+    cv2.setRNGSeed(seed)
+    E, mask = cv2.findEssentialMat(xa, xb, np.eye(3), method=cv2.USAC_MAGSAC, prob=0.999,
+                                   threshold=cfg.ransac_px / focal, maxIters=2000)
+    if E is None or E.shape != (3, 3) or mask is None:
+        return None
+    _, R, t, _ = cv2.recoverPose(E, xa, xb, np.eye(3), mask=mask.copy())
+    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64).ravel()
+    uf, inv = np.unique(fid, return_inverse=True)
+    good = np.zeros(0, np.int64)
+    sel = np.zeros(len(xa), bool)
+    for _round in range(3):
+        e = np.abs(sampson_px(R, t, xa, xb, focal))
+        med = np.array([np.median(e[inv == k]) for k in range(len(uf))])
+        ok_frame = med < cfg.frame_px
+        sel = ok_frame[inv] & (e < 3 * cfg.frame_px)
+        if ok_frame.sum() < 2 or sel.sum() < 8:
+            return None
+        new_good = uf[ok_frame]
+        if np.array_equal(new_good, good):
+            break
+        good = new_good
+        R, t = _refine(R, t, xa[sel], xb[sel], focal, cfg.ransac_px)
+    # cheirality: the person is in front of both cameras
+    za, zb, _ = _triangulate_pair(R, t, xa[sel], xb[sel])
+    front = np.mean((za > 0) & (zb > 0))
+    if front < 0.5:  # the twisted pair: the other solution of the decomposition
+        return None
+    return R, t, good, sel
+
+
+def pair_poses(frames: Sequence[Frame], cameras: int, focal: np.ndarray, cfg: BootstrapConfig, *,
+               seed: int = 0, progress: Progress | None = None) -> tuple[list[PairPose], int]:
+    """Every camera pair's relative pose from frames where both see one person.
+
+    Returns the accepted pairs and the number of pairs tried."""
+    single = single_views(frames)
+    by_pair: dict[tuple[int, int], list[int]] = defaultdict(list)
+    for fi, s in enumerate(single):
+        cs = sorted(s)
+        for i in range(len(cs)):
+            for j in range(i + 1, len(cs)):
+                by_pair[(cs[i], cs[j])].append(fi)
+    tried = [(k, v) for k, v in sorted(by_pair.items()) if len(v) >= cfg.min_pair_frames]
+    out = []
+    last = _time.perf_counter()
+    for n, ((a, b), fis) in enumerate(tried):
+        if progress is not None and _time.perf_counter() - last > 2.0:
+            last = _time.perf_counter()
+            progress(f"pairs: {n}/{len(tried)} tried, {len(out)} accepted")
+        xa, xb, fid, jid = [], [], [], []
+        for fi in fis:
+            da, db = single[fi][a], single[fi][b]
+            ok = np.all(np.isfinite(da.xy), 1) & np.all(np.isfinite(db.xy), 1)
+            xa.append(da.xy[ok])
+            xb.append(db.xy[ok])
+            fid.append(np.full(int(ok.sum()), fi))
+            jid.append(np.flatnonzero(ok))
+        xa, xb = np.concatenate(xa), np.concatenate(xb)
+        fid, jid = np.concatenate(fid), np.concatenate(jid)
+        f = float(np.sqrt(focal[a] * focal[b]))
+        r = relative_pose(xa, xb, fid, f, cfg, seed=seed + 7919 * a + b)
+        if r is None:
+            continue
+        R, t, good, sel = r
+        if len(good) < cfg.min_pair_frames or len(good) < cfg.min_consistent_ratio * len(fis):
+            continue
+        za, zb, ang = _triangulate_pair(R, t, xa[sel], xb[sel])
+        fine = (za > 0) & (zb > 0) & np.isfinite(za) & np.isfinite(zb)
+        angle = float(np.median(ang[fine])) if fine.any() else 0.0
+        if angle < cfg.min_triangulation_angle:
+            continue
+        keys = (fid[sel] * 17 + jid[sel])[fine]
+        res = float(np.median(np.abs(sampson_px(R, t, xa[sel], xb[sel], f))))
+        out.append(PairPose(a, b, R, t, good, len(fis), int(sel.sum()), res, angle, keys,
+                            {a: za[fine], b: zb[fine]}))
+    return out, len(tried)
+
+
+# ------------------------------------------------------------------ view graph
+
+
+def _project_so3(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def spanning_tree(cameras: int, edges: Sequence[tuple[int, int, float]]) -> list[int]:
+    """Indices of the edges (a, b, weight) of a maximum-weight spanning forest (Kruskal)."""
+    parent = list(range(cameras))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    out = []
+    for k in sorted(range(len(edges)), key=lambda k: -edges[k][2]):
+        a, b, _ = edges[k]
+        ra, rb = find(a), find(b)
+        if ra != rb:
+            parent[ra] = rb
+            out.append(k)
+    return out
+
+
+def triangle_check(pairs: Sequence[PairPose], tol_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Cycle consistency of the relative rotations: for every triangle of pairs (a, b),
+    (b, c), (a, c), R_ac must equal R_bc R_ab. Returns (consistent, inconsistent) (P,)
+    int counts of each pair's triangles. A pair whose triangles all disagree is wrong (its
+    frames mixed two people, or RANSAC took a wrong model); one without triangles cannot
+    be checked here (the bundle adjustment is its check)."""
+    index = {(p.a, p.b): k for k, p in enumerate(pairs)}
+    nbr: dict[int, set[int]] = defaultdict(set)
+    for p in pairs:
+        nbr[p.a].add(p.b)
+        nbr[p.b].add(p.a)
+    good = np.zeros(len(pairs), np.int64)
+    bad = np.zeros(len(pairs), np.int64)
+    for (a, b), kab in index.items():
+        for c in nbr[a] & nbr[b]:
+            if c <= b:
+                continue  # each triangle once, a < b < c
+            kbc, kac = index[(b, c)], index.get((a, c))
+            if kac is None:
+                continue
+            err = rotation_angle_deg(pairs[kbc].R @ pairs[kab].R, pairs[kac].R)
+            for k in (kab, kbc, kac):
+                if err <= tol_deg:
+                    good[k] += 1
+                else:
+                    bad[k] += 1
+    return good, bad
+
+
+def average_rotations(cameras: int, pairs: Sequence[PairPose], *, root: int | None = None,
+                      sigma_deg: float = 2.0, sweeps: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World_R_cam (C, 3, 3) of the cameras connected to ``root`` (default: the camera
+    with the most inliers), with R_root = I: chained along the maximum-inlier spanning
+    tree, then iteratively reweighted chordal averaging over every pair (Cauchy weights of
+    width ``sigma_deg``). Returns (R, connected (C,) bool, residual deg per pair)."""
+    C = cameras
+    w = np.array([float(p.inliers) for p in pairs])
+    if root is None:
+        load = np.zeros(C)
+        for p, wi in zip(pairs, w):
+            load[p.a] += wi
+            load[p.b] += wi
+        root = int(np.argmax(load))
+    R = np.repeat(np.eye(3)[None], C, axis=0)
+    known = np.zeros(C, bool)
+    known[root] = True
+    tree = [pairs[k] for k in spanning_tree(C, [(p.a, p.b, float(p.inliers)) for p in pairs])]
+    changed = True
+    while changed:  # chain along the tree from the root: R_a = R_b R_ab, R_b = R_a R_ab^T
+        changed = False
+        for p in tree:
+            if known[p.a] and not known[p.b]:
+                R[p.b] = R[p.a] @ p.R.T
+                known[p.b] = changed = True
+            elif known[p.b] and not known[p.a]:
+                R[p.a] = R[p.b] @ p.R
+                known[p.a] = changed = True
+    use = [k for k, p in enumerate(pairs) if known[p.a] and known[p.b]]
+
+    def residuals():
+        return np.array([rotation_angle_deg(R[p.b].T @ R[p.a], p.R) for p in pairs])
+
+    for _ in range(sweeps):
+        r = residuals()
+        rw = w / (1.0 + (r / sigma_deg) ** 2)
+        M = np.zeros((C, 3, 3))
+        for k in use:
+            p = pairs[k]
+            M[p.a] += rw[k] * (R[p.b] @ p.R)
+            M[p.b] += rw[k] * (R[p.a] @ p.R.T)
+        for c in np.flatnonzero(known):
+            if c != root and np.any(M[c]):
+                R[c] = _project_so3(M[c])
+    return R, known, residuals()
+
+
+def pair_scales(pairs: Sequence[PairPose], cfg: BootstrapConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Relative scale of each pair's unit-baseline triangulation (the baseline length in
+    a common unit), from the depths at which two pairs sharing a camera see the same
+    joints. Returns (log scale (P,), known (P,) bool): the largest connected group of
+    related pairs, its best pair at log scale 0."""
+    P = len(pairs)
+    rel = []  # (e, f, log(s_e / s_f), weight)
+    incident: dict[int, list[int]] = defaultdict(list)
+    for k, p in enumerate(pairs):
+        incident[p.a].append(k)
+        incident[p.b].append(k)
+    for cam, ks in incident.items():
+        for i in range(len(ks)):
+            for j in range(i + 1, len(ks)):
+                e, f = pairs[ks[i]], pairs[ks[j]]
+                common, ie, if_ = np.intersect1d(e.keys, f.keys, return_indices=True)
+                if len(common) < cfg.min_shared_points:
+                    continue
+                ze, zf = e.depths[cam][ie], f.depths[cam][if_]
+                ok = (ze > 0) & (zf > 0)
+                if ok.sum() < cfg.min_shared_points:
+                    continue
+                ratios = np.log(zf[ok] / ze[ok])
+                rel.append((ks[i], ks[j], float(np.median(ratios)), float(np.sqrt(min(ok.sum(), 400)))))
+    known = np.zeros(P, bool)
+    logs = np.zeros(P)
+    if P == 0:
+        return logs, known
+    # connected groups of related pairs
+    parent = list(range(P))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for e, f, _, _ in rel:
+        parent[find(e)] = find(f)
+    groups: dict[int, list[int]] = defaultdict(list)
+    for k in range(P):
+        groups[find(k)].append(k)
+    best = max(groups.values(), key=lambda g: (len(g), sum(pairs[k].inliers for k in g)))
+    anchor = max(best, key=lambda k: pairs[k].inliers)
+    if len(best) < 2:
+        known[anchor] = True
+        return logs, known
+    idx = {k: i for i, k in enumerate(best)}
+    rows = [(idx[e], idx[f], v, w) for e, f, v, w in rel if e in idx and f in idx]
+    n = len(best)
+    wr = np.ones(len(rows))
+    x = np.zeros(n)
+    for _ in range(10):  # IRLS, Huber on the log residuals (width 0.02)
+        A = np.zeros((len(rows) + 1, n))
+        b = np.zeros(len(rows) + 1)
+        for r, (i, j, v, w) in enumerate(rows):
+            s = w * wr[r]
+            A[r, i], A[r, j], b[r] = s, -s, s * v
+        A[-1, idx[anchor]] = b[-1] = 0.0
+        A[-1, idx[anchor]] = 1e3
+        x = np.linalg.lstsq(A, b, rcond=None)[0]
+        res = np.array([abs(x[i] - x[j] - v) for i, j, v, _ in rows])
+        wr = np.where(res > 0.02, 0.02 / np.maximum(res, 1e-12), 1.0)
+    for k in best:
+        logs[k] = x[idx[k]]
+        known[k] = True
+    return logs, known
+
+
+def place_cameras(cameras: int, R: np.ndarray, pairs: Sequence[PairPose], logs: np.ndarray,
+                  scaled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centres (C, 3) from the rotations and the pairs' baselines: c_b - c_a =
+    s·(-R_b t_ab) for pairs with a scale, (c_b - c_a) ∥ -R_b t_ab for the others
+    (robust least squares). Returns (centres, located (C,) bool)."""
+    C = cameras
+    located = np.zeros(C, bool)
+    for k, p in enumerate(pairs):
+        if scaled[k]:
+            located[p.a] = located[p.b] = True
+    if not located.any():
+        return np.zeros((C, 3)), located
+    # cameras with direction-only pairs to >= 2 placed cameras in different directions
+    changed = True
+    while changed:
+        changed = False
+        for c in np.flatnonzero(~located):
+            dirs = []
+            for p in pairs:
+                other = p.b if p.a == c else p.a if p.b == c else None
+                if other is not None and located[other]:
+                    dirs.append(-R[p.b] @ p.t)
+            if len(dirs) >= 2:
+                D = np.array(dirs)
+                if np.linalg.svd(D, compute_uv=False)[1] > np.sin(np.radians(10)):
+                    located[c] = changed = True
+    idx = np.flatnonzero(located)
+    col = {c: i for i, c in enumerate(idx)}
+    use = [k for k, p in enumerate(pairs) if located[p.a] and located[p.b]]
+    root = idx[0]
+    wr = np.ones(len(use))
+    x = np.zeros(3 * len(idx))
+    for _ in range(10):
+        rows_A, rows_b = [], []
+        for r, k in enumerate(use):
+            p = pairs[k]
+            d = -R[p.b] @ p.t
+            w = np.sqrt(p.inliers) * wr[r]
+            blk = np.zeros((3, 3 * len(idx)))
+            blk[:, 3 * col[p.b]:3 * col[p.b] + 3] = np.eye(3)
+            blk[:, 3 * col[p.a]:3 * col[p.a] + 3] = -np.eye(3)
+            if scaled[k]:
+                rows_A.append(w * blk)
+                rows_b.append(w * np.exp(logs[k]) * d)
+            else:
+                rows_A.append(w * hat(d) @ blk)
+                rows_b.append(np.zeros(3))
+        anchor = np.zeros((3, 3 * len(idx)))
+        anchor[:, 3 * col[root]:3 * col[root] + 3] = 1e3 * np.eye(3)
+        A = np.concatenate(rows_A + [anchor])
+        b = np.concatenate(rows_b + [np.zeros(3)])
+        x = np.linalg.lstsq(A, b, rcond=None)[0]
+        res = np.array([np.linalg.norm((A[3 * r:3 * r + 3] @ x - b[3 * r:3 * r + 3])) / (np.sqrt(pairs[k].inliers) * wr[r])
+                        for r, k in enumerate(use)])
+        med = float(np.median(res)) if len(res) else 0.0
+        lim = max(3.0 * med, 1e-6)
+        wr = np.where(res > lim, lim / np.maximum(res, 1e-12), 1.0)
+    t = np.zeros((C, 3))
+    t[idx] = x.reshape(-1, 3)
+    return t, located
+
+
+# ------------------------------------------------------------------ result
+
+
+@dataclass(frozen=True, eq=False)
+class BootstrapResult:
+    """Camera poses found without an initial estimate.
+
+    R: (C, 3, 3) world_R_cam; t: (C, 3) centres, metres by ``scale``; located: (C,) bool
+    (the others keep R = I, t = 0 and must not be used); std_translation (C,) m and
+    std_rotation (C,) deg: the bundle adjustment's shape std (NaN where unknown).
+    """
+
+    names: tuple[str, ...]
+    R: np.ndarray
+    t: np.ndarray
+    located: np.ndarray
+    std_translation: np.ndarray
+    std_rotation: np.ndarray
+    scale: ScaleEstimate | None
+    frame: str
+    pairs: int
+    pairs_tried: int
+    frames: int
+    data_seconds: float
+    seconds: float
+    stages: Mapping[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        C = len(self.names)
+        assert self.R.shape == (C, 3, 3) and self.t.shape == (C, 3) and self.located.shape == (C,)
+        assert self.std_translation.shape == (C,) and self.std_rotation.shape == (C,)
+
+    def poses(self) -> dict[str, Pose]:
+        return {n: Pose(self.R[c].copy(), self.t[c].copy()) for c, n in enumerate(self.names) if self.located[c]}
+
+    def extrinsics(self, resolutions: Mapping[str, tuple[int, int]]) -> dict[str, Extrinsics]:
+        """Every camera (unlocated ones at R = I, t = 0, std unknown), for a CameraSet."""
+        out = {}
+        for c, n in enumerate(self.names):
+            st, sr = self.std_translation[c], self.std_rotation[c]
+            out[n] = Extrinsics(Pose(self.R[c].copy(), self.t[c].copy()), resolutions[n],
+                                float(st) if np.isfinite(st) else None, float(sr) if np.isfinite(sr) else None)
+        return out
+
+    def to_dict(self) -> dict:
+        return {
+            "frame": self.frame,
+            "scale": self.scale.to_dict() if self.scale else None,
+            "located": [n for c, n in enumerate(self.names) if self.located[c]],
+            "not_located": [n for c, n in enumerate(self.names) if not self.located[c]],
+            "pairs": self.pairs, "pairs_tried": self.pairs_tried, "frames": self.frames,
+            "data_seconds": self.data_seconds, "seconds": self.seconds, "stages": dict(self.stages),
+        }
+
+
+def handover(cfg: EngineConfig, result: BootstrapResult) -> EngineConfig:
+    """The engine config for the online pipeline that starts from ``result``: its initial
+    std is honest and large, 3x the worst bootstrap std or the ``handover_*`` floor."""
+    b = cfg.bootstrap
+    st = result.std_translation[result.located]
+    sr = result.std_rotation[result.located]
+    worst_t = float(np.nanmax(st)) if np.any(np.isfinite(st)) else 0.0
+    worst_r = float(np.nanmax(sr)) if np.any(np.isfinite(sr)) else 0.0
+    refine = cfg.refine.model_copy(update={
+        "initial_std_translation": max(b.handover_std_translation, 3 * worst_t),
+        "initial_std_rotation": max(b.handover_std_rotation, 3 * worst_r),
+    })
+    return cfg.model_copy(update={"refine": refine})
+
+
+def camera_set(intrinsics: Mapping[str, Intrinsics], result: BootstrapResult) -> CameraSet:
+    """The CameraSet the online pipeline starts from: the cameras the bootstrap placed (a
+    camera without a pose would only feed wrong associations; its messages are counted
+    as from an unknown sensor)."""
+    names = [n for c, n in enumerate(result.names) if result.located[c]]
+    ext = result.extrinsics({n: intrinsics[n].resolution for n in result.names})
+    return CameraSet.combine({n: intrinsics[n] for n in names}, {n: ext[n] for n in names})
+
+
+# ------------------------------------------------------------------ the whole bootstrap
+
+
+def _without(frames: Sequence[Frame], keep: np.ndarray) -> list[Frame]:
+    """Frames with the detections of cameras not in ``keep`` (C,) bool removed."""
+    out = []
+    for time_, views in frames:
+        vs = tuple(v for v in views if keep[v[0].cam])
+        if len(vs) >= 2:
+            out.append((time_, vs))
+    return out
+
+
+def _pair_hypotheses(frames: Sequence[Frame], pairs: Sequence[PairPose], use: np.ndarray,
+                     R: np.ndarray, t: np.ndarray) -> list[Hypothesis]:
+    """Two-view hypotheses of the pairs' agreeing frames (the rough scale's material)."""
+    single = single_views(frames)
+    hyps = []
+    for k in np.flatnonzero(use):
+        p = pairs[k]
+        for fi in p.frames:
+            da, db = single[fi][p.a], single[fi][p.b]
+            cams = np.array([p.a, p.b])
+            xy = np.stack([da.xy, db.xy])
+            c = triangulate_batch(R, t, cams[None], np.stack([torso_centre(da.xy), torso_centre(db.xy)])[None])[0]
+            if not np.all(np.isfinite(c)):
+                continue
+            hyps.append(Hypothesis(frames[fi][0], cams, xy, np.stack([da.sigma / da.focal, db.sigma / db.focal]), c))
+    return hyps
+
+
+def _rough_scale(seg: Segments, cfg: BootstrapConfig, torso_ratio: float, heights: Sequence[float]) -> float:
+    """Metres per unit from the pooled median chain of every two-view hypothesis."""
+    from .people import chain_ratio
+
+    ok = np.isfinite(seg.shank) & np.isfinite(seg.thigh) & np.isfinite(seg.torso)
+    if ok.sum() < 10:
+        raise BootstrapError("too few persons triangulated by camera pairs to find the scale")
+    chain = float(np.median(seg.shank[ok]) + np.median(seg.thigh[ok]) + np.median(seg.torso[ok]))
+    H = float(np.mean(heights)) if heights else cfg.height_mean
+    return H / (chain / chain_ratio(torso_ratio))
+
+
+def floor_frame(seg: Segments, t: np.ndarray, located: np.ndarray, height: float,
+                names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, str]:
+    """The world frame of the floor the people walk on: (F (3, 3), o (3,), note) with new
+    coordinates X' = F (X - o). The floor is the plane of the ankles (least squares over
+    every triangulated ankle: people walk across the room, so the plane's normal is the
+    direction of least spread), lowered by the ankles' stance height above it (the 10 %
+    quantile of their height, minus 0.039 x the persons' height); z up (towards the hips),
+    origin under the first located camera, x towards the next one's floor point."""
+    P = seg.ankles.reshape(-1, 3)
+    P = P[np.all(np.isfinite(P), axis=1)]
+    if len(P) < 50:
+        raise BootstrapError("too few ankles triangulated to find the floor")
+    mu = P.mean(0)
+    _, _, Vt = np.linalg.svd(P - mu, full_matrices=False)
+    n = Vt[2]
+    up = seg.up[np.all(np.isfinite(seg.up), axis=1)]
+    if len(up) and float(np.median(up @ n)) < 0:
+        n = -n
+    d = (P - mu) @ n
+    level = float(np.percentile(d, 10)) - ANKLE_HEIGHT * height
+    p0 = mu + level * n
+    idx = np.flatnonzero(located)
+    proj = t[idx] - np.outer((t[idx] - p0) @ n, n)
+    o = proj[0]
+    x = None
+    for k in range(1, len(idx)):
+        v = proj[k] - o
+        if np.linalg.norm(v) > 0.1:
+            x = v / np.linalg.norm(v)
+            second = names[idx[k]]
+            break
+    if x is None:
+        raise BootstrapError("the cameras' floor points coincide: no x axis")
+    y = np.cross(n, x)
+    F = np.stack([x, y, n])
+    first = names[idx[0]]
+    note = (f"floor frame: z up, normal to the plane of the people's ankles (fit over {len(P)} ankle "
+            f"positions), the floor {ANKLE_HEIGHT * height:.3f} m below the ankles' stance level; origin "
+            f"on the floor under {first}, x towards the floor point under {second}")
+    return F, o, note
+
+
+def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, config: EngineConfig, *,
+              heights: Sequence[float] = (), seed: int = 0, progress: Progress | None = None) -> BootstrapResult:
+    """Camera poses from ``frames`` alone (see the module doc). ``heights``: known heights
+    of the walkers (m); without them the population prior sets the scale. Raises
+    BootstrapError when fewer than 2 cameras can be placed."""
+    from .optimize import Problem, solve
+    from .relocalize import relocalize
+
+    cfg = config.bootstrap
+    say = progress or (lambda _m: None)
+    t_start = _time.perf_counter()
+    stages: dict[str, float] = {}
+    C = len(names)
+    focal = np.asarray(focal, dtype=np.float64)
+    assert focal.shape == (C,)
+    frames = list(frames)
+    if len(frames) < cfg.min_pair_frames:
+        raise BootstrapError(f"{len(frames)} framesets with >= 2 views: too few to start "
+                             f"(a pair needs {cfg.min_pair_frames})")
+    data_seconds = frames[-1][0] - frames[0][0]
+
+    # 1. pairs
+    t0 = _time.perf_counter()
+    pairs, tried = pair_poses(frames, C, focal, cfg, seed=seed, progress=say)
+    stages["pairs"] = _time.perf_counter() - t0
+    say(f"pairs: {len(pairs)} of {tried} camera pairs agree on one person's joints")
+    if not pairs:
+        raise BootstrapError(f"no camera pair saw one person in {cfg.min_pair_frames} frames consistently "
+                             f"({tried} pairs tried)")
+
+    # 2. rotations, 3. scales and centres
+    t0 = _time.perf_counter()
+    ok_tri, bad_tri = triangle_check(pairs, 2 * cfg.rotation_outlier)
+    pairs = [p for p, g, b in zip(pairs, ok_tri, bad_tri) if g > 0 or b == 0]
+    R, connected, rres = average_rotations(C, pairs, sigma_deg=cfg.rotation_outlier / 2)
+    inl = rres <= cfg.rotation_outlier
+    good = [p for p, ok in zip(pairs, inl) if ok]
+    R, connected, _ = average_rotations(C, good, sigma_deg=cfg.rotation_outlier / 2)
+    logs, scaled = pair_scales(good, cfg)
+    t, located = place_cameras(C, R, good, logs, scaled)
+    located &= connected
+    stages["graph"] = _time.perf_counter() - t0
+    say(f"view graph: {len(good)} pairs after rotation averaging, {int(scaled.sum())} with a scale, "
+        f"{int(located.sum())}/{C} cameras placed")
+    if located.sum() < 2:
+        raise BootstrapError("fewer than 2 cameras could be placed: too few pairs share a person")
+
+    # 4. rough metric scale from the pairs' persons
+    use = np.array([scaled[k] and located[p.a] and located[p.b] for k, p in enumerate(good)])
+    seg = segments(_pair_hypotheses(frames, good, use, R, t), R, t)
+    s = _rough_scale(seg, cfg, config.associate.torso_ratio, heights)
+    t = t * s
+    say(f"rough scale from the persons' bones: {s:.4g} m per unit")
+
+    # 5. bundle adjustment rounds
+    t0 = _time.perf_counter()
+    std_t = np.full(C, np.nan)
+    std_r = np.full(C, np.nan)
+    prior = np.diag([np.radians(cfg.prior_std_rotation) ** 2] * 3 + [cfg.prior_std_translation**2] * 3)
+    opt = config.optimize.model_copy(update={"max_iterations": max(config.optimize.max_iterations, 100)})
+    rng = np.random.default_rng(seed)
+    tried_reloc = False
+    rounds = cfg.batch_rounds
+    r = 0
+    while r < rounds:
+        r += 1
+        last = r == rounds
+        fr = _without(frames, located)
+        p = Problem(cycle=r, R=R.copy(), t=t.copy(), prior_R=R.copy(), prior_t=t.copy(),
+                    prior_cov=np.repeat(prior[None], C, axis=0), focal=focal, config=opt, frames=tuple(fr),
+                    associate=config.associate, gate_px=None, max_hypotheses=cfg.batch_hypotheses,
+                    spacing=config.select.min_spacing / 2, seed=int(rng.integers(2**31)), marginals=last,
+                    kind="batch")
+        sol = solve(p)
+        if not sol.ok and not last:
+            say(f"bundle adjustment {r}: {sol.reason}")
+            continue
+        if not sol.ok:  # the last round failed: keep the previous round's poses
+            say(f"bundle adjustment {r}: {sol.reason}; the previous estimate is kept")
+            break
+        R, t = sol.R.copy(), sol.t.copy()
+        located &= sol.active  # a camera the adjustment could not constrain is not placed
+        say(f"bundle adjustment {r}/{rounds}: {sol.hypotheses} hypotheses, {int(sol.active.sum())} cameras, "
+            f"median reprojection {np.median(sol.residual_px) if len(sol.residual_px) else float('nan'):.2f} px")
+        if last and sol.ok:
+            for c in np.flatnonzero(sol.active):
+                P = sol.cov_shape[c]
+                if np.all(np.isfinite(P)):
+                    std_t[c] = np.sqrt(max(np.trace(P[3:, 3:]) / 3, 0))
+                    std_r[c] = np.degrees(np.sqrt(max(np.trace(P[:3, :3]) / 3, 0)))
+        if last and not tried_reloc and not located.all():
+            tried_reloc = True
+            found = 0
+            for c in np.flatnonzero(~located):
+                rl = relocalize(frames, int(c), R, t, float(focal[c]), config.associate, seed=seed)
+                if rl is not None:
+                    R[c], t[c], located[c] = rl.R, rl.t, True
+                    found += 1
+            if found:
+                say(f"re-localised {found} camera(s) by PnP; one more bundle adjustment")
+                rounds += 1
+    stages["bundle"] = _time.perf_counter() - t0
+
+    # 6. people: scale, then the floor
+    t0 = _time.perf_counter()
+    scale, seg = measure_scale(frames, R, t, config.associate, cfg, heights=heights, cameras=located)
+    if scale is not None:
+        t = t * scale.factor
+        std_t = std_t * scale.factor
+        seg = Segments(seg.time, seg.com * scale.factor, seg.shank * scale.factor, seg.thigh * scale.factor,
+                       seg.torso * scale.factor, seg.ankles * scale.factor, seg.up * scale.factor)
+        say(scale.summary())
+    else:
+        say("no person measured well enough for the scale: the rough scale is kept")
+    mean_h = float(np.mean(scale.heights)) if scale else cfg.height_mean
+    F, o, note = floor_frame(seg, t, located, mean_h, names)
+    R = np.einsum("ij,cjk->cik", F, R)
+    t = (t - o) @ F.T
+    R[~located], t[~located] = np.eye(3), 0.0
+    std_t[~located] = np.nan
+    std_r[~located] = np.nan
+    stages["people"] = _time.perf_counter() - t0
+    return BootstrapResult(tuple(names), R, t, located, std_t, std_r, scale, note, len(good), tried, len(frames),
+                           float(data_seconds), _time.perf_counter() - t_start, stages)

@@ -1,0 +1,200 @@
+"""Calibration without an initial estimate, on the simulator (issue 8).
+
+The 20-camera lab (shared/data/ais_lab20), two walkers of 1.96 m and 1.70 m, 180 s, several
+seeds (recordings cached like bench/accuracy.py, with its helpers). Per seed:
+
+- the bootstrap (``backend.bootstrap``) on the first T s of data, T in --checkpoints: per
+  camera the error after a similarity alignment to the truth (``backend.evaluate``, the
+  shape figures), how many cameras it placed, how many are within 0.05 m / 0.5°, its wall
+  time; the smallest T at which every placed camera is within the bars;
+- the scale: the bootstrap's estimate from the population prior, and from the known heights
+  of the walkers (``people.measure_scale`` on the same poses), against the true scale (the
+  similarity alignment's), with the reported std (z = error / std);
+- the online pipeline from the bootstrap of the last checkpoint (``bootstrap.handover``)
+  on the whole recording: rigid and shape errors per camera.
+
+    python bench/bootstrap.py                         # 5 seeds, checkpoints 60, 90, 120 s
+    python bench/bootstrap.py --seeds 2 --checkpoints 120 --no-online
+    python bench/bootstrap.py --report b.json         # the tables of an earlier --out
+
+No figure is asserted here: tests/backend/test_bootstrap.py holds the pass/fail bars.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "bench"))
+
+BAR_POSITION = 0.05  # m, after similarity alignment
+BAR_ORIENTATION = 0.5  # deg
+
+
+def _shape(acc) -> dict:
+    per = {n: (round(v[2], 5), round(v[3], 4)) for n, v in acc.per_camera.items()}
+    pos = np.array([v[0] for v in per.values()])
+    ori = np.array([v[1] for v in per.values()])
+    return {"cameras": len(per), "shape_position": float(pos.mean()), "shape_position_max": float(pos.max()),
+            "shape_orientation": float(ori.mean()), "shape_orientation_max": float(ori.max()),
+            "within": int(np.sum((pos <= BAR_POSITION) & (ori <= BAR_ORIENTATION))),
+            "position": acc.position.mean, "orientation": acc.orientation.mean, "scale": acc.scale,
+            "per_camera": per}
+
+
+def run_seed(seed: int, checkpoints: list[float], cache: Path, online: bool, say) -> dict:
+    import accuracy
+
+    from backend.bootstrap import BootstrapError, bootstrap, camera_set, collect_frames, handover
+    from backend.cameras import load_extrinsics, load_intrinsics, natural_key
+    from backend.config import EngineConfig
+    from backend.evaluate import evaluate
+    from backend.people import measure_scale
+    from backend.pipeline import run_offline
+    from proto import read_recording
+
+    lab = accuracy.lab_dir()
+    heights = accuracy.HEIGHTS[2]
+    rec = accuracy.simulate(2, 180.0, seed, cache)
+    intr = load_intrinsics(lab / "intrinsics.yaml")
+    ref = {n: e.pose for n, e in load_extrinsics(lab / "reference.yaml").items()}
+    names = tuple(sorted(intr, key=natural_key))
+    focal = np.array([0.5 * (intr[n].fx + intr[n].fy) for n in names])
+    cfg = EngineConfig()
+    t0 = time.perf_counter()
+    frames = collect_frames(names, intr, cfg, read_recording(rec))
+    say(f"seed {seed}: {len(frames)} framesets read in {time.perf_counter() - t0:.0f} s")
+    out: dict = {"seed": seed, "load": os.getloadavg()[0], "checkpoints": []}
+    boot = None
+    for T in checkpoints:
+        part = [f for f in frames if f[0] - frames[0][0] <= T]
+        t0 = time.perf_counter()
+        try:
+            boot = bootstrap(part, names, focal, cfg, seed=seed)
+        except BootstrapError as e:
+            out["checkpoints"].append({"T": T, "error": str(e)})
+            say(f"seed {seed} T {T:g}: {e}")
+            boot = None
+            continue
+        wall = time.perf_counter() - t0
+        acc = evaluate(boot.poses(), ref)
+        row = {"T": T, "wall": wall, "placed": int(boot.located.sum()),
+               "not_placed": [n for c, n in enumerate(names) if not boot.located[c]], **_shape(acc)}
+        # scale: true metres per unit of the result = the similarity alignment's scale
+        true = acc.scale
+        R, t = boot.R, boot.t
+        if boot.scale is not None:
+            row["scale_prior"] = {"error": 1.0 / true - 1.0, "rel_std": boot.scale.rel_std,
+                                  "heights": list(boot.scale.heights), "persons": boot.scale.persons}
+        known, _ = measure_scale(part, R, t, cfg.associate, cfg.bootstrap, heights=heights, cameras=boot.located)
+        if known is not None:
+            row["scale_known"] = {"error": known.factor / true - 1.0, "rel_std": known.rel_std,
+                                  "heights": list(known.heights), "persons": known.persons}
+        out["checkpoints"].append(row)
+        say(f"seed {seed} T {T:g}: {row['placed']} placed, {row['within']} within bars, shape "
+            f"{row['shape_position']:.4f} m (max {row['shape_position_max']:.4f}) "
+            f"{row['shape_orientation']:.3f}° (max {row['shape_orientation_max']:.3f}), "
+            f"prior scale err {100 * row.get('scale_prior', {}).get('error', float('nan')):+.2f} %, "
+            f"known {100 * row.get('scale_known', {}).get('error', float('nan')):+.2f} %, {wall:.0f} s")
+    if online and boot is not None:
+        cams = camera_set(intr, boot)
+        t0 = time.perf_counter()
+        p = run_offline(cams, handover(cfg, boot), read_recording(rec), seed=seed)
+        acc = evaluate(p.state().poses(), ref, [n for n in cams.names if n in ref])
+        out["online"] = {"wall": time.perf_counter() - t0, "from_T": checkpoints[-1], **_shape(acc)}
+        say(f"seed {seed} online: shape {acc.shape_position.mean:.4f} m (max {acc.shape_position.max:.4f}) "
+            f"{acc.shape_orientation.mean:.3f}° (max {acc.shape_orientation.max:.3f}), scale {acc.scale:.4f}")
+    return out
+
+
+def _needed(r: dict) -> float | None:
+    """Data seconds of the first checkpoint at which every placed camera is within the bars
+    and no camera that a later checkpoint places is missing."""
+    rows = [c for c in r["checkpoints"] if "error" not in c]
+    if not rows:
+        return None
+    most = max(c["placed"] for c in rows)
+    for c in rows:
+        if c["placed"] == most and c["within"] == c["placed"]:
+            return c["T"]
+    return None
+
+
+def print_tables(runs: list[dict]) -> None:
+    print("\n## Bootstrap (no initial estimate): per checkpoint, similarity-aligned error per camera\n")
+    print("| seed | data s | placed | within 0.05 m / 0.5° | shape pos mean / max (m) | orient mean / max (°) "
+          "| scale err, prior (± std) | scale err, known heights (± std) | wall s |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in runs:
+        for c in r["checkpoints"]:
+            if "error" in c:
+                print(f"| {r['seed']} | {c['T']:g} | failed: {c['error']} | | | | | | |")
+                continue
+            sp, sk = c.get("scale_prior"), c.get("scale_known")
+            fs = lambda s: f"{100 * s['error']:+.2f} % (± {100 * s['rel_std']:.1f} %)" if s else "n/a"  # noqa: E731
+            print(f"| {r['seed']} | {c['T']:g} | {c['placed']}/20 | {c['within']}/{c['placed']} | "
+                  f"{c['shape_position']:.4f} / {c['shape_position_max']:.4f} | "
+                  f"{c['shape_orientation']:.3f} / {c['shape_orientation_max']:.3f} | {fs(sp)} | {fs(sk)} | "
+                  f"{c['wall']:.0f} |")
+    print("\n## Data seconds needed (first checkpoint with every placed camera within the bars)\n")
+    print("| seed | data s | not placed |")
+    print("|---|---|---|")
+    for r in runs:
+        last = [c for c in r["checkpoints"] if "error" not in c]
+        print(f"| {r['seed']} | {_needed(r) or 'not reached'} | {', '.join(last[-1]['not_placed']) if last else ''} |")
+    on = [r for r in runs if "online" in r]
+    if on:
+        print("\n## Online pipeline from the bootstrap (whole 180 s recording)\n")
+        print("| seed | from (s) | cameras | within bars | shape pos mean / max (m) | orient mean / max (°) "
+              "| rigid pos (m) | scale vs truth | wall s |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        for r in on:
+            o = r["online"]
+            print(f"| {r['seed']} | {o['from_T']:g} | {o['cameras']} | {o['within']}/{o['cameras']} | "
+                  f"{o['shape_position']:.4f} / {o['shape_position_max']:.4f} | "
+                  f"{o['shape_orientation']:.3f} / {o['shape_orientation_max']:.3f} | {o['position']:.4f} | "
+                  f"{1 / o['scale']:.4f} | {o['wall']:.0f} |")
+    print("\nload average at the start of each seed:", ", ".join(f"{r['load']:.1f}" for r in runs))
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--checkpoints", default="60,90,120", help="data seconds the bootstrap gets, comma separated")
+    ap.add_argument("--no-online", action="store_true", help="skip the online pipeline after the bootstrap")
+    ap.add_argument("--cache", type=Path, default=Path(tempfile_dir()) / "extrcal-accuracy-cache")
+    ap.add_argument("--out", type=Path, help="write the runs as JSON")
+    ap.add_argument("--report", type=Path, help="print the tables of an earlier --out and stop")
+    a = ap.parse_args(argv)
+    if a.report:
+        print_tables(json.loads(a.report.read_text())["runs"])
+        return
+    checkpoints = [float(x) for x in a.checkpoints.split(",")]
+    runs = []
+    for seed in range(a.first_seed, a.first_seed + a.seeds):
+        runs.append(run_seed(seed, checkpoints, a.cache, not a.no_online,
+                             lambda m: print(m, file=sys.stderr, flush=True)))
+        if a.out:
+            from backend.cameras import write_atomic
+
+            write_atomic(a.out, json.dumps({"runs": runs}, indent=1))
+    print_tables(runs)
+
+
+def tempfile_dir() -> str:
+    import tempfile
+
+    return tempfile.gettempdir()
+
+
+if __name__ == "__main__":
+    main()

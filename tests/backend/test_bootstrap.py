@@ -1,0 +1,262 @@
+"""Calibration without an initial estimate (backend/bootstrap.py) and metric scale from
+people (backend/people.py): the pieces on synthetic data, and the whole bootstrap on a
+short seeded simulation of the lab's west room.
+
+Whole run (7 cameras, 2 walkers of 1.96 m / 1.70 m, 60 s, seed 0), measured when the bars
+were set (similarity-aligned "shape" error over the cameras; scale error vs the truth):
+
+                         placed  shape mean  orientation mean / max  scale (known heights)
+    bootstrap            7/7     0.0121 m    0.126° / 0.211°         -0.45 % (reported ± 1.4 %)
+    + online pipeline    7/7     0.0121 m    0.132° / 0.217°
+
+The bars are the issue's targets (every camera within 0.05 m / 0.5°, scale within 1 %);
+they fail when, e.g., a wrong pair is chained into the view graph (a camera tens of
+degrees off) or the scale loses a segment.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from backend.bootstrap import (
+    BootstrapError, PairPose, average_rotations, bootstrap, camera_set, collect_frames, handover,
+    relative_pose, triangle_check,
+)
+from backend.cameras import Extrinsics
+from backend.config import EngineConfig
+from backend.evaluate import evaluate
+from backend.geometry import rotation_angle_deg, so3_exp
+from backend.people import Person, chain_ratio, estimate_scale, persons, segments, tracks
+from backend.preprocess import Detection
+
+RNG = np.random.default_rng
+
+
+def _look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """world_R_cam of a camera at centre looking at target, image x horizontal."""
+    z = target - centre
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.stack([x, y, z], axis=1)
+
+
+def _project(R: np.ndarray, t: np.ndarray, X: np.ndarray) -> np.ndarray:
+    Xc = (X - t) @ R
+    return Xc[:, :2] / Xc[:, 2:3]
+
+
+def _walker(rng, frames: int, height: float = 1.8) -> np.ndarray:
+    """(F, 17, 3) a crude person: 17 points spread over a body-sized box, walking."""
+    body = np.c_[rng.uniform(-0.2, 0.2, 17), rng.uniform(-0.15, 0.15, 17), rng.uniform(0.05, height, 17)]
+    path = np.c_[np.linspace(-2, 2, frames), 1.5 * np.sin(np.linspace(0, 3, frames)), np.zeros(frames)]
+    return path[:, None, :] + body[None]
+
+
+# ------------------------------------------------------------------ pieces
+
+
+def test_relative_pose_recovers_the_pose_and_drops_frames_of_another_person():
+    rng = RNG(1)
+    Ra, ta = _look_at(np.array([-4.0, -4.0, 2.6]), np.zeros(3)), np.array([-4.0, -4.0, 2.6])
+    Rb, tb = _look_at(np.array([4.0, -3.0, 2.5]), np.zeros(3)), np.array([4.0, -3.0, 2.5])
+    F = 60
+    P = _walker(rng, F)
+    Q = _walker(rng, F)[:, :, :] + np.array([1.0, 2.5, 0.0])  # another person elsewhere
+    f = 600.0
+    xa, xb, fid = [], [], []
+    for k in range(F):
+        other = k % 4 == 0  # every 4th frame camera b sees the other person: no correspondence
+        xa.append(_project(Ra, ta, P[k]) + rng.normal(0, 1.0 / f, (17, 2)))
+        xb.append(_project(Rb, tb, Q[k] if other else P[k]) + rng.normal(0, 1.0 / f, (17, 2)))
+        fid.append(np.full(17, k))
+    xa, xb, fid = np.concatenate(xa), np.concatenate(xb), np.concatenate(fid)
+    out = relative_pose(xa, xb, fid, f, EngineConfig().bootstrap, seed=0)
+    assert out is not None
+    R, t, good, inl = out
+    R_true = Rb.T @ Ra
+    t_true = Rb.T @ (ta - tb)
+    t_true /= np.linalg.norm(t_true)
+    assert rotation_angle_deg(R, R_true) < 0.3
+    assert np.degrees(np.arccos(np.clip(t @ t_true, -1, 1))) < 0.5
+    assert not np.isin(np.arange(0, F, 4), good).any(), "frames of another person must not agree"
+    assert len(good) >= 0.9 * (F - F // 4)
+
+
+def _pair(a, b, R, inliers=500) -> PairPose:
+    return PairPose(a, b, R, np.array([1.0, 0, 0]), np.arange(10), 10, inliers, 1.0, 30.0, np.zeros(0, np.int64),
+                    {a: np.zeros(0), b: np.zeros(0)})
+
+
+def test_rotation_averaging_and_the_triangle_check_find_a_wrong_pair():
+    rng = RNG(2)
+    C = 6
+    Rw = np.array([so3_exp(rng.normal(0, 1.0, 3)) for _ in range(C)])
+    pairs = []
+    for a in range(C):
+        for b in range(a + 1, C):
+            Rab = Rw[b].T @ Rw[a] @ so3_exp(rng.normal(0, np.radians(0.3), 3))
+            pairs.append(_pair(a, b, Rab))
+    wrong = next(k for k, p in enumerate(pairs) if (p.a, p.b) == (1, 4))
+    pairs[wrong] = _pair(1, 4, so3_exp([0.0, 0.0, np.radians(40)]) @ pairs[wrong].R, inliers=5000)
+    good, bad = triangle_check(pairs, 10.0)
+    assert good[wrong] == 0 and bad[wrong] > 0
+    assert all(good[k] > 0 for k in range(len(pairs)) if k != wrong)
+    # without it, the averaged rotations agree with the truth up to the gauge
+    R, known, _ = average_rotations(C, [p for k, p in enumerate(pairs) if k != wrong], sigma_deg=2.5)
+    assert known.all()
+    for a in range(C):
+        for b in range(C):
+            assert rotation_angle_deg(R[b].T @ R[a], Rw[b].T @ Rw[a]) < 0.5
+    # a wrong pair the spanning tree does not take is outweighed by the reweighting
+    pairs[wrong] = _pair(1, 4, pairs[wrong].R, inliers=100)
+    R, known, res = average_rotations(C, pairs, sigma_deg=2.5)
+    assert res[wrong] > 30
+    for a in range(C):
+        for b in range(C):
+            assert rotation_angle_deg(R[b].T @ R[a], Rw[b].T @ Rw[a]) < 0.5
+
+
+def test_scale_from_a_known_height_and_from_the_prior():
+    unit = 0.25  # metres per pose unit: the poses are 4x too large
+    H = 1.85
+    p = Person(chain=chain_ratio() * H / unit, chain_rel_std=0.002, hypotheses=400, tracks=3)
+    known = estimate_scale([p], heights=[H])
+    assert known.method == "known height"
+    assert known.factor == pytest.approx(unit, rel=1e-9)
+    assert known.heights == pytest.approx((H,))
+    assert known.rel_std == pytest.approx(np.hypot(0.02, 0.002))
+    prior = estimate_scale([p], height_mean=1.72, height_std=0.10)
+    assert prior.factor == pytest.approx(unit * 1.72 / H)
+    assert prior.rel_std == pytest.approx(np.sqrt((0.10 / 1.72) ** 2 + 0.02**2 + 0.002**2))
+    # two persons: known heights are matched by rank; the prior's std shrinks by sqrt(2)
+    q = Person(chain=chain_ratio() * 1.70 / unit, chain_rel_std=0.002, hypotheses=400, tracks=2)
+    both = estimate_scale([p, q], heights=[1.70, 1.85])
+    assert both.factor == pytest.approx(unit) and both.heights == pytest.approx((1.85, 1.70))
+    assert estimate_scale([p, q]).rel_std == pytest.approx(prior.rel_std / np.sqrt(2))
+    # fewer heights than persons: the means are matched, and the persons' spread counts
+    one = estimate_scale([p, q], heights=[1.775])
+    assert "mean" in one.note and one.rel_std > both.rel_std
+    with pytest.raises(ValueError):
+        estimate_scale([])
+
+
+def test_tracks_and_persons_tell_two_walkers_apart():
+    rng = RNG(3)
+    from backend.associate import Hypothesis
+
+    # two persons of 1.96 m and 1.70 m walking 3 m apart, seen by two cameras, 10 Hz, 30 s
+    Rc = [_look_at(np.array([-5.0, -5.0, 2.6]), np.zeros(3)), _look_at(np.array([5.0, -5.0, 2.6]), np.zeros(3))]
+    tc = [np.array([-5.0, -5.0, 2.6]), np.array([5.0, -5.0, 2.6])]
+    R, t = np.array(Rc), np.array(tc)
+    hyps = []
+    for k in range(300):
+        for who, (H, y0) in enumerate(((1.96, 0.0), (1.70, 3.0))):
+            x = -3 + 0.02 * k
+            X = np.zeros((17, 3))
+            # ankle, knee, hip, shoulder heights of Drillis & Contini, at the person's place
+            for side, dy in ((0, 0.1), (1, -0.1)):
+                X[15 + side] = [x, y0 + dy, 0.039 * H]
+                X[13 + side] = [x, y0 + dy, 0.285 * H]
+                X[11 + side] = [x, y0 + dy, 0.285 * H + 0.245 * H]
+                X[5 + side] = [x, y0 + dy * 1.1, 0.285 * H + 0.245 * H + 0.2924 * H]
+            X[:5] = [x, y0, 0.93 * H]
+            xy = np.stack([_project(R[c], t[c], X) for c in range(2)]) + rng.normal(0, 0.5 / 600, (2, 17, 2))
+            hyps.append(Hypothesis(0.1 * k, np.array([0, 1]), xy, np.full((2, 17), 1 / 600), X[11:13].mean(0)))
+    seg = segments(hyps, R, t)
+    ids = tracks(seg.time, seg.com)
+    assert len(np.unique(ids)) == 2
+    ppl = persons(seg)
+    assert len(ppl) == 2
+    assert ppl[0].chain / chain_ratio() == pytest.approx(1.96, rel=0.01)
+    assert ppl[1].chain / chain_ratio() == pytest.approx(1.70, rel=0.01)
+    assert estimate_scale(ppl, heights=[1.96, 1.70]).factor == pytest.approx(1.0, rel=0.005)
+
+
+def test_bootstrap_refuses_too_little_data():
+    d = Detection(0, np.zeros((17, 2)), np.ones(17), 600.0)
+    e = Detection(1, np.zeros((17, 2)), np.ones(17), 600.0)
+    with pytest.raises(BootstrapError, match="too few"):
+        bootstrap([(0.0, ((d,), (e,)))], ("cam_0", "cam_1"), np.array([600.0, 600.0]), EngineConfig())
+
+
+# ------------------------------------------------------------------ whole bootstrap, simulated
+
+WEST = ("cam_11", "cam_12", "cam_13", "cam_14", "cam_15", "cam_16", "cam_17")
+DURATION = 60.0
+SEED = 0
+
+
+@pytest.fixture(scope="module")
+def booted(lab_dir):
+    from edge_clients.sim import Scene, SimConfig, Simulator
+
+    full = Scene.load(lab_dir)
+    intr = {n: full.intrinsics[n] for n in WEST}
+    scene = Scene.from_cameras(intr, {n: full.poses[n] for n in WEST}, lab_dir / "room.yaml")
+    sim = Simulator(scene, SimConfig(persons=2, duration=DURATION, seed=SEED, heights=(1.96, 1.70)))
+    msgs = [m for _, m in sim.messages()]
+    cfg = EngineConfig()
+    frames = collect_frames(WEST, intr, cfg, msgs)
+    focal = np.array([0.5 * (intr[n].fx + intr[n].fy) for n in WEST])
+    res = bootstrap(frames, WEST, focal, cfg, heights=(1.96, 1.70), seed=SEED)
+    truth = {n: full.poses[n] for n in WEST}
+    return res, truth, intr, msgs, frames
+
+
+def test_bootstrap_places_the_cameras_without_an_initial_estimate(booted):
+    res, truth, _, _, _ = booted
+    print(res.to_dict())
+    acc = evaluate(res.poses(), truth)
+    print(acc.summary())
+    assert res.located.sum() >= 6
+    assert acc.shape_position.max < 0.05
+    assert acc.shape_orientation.max < 0.5
+    # metric scale from the known heights: within 1 % of the truth, its std covers the error
+    assert res.scale is not None and res.scale.method == "known height"
+    assert abs(1 / acc.scale - 1) < 0.01
+    assert abs(np.log(acc.scale)) < 3 * res.scale.rel_std
+
+
+def test_bootstrap_frame_is_the_floor(booted, lab_dir):
+    res, truth, _, _, _ = booted
+    import yaml
+
+    floor = yaml.safe_load((lab_dir / "room.yaml").read_text())["floor"]
+    up = np.array(floor["normal_up"])
+    # the floor frame's z (world) in the truth's frame, through the similarity alignment
+    from backend.geometry import umeyama
+
+    names = [n for c, n in enumerate(res.names) if res.located[c]]
+    s, Ra, _ = umeyama(np.array([res.poses()[n].t for n in names]), np.array([truth[n].t for n in names]),
+                       with_scale=True)
+    z = Ra @ np.array([0.0, 0.0, 1.0])
+    assert np.degrees(np.arccos(np.clip(z @ up, -1, 1))) < 1.5
+    # cameras hang about 2.6 m above the floor
+    heights = np.array([res.poses()[n].t[2] for n in names])
+    assert np.all((heights > 2.0) & (heights < 3.2))
+    assert "floor" in res.frame and res.poses()[names[0]].t[:2] == pytest.approx([0, 0], abs=1e-9)
+
+
+def test_handover_to_the_online_pipeline(booted):
+    res, truth, intr, msgs, _ = booted
+    from backend.pipeline import run_offline
+
+    cfg = handover(EngineConfig(), res)
+    assert cfg.refine.initial_std_translation >= EngineConfig().bootstrap.handover_std_translation
+    cams = camera_set(intr, res)
+    assert set(cams.names) == {n for c, n in enumerate(res.names) if res.located[c]}
+    p = run_offline(cams, cfg, msgs, seed=SEED)
+    acc = evaluate(p.state().poses(), {n: truth[n] for n in cams.names})
+    print(acc.summary())
+    assert acc.shape_position.max < 0.05
+    assert acc.shape_orientation.max < 0.5
+
+
+def test_extrinsics_of_a_result_roundtrip(booted):
+    res, _, intr, _, _ = booted
+    ext = res.extrinsics({n: intr[n].resolution for n in res.names})
+    assert isinstance(ext[res.names[0]], Extrinsics)
+    assert all(ext[n].std_translation is not None for c, n in enumerate(res.names) if res.located[c])
