@@ -1232,6 +1232,16 @@ class Service:
         sync = s.pipeline.cfg.sync
         return {"max_offset": sync.max_std, "max_latency": sync.wait}
 
+    def _sensors_with_clocks(self, now_wall: float) -> dict[str, Any]:
+        """Per-sensor status plus the running session's clock offset estimate."""
+        sensors = self.sensors.to_dict(now_wall, **self._sensor_limits())
+        s = self.active
+        if s is not None:
+            for c in s.state.clocks:
+                if c.sensor in sensors:
+                    sensors[c.sensor]["time_offset"] = c.to_dict()
+        return sensors
+
     def status_brief(self) -> dict[str, Any]:
         s = self.active
         now_wall = time.time()
@@ -1269,7 +1279,7 @@ class Service:
             "clock": self.clock.to_dict(),
             "zenoh": {"mode": self.settings.zenoh.mode, "listen": list(self.settings.zenoh.listen),
                       "connect": list(self.settings.zenoh.connect)},
-            "sensors": self.sensors.to_dict(now_wall, **self._sensor_limits()),
+            "sensors": self._sensors_with_clocks(now_wall),
             "messages": {
                 "received": self.messages,
                 "rejected": dict(self.rejected),
