@@ -147,6 +147,28 @@ class BootstrapConfig(_Section):
     ratio_std: float = Field(0.02, ge=0, description="relative spread between persons of leg + torso length / height")
 
 
+class ClockConfig(_Section):
+    """Sensor clock offsets estimated from the data (backend/clock_offsets.py, docs/clock_offsets.md)."""
+
+    estimate: bool = Field(False, description="(experimental, see docs/clock_offsets.md) estimate each sensor's clock offset from its keypoints and apply confident ones")
+    max_offset: float = Field(0.25, gt=0, le=2.0, description="s: largest offset searched (relative to the synchronised clock)")
+    interval: float = Field(5.0, gt=0, description="s of data time between estimates")
+    block: float = Field(2.0, gt=0, description="s of data per block: the unit of the curves and their jackknife")
+    window: float = Field(60.0, gt=0, description="s of recent blocks an estimate uses (follows slow drift)")
+    track_gap: float = Field(0.3, gt=0, description="s: longest gap bridged within a person's track")
+    coarse_step: float = Field(0.01, gt=0, description="s: grid step of the search over the full range")
+    min_joints: int = Field(6, ge=1, description="joints a person must show (in 3D and in the sensor) to count")
+    min_blocks: int = Field(5, ge=3, description="blocks of data a sensor needs for an estimate")
+    initial_scale_px: float = Field(10.0, gt=0, description="px: median reprojection distance of a correct fit assumed until the data tell")
+    min_scale_px: float = Field(0.5, gt=0, description="px: floor of that learned median")
+    gate: float = Field(5.0, gt=0, description="a fit whose median reprojection distance exceeds this many times the sensor's usual one is not the person")
+    max_std: float = Field(0.01, gt=0, description="s: an offset is applied once its std is below this ...")
+    min_apply: float = Field(0.003, ge=0, description="s: ... and it is larger than this (and 3 std); a change smaller than this (or 2 std) is not applied")
+    drift_warning: float = Field(0.01, gt=0, description="s: warn when a sensor's estimate moves by more than this")
+    retime_tolerance: float = Field(0.005, ge=0, description="s: when a new offset is applied, archived views timed with one "
+                                    "further off are dropped from the final batch")
+
+
 class EngineConfig(_Section):
     sync: SyncConfig = SyncConfig()
     preprocess: PreprocessConfig = PreprocessConfig()
@@ -156,6 +178,7 @@ class EngineConfig(_Section):
     refine: RefineConfig = RefineConfig()
     monitor: MonitorConfig = MonitorConfig()
     bootstrap: BootstrapConfig = BootstrapConfig()
+    clock: ClockConfig = ClockConfig()
 
     @staticmethod
     def from_dict(d: dict[str, Any], source: str = "config") -> "EngineConfig":

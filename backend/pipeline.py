@@ -1,6 +1,7 @@
 """The calibration pipeline: every stage wired top to bottom, driven by a clock.
 
     message ─► ingest      known sensor, plausible stamp, no duplicate
+            ─► clocks      sensor clock offsets from the raw streams (applied by sync)
             ─► sync        framesets of per-sensor messages interpolated to one instant
             ─► preprocess  filters, undistortion
             ─► associate   person hypotheses across views
@@ -28,6 +29,7 @@ from proto import KeypointMessage
 
 from .associate import Associator
 from .cameras import CameraSet
+from .clock_offsets import ClockOffsetEstimator
 from .config import EngineConfig
 from .monitor import Alarm, Monitor
 from .optimize import Problem, Solution, solve
@@ -57,6 +59,10 @@ class Pipeline:
         self.queue = HypothesisQueue(self.cfg.select)
         self.refiner = Refiner(self.cfg.refine, R0, t0)
         self.monitor = Monitor(self.cfg.monitor, C)
+        self.clocks = ClockOffsetEstimator(self.cfg.clock, self.names, cameras.intrinsics,
+                                           self.cfg.preprocess.min_confidence)
+        # per camera: (frameset time from which, offset applied), to know how archived views were timed
+        self._offset_history: list[list[tuple[float, float]]] = [[] for _ in self.names]
         # preprocessed framesets, re-associated with a better estimate by warm-up and final batch
         self.frames: deque[tuple[float, tuple[tuple[Detection, ...], ...]]] = deque(
             maxlen=self.cfg.refine.archive_frames)
@@ -102,9 +108,12 @@ class Pipeline:
         if reason is not None:
             self.rejected[reason] += 1
             return reason
+        if self.cfg.clock.estimate:
+            self.clocks.push(msg)
         self.last_seen[msg.sensor] = msg.stamp
-        if arrival is None and (self.clock is None or msg.stamp > self.clock):
-            self.clock = msg.stamp
+        stamp = msg.stamp - self.sync.offset(msg.sensor)
+        if arrival is None and (self.clock is None or stamp > self.clock):
+            self.clock = stamp
         return None
 
     def _release_pending(self) -> str | None:
@@ -128,6 +137,8 @@ class Pipeline:
             self.clock = now
         new = 0
         R, t = self.refiner.R, self.refiner.t
+        if self.clocks.due(now):
+            self._retime(self.clocks.update(now, R, t, self._pose_px()))
         ready = self.sync.pop_ready(now)
         gate = self._gate() if ready else None
         for fs in ready:
@@ -137,6 +148,8 @@ class Pipeline:
             self.frames.append((fs.time, tuple(tuple(v) for v in dets)))
             hyps = self.associate(fs.time, dets, R, t, gate)
             self.queue.extend(hyps)
+            if self.cfg.clock.estimate:
+                self.clocks.add(hyps)
             new += len(hyps)
             for v in dets:
                 self.detected[v[0].cam] += len(v)
@@ -145,6 +158,41 @@ class Pipeline:
                 self.associated[h.cams] += 1
                 self.associated_total[h.cams] += 1
         return new
+
+    def _retime(self, sensors: list[str]) -> None:
+        """Apply newly estimated clock offsets; archived views timed with an offset that
+        differs by more than ``clock.retime_tolerance`` are dropped (the final batch
+        must not use them)."""
+        tol = self.cfg.clock.retime_tolerance
+        start = self.sync.next_time if self.sync.next_time is not None else -np.inf
+        for name in sensors:
+            c = self.names.index(name)
+            new = float(self.clocks.applied[c])
+            self.sync.set_offset(name, new)
+            hist = self._offset_history[c]
+            hist.append((start, new))
+
+            def used(T: float) -> float:
+                v = 0.0
+                for t0, o in hist[:-1]:
+                    if t0 <= T:
+                        v = o
+                return v
+
+            frames = [(T, tuple(v for v in views if v[0].cam != c or abs(used(T) - new) <= tol))
+                      for T, views in self.frames]
+            self.frames.clear()
+            self.frames.extend(frames)
+
+    def _pose_px(self) -> np.ndarray:
+        """(C,) px a camera's reprojections may be off by its pose's uncertainty (one std;
+        a person ~3 m away, as in the association gate)."""
+        C = len(self.names)
+        out = np.zeros(C)
+        for c in range(C):
+            st, sr = self.refiner.std(c, shape=False)
+            out[c] = self.focal[c] * (np.radians(sr) + st / 3.0)
+        return out
 
     def _gate(self) -> np.ndarray | None:
         """(C,) reprojection gate in px for cameras the filter is already sure of."""
@@ -338,6 +386,8 @@ class Pipeline:
             self._release_pending()
         if self.clock is not None:
             self.advance(self.clock + self.cfg.sync.wait + 1.0 / self.cfg.sync.rate)
+            if self.cfg.clock.estimate:
+                self._retime(self.clocks.update(self.clock, self.refiner.R, self.refiner.t, self._pose_px(), flush=True))
         lost = np.flatnonzero(self._never_associated()) if self.cfg.associate.relocalize else []
         if len(lost) and self.frames and self._inflight is None:
             # one more try with the final estimate of the others, before the batch needs them
@@ -387,7 +437,8 @@ class Pipeline:
         # a camera found moved counts while it is calibrated again (its cycles start over)
         calibrated = [c for c in cams if c.cycles > 0 or c.moved_at is not None]
         converged = bool(calibrated) and all(c.converged for c in calibrated)
-        return CalibrationState(self.clock, self.cycle, tuple(cams), converged, self.counters(), self.last_report)
+        return CalibrationState(self.clock, self.cycle, tuple(cams), converged, self.counters(), self.last_report,
+                                clocks=self.clocks.clocks() if self.cfg.clock.estimate else ())
 
     def skeletons(self, n: int = 4) -> list[list[list[float] | None]]:
         """The newest ``n`` hypotheses of distinct persons as 3D skeletons (17 joints, world
@@ -426,6 +477,7 @@ class Pipeline:
             "observations": self.observations.tolist(),
             "observations_batch": self.observations_batch.tolist(),
             "clock": self.clock,
+            "clock_offsets": {n: float(o) for n, o in zip(self.names, self.clocks.applied) if o},
         }
 
     @classmethod
@@ -446,6 +498,11 @@ class Pipeline:
         rf.batched = np.array(snapshot.get("batched", [False] * len(p.names)), dtype=bool)
         p.observations = np.array(snapshot["observations"], dtype=np.int64)
         p.observations_batch = np.array(snapshot.get("observations_batch", [0] * len(p.names)), dtype=np.int64)
+        applied = {n: float(o) for n, o in snapshot.get("clock_offsets", {}).items() if n in p.names}
+        if config.clock.estimate:  # the data timed as before the restart
+            p.clocks.set_applied(applied)
+            for n, o in applied.items():
+                p.sync.set_offset(n, o)
         return p
 
 

@@ -1344,6 +1344,16 @@ class Service:
         sync = s.pipeline.cfg.sync
         return {"max_offset": sync.max_std, "max_latency": sync.wait}
 
+    def _sensors_with_clocks(self, now_wall: float) -> dict[str, Any]:
+        """Per-sensor status plus the running session's clock offset estimate."""
+        sensors = self.sensors.to_dict(now_wall, **self._sensor_limits())
+        s = self.active
+        if s is not None:
+            for c in s.state.clocks:
+                if c.sensor in sensors:
+                    sensors[c.sensor]["time_offset"] = c.to_dict()
+        return sensors
+
     def status_brief(self) -> dict[str, Any]:
         self._fold_refused()
         s = self.active
@@ -1417,7 +1427,7 @@ class Service:
             "zenoh": {"mode": self.settings.zenoh.mode, "listen": list(self.settings.zenoh.listen),
                       "connect": list(self.settings.zenoh.connect), **self.links,
                       "last_message_ago": None if self._last_arrival is None else max(now_wall - self._last_arrival, 0.0)},
-            "sensors": self.sensors.to_dict(now_wall, **self._sensor_limits()),
+            "sensors": self._sensors_with_clocks(now_wall),
             "messages": {
                 "received": self.messages,
                 "rejected": dict(self.rejected),

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from .cameras import Extrinsics, Pose
+from .clock_offsets import SensorClock
 
 
 @dataclass(frozen=True)
@@ -120,6 +121,7 @@ class CalibrationState:
     converged: bool  # every camera that can be calibrated is converged
     counters: Counters
     last_cycle: CycleReport | None
+    clocks: tuple[SensorClock, ...] = ()  # sensor clock offsets (reference: the median sensor)
 
     def camera(self, name: str) -> CameraState:
         for c in self.cameras:
@@ -145,4 +147,5 @@ class CalibrationState:
             "cameras": [c.to_dict() for c in self.cameras],
             "counters": asdict(self.counters),
             "last_cycle": self.last_cycle.to_dict() if self.last_cycle else None,
+            "clocks": {c.sensor: c.to_dict() for c in self.clocks},
         }

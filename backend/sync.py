@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import bisect
 from collections import Counter, deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -178,12 +178,32 @@ class Synchronizer:
         self.framesets = 0
         self.framesets_rejected: Counter = Counter()
         self.latest_stamp: float | None = None
+        self.offsets: dict[str, float] = {}  # s subtracted from a sensor's stamps
+
+    def offset(self, sensor: str) -> float:
+        return self.offsets.get(sensor, 0.0)
+
+    def set_offset(self, sensor: str, offset: float) -> None:
+        """From now on subtract ``offset`` s from the sensor's stamps (messages already
+        buffered are re-stamped, so its stream stays ordered)."""
+        if sensor not in self._stamps:
+            raise KeyError(sensor)
+        shift = self.offset(sensor) - offset
+        self.offsets[sensor] = float(offset)
+        if shift:
+            self._stamps[sensor] = [x + shift for x in self._stamps[sensor]]
+            self._msgs[sensor] = [_Entry(replace(e.msg, stamp=e.msg.stamp + shift), e.kp, e.boxes, e.cov)
+                                  for e in self._msgs[sensor]]
 
     def push(self, msg: KeypointMessage, now: float | None = None) -> str | None:
-        """Buffer one message; returns a rejection reason or None."""
+        """Buffer one message (raw stamp: the sensor's offset is subtracted here);
+        returns a rejection reason or None."""
         s = msg.sensor
         if s not in self._stamps:
             return self._reject("unknown_sensor")
+        raw = (msg.seq, msg.stamp)
+        if self.offsets.get(s):
+            msg = replace(msg, stamp=msg.stamp - self.offsets[s])
         if now is not None:
             if msg.stamp > now + self.cfg.max_stamp_future:
                 return self._reject("stamp_in_future")
@@ -191,10 +211,9 @@ class Synchronizer:
                 return self._reject("stamp_too_old")
         if self.next_time is not None and msg.stamp < self.next_time - self.cfg.wait - 1.0:
             return self._reject("late")
-        key = (msg.seq, msg.stamp)
-        if key in self._last_seq[s]:
+        if raw in self._last_seq[s]:
             return self._reject("duplicate")
-        self._last_seq[s].append(key)
+        self._last_seq[s].append(raw)
         stamps, msgs = self._stamps[s], self._msgs[s]
         i = bisect.bisect_right(stamps, msg.stamp)
         if i > 0 and stamps[i - 1] == msg.stamp:

@@ -1,0 +1,122 @@
+"""Sensor clock offsets on the simulator: estimated vs true, and what they cost the calibration.
+
+The 20-camera lab, 2 persons (1.96 m, 1.70 m), 180 s; 5 of the 20 sensors get constant
+clock offsets (``SimConfig.clock_offsets``, default -200, -100, +50, +120, +200 ms). The
+offline pipeline (``backend.pipeline.run_offline``) runs three times from the same
+initial estimate (0.25 m / 10°, ``backend.perturb``):
+
+- offsets, estimation on (``clock.estimate = true``);
+- synchronised clocks (the same seed without the offsets);
+- offsets, estimation off (what happens today).
+
+Printed: per sensor the true offset (relative to the median sensor, as reported), the
+estimate, its std, the error and the offset applied; then the calibration error of each
+run (``backend.evaluate``: rigid position / orientation, shape position, mean over all 20
+cameras and over the 5 offset ones).
+
+    python bench/clock_offsets.py                       # seed 1, ~10 min on a quiet machine
+    python bench/clock_offsets.py --seed 2 --duration 120 --json out.json
+
+Recordings are cached like bench/accuracy.py does (--cache).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from bench.accuracy import lab_dir, simulate  # noqa: E402
+
+DEFAULT_OFFSETS = {"cam_2": -0.200, "cam_5": -0.100, "cam_9": 0.050, "cam_13": 0.120, "cam_17": 0.200}
+
+
+def run(recording: Path, seed: int, estimate: bool, start: tuple[float, float]) -> dict:
+    from backend.cameras import CameraSet, load_extrinsics, load_intrinsics
+    from backend.config import EngineConfig
+    from backend.evaluate import evaluate
+    from backend.perturb import perturb_extrinsics
+    from backend.pipeline import run_offline
+    from proto import read_recording
+
+    lab = lab_dir()
+    ref_ext = load_extrinsics(lab / "reference.yaml")
+    ref = {n: e.pose for n, e in ref_ext.items()}
+    init = perturb_extrinsics(ref_ext, start[0], start[1], seed=seed)
+    cams = CameraSet.combine(load_intrinsics(lab / "intrinsics.yaml"), init)
+    cfg = EngineConfig.from_dict({"clock": {"estimate": estimate}})
+    t0 = time.perf_counter()
+    p = run_offline(cams, cfg, read_recording(recording), seed=seed)
+    seconds = time.perf_counter() - t0
+    state = p.state()
+    acc = evaluate(state.poses(), ref)
+    return {"seconds": seconds, "accuracy": acc.to_dict(), "clocks": {c.sensor: c.to_dict() for c in state.clocks}}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--duration", type=float, default=180.0)
+    ap.add_argument("--offsets", default=",".join(f"{k}={v}" for k, v in DEFAULT_OFFSETS.items()),
+                    help="sensor=seconds,... (default: 5 of the 20)")
+    ap.add_argument("--start", default="0.25/10", help="initial error m/deg")
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/extrcal-accuracy-cache"))
+    ap.add_argument("--json", type=Path)
+    a = ap.parse_args()
+    offsets = {k: float(v) for k, v in (x.split("=") for x in a.offsets.split(","))}
+    start = tuple(float(x) for x in a.start.split("/"))
+    rec_off = simulate(2, a.duration, a.seed, a.cache, {"clock_offsets": offsets})
+    rec_sync = simulate(2, a.duration, a.seed, a.cache, {})
+    from edge_clients.sim import Truth
+
+    truth = Truth.load(Truth.sidecar_path(rec_off))
+    true = dict(zip(truth.sensors, truth.clock_offset.tolist()))
+    med = float(np.median(list(true.values())))
+    runs = {
+        "offsets, estimated": run(rec_off, a.seed, True, start),
+        "synchronised clocks": run(rec_sync, a.seed, False, start),
+        "offsets, not estimated": run(rec_off, a.seed, False, start),
+    }
+    est = runs["offsets, estimated"]["clocks"]
+    print(f"Clock offsets, 20-camera lab, 2 persons, {a.duration:g} s, seed {a.seed}, start {a.start} "
+          "(ms, relative to the median sensor)")
+    print("| sensor | true | estimated | std | error | applied |")
+    print("|---|---|---|---|---|---|")
+    errs = []
+    for n in sorted(true, key=lambda s: int(s.split("_")[-1]) if s.split("_")[-1].isdigit() else s):
+        c = est.get(n, {})
+        tr = 1000 * (true[n] - med)
+        o = c.get("offset")
+        e = None if o is None else 1000 * o - tr
+        if e is not None and n in offsets:
+            errs.append(abs(e))
+        fmt = lambda x: "n/a" if x is None else f"{x:+.1f}"  # noqa: E731
+        std = "n/a" if c.get("std") is None else f"{1000 * c['std']:.1f}"
+        star = " *" if n in offsets else ""
+        print(f"| {n}{star} | {tr:+.1f} | {fmt(None if o is None else 1000 * o)} | {std} | {fmt(e)} | "
+              f"{fmt(1000 * c.get('applied', 0.0))} |")
+    print(f"offset sensors (*) estimated: {len(errs)}/{len(offsets)}, max error "
+          f"{max(errs) if errs else float('nan'):.1f} ms")
+    print()
+    print("| run | rigid position (m) | orientation (°) | shape position (m) | offset sensors: position (m) / orientation (°) | wall s |")
+    print("|---|---|---|---|---|---|")
+    for name, r in runs.items():
+        acc = r["accuracy"]
+        pc = acc["per_camera"]
+        po = np.mean([pc[n]["position"] for n in offsets])
+        oo = np.mean([pc[n]["orientation"] for n in offsets])
+        print(f"| {name} | {acc['position']['mean']:.4f} | {acc['orientation']['mean']:.3f} | "
+              f"{acc['shape_position']['mean']:.4f} | {po:.4f} / {oo:.3f} | {r['seconds']:.0f} |")
+    if a.json:
+        a.json.write_text(json.dumps({"true": true, "runs": runs}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

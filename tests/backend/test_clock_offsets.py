@@ -1,0 +1,175 @@
+"""Sensor clock offsets: the estimator's pieces, the synchroniser applying offsets, and
+a short simulated run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from backend.cameras import CameraSet, load_extrinsics, load_intrinsics
+from backend.clock_offsets import (ClockOffsetEstimator, affine_profile, affine_stats, curve_minimum,
+                                   interpolate_track, jackknife_minimum)
+from backend.config import EngineConfig, SyncConfig
+from backend.pipeline import Pipeline
+from backend.sync import Synchronizer
+from proto import KeypointMessage, Person
+
+LAB = Path(__file__).resolve().parents[2] / "edge_clients" / "data" / "ais_lab20"
+
+
+def test_interpolate_track_brackets_and_gaps():
+    stamps = np.array([0.0, 0.1, 0.2, 0.6])
+    xy = np.arange(4, dtype=float)[:, None, None] * np.ones((4, 2, 2))
+    ok = np.ones((4, 2), bool)
+    ok[1, 1] = False
+    pos, good = interpolate_track(stamps, xy, ok, np.array([0.05, 0.15, 0.4, 0.6, 0.7]), max_gap=0.3)
+    assert pos[0, 0, 0] == pytest.approx(0.5) and good[0, 0] and not good[0, 1]  # joint 1 missing at 0.1
+    assert pos[1, 0, 0] == pytest.approx(1.5)
+    assert not good[2].any()  # the 0.4 s gap is too wide
+    assert good[3].all() and pos[3, 0, 0] == pytest.approx(3.0)  # exactly the last stamp
+    assert not good[4].any()  # after the track
+
+
+def test_curve_minimum_is_sub_grid_and_refuses_edges():
+    grid = np.arange(-0.05, 0.0501, 0.01)
+    assert curve_minimum((grid - 0.013) ** 2, grid) == pytest.approx(0.013, abs=1e-9)
+    assert curve_minimum((grid - 0.2) ** 2, grid) is None
+
+
+def test_affine_profile_finds_a_delay_despite_an_image_shift():
+    """A sensor whose pose is off sees everything shifted and scaled: the affine
+    correction absorbs that, the delay stays where the motion says."""
+    rng = np.random.default_rng(0)
+    grid = np.arange(-0.1, 0.1001, 0.01)
+    true = 0.032
+    blocks = []
+    for _ in range(6):
+        p = rng.uniform(-0.5, 0.5, (200, 2))
+        v = rng.normal(0, 0.3, (200, 2))  # image velocity per point, normalised units per s
+        obs = lambda g: 1.05 * p + np.array([0.08, -0.03]) + v * (g - true)  # noqa: E731
+        y = np.stack([obs(g) for g in grid], axis=1) - p[:, None]
+        y += rng.normal(0, 0.002, y.shape)
+        blocks.append(affine_stats(p, y, np.ones(200)))
+    d, s = jackknife_minimum(blocks, grid)
+    assert abs(d - true) < 0.002 and 0 < s < 0.005
+    prof = affine_profile(blocks[0])
+    assert prof.shape == grid.shape and np.argmin(prof) == np.argmin(np.abs(grid - true))
+
+
+def _msg(sensor: str, seq: int, stamp: float, x: float) -> KeypointMessage:
+    kp = np.zeros((17, 3))
+    kp[:, 0] = x + np.arange(17)
+    kp[:, 1] = 200 + 5 * np.arange(17)
+    kp[:, 2] = 0.9
+    return KeypointMessage(sensor, seq, stamp, (848, 480), (Person(kp),))
+
+
+def test_applied_offsets_change_framing():
+    """A sensor stamped 120 ms late: its keypoints at a frameset instant come from the
+    wrong capture until its offset is applied; then they are those of the right one."""
+    cfg = SyncConfig(wait=0.1)
+
+    def framesets(offset: float | None) -> dict[float, float]:
+        sync = Synchronizer(cfg, ["a", "b"])
+        if offset is not None:
+            sync.set_offset("b", offset)
+        out = {}
+        for k in range(60):
+            t = 1000.0 + k / 20
+            for s, late in (("a", 0.0), ("b", 0.12)):
+                sync.push(_msg(s, k, t + late, x=100 * t))  # x moves 100 px/s with true time
+            for fs in sync.pop_ready(t + 0.12):
+                v = {v.sensor: v for v in fs.views}
+                if "a" in v and "b" in v and len(v["b"].kp):
+                    out[round(fs.time, 3)] = float(v["b"].kp[0, 0, 0] - v["a"].kp[0, 0, 0])
+        return out
+
+    plain, fixed = framesets(None), framesets(0.12)
+    assert plain and fixed
+    assert np.median(list(plain.values())) == pytest.approx(-12.0, abs=0.5)  # 120 ms of motion
+    assert max(abs(x) for x in fixed.values()) < 1e-6
+
+
+def test_set_offset_restamps_buffered_messages_and_keeps_raw_duplicates():
+    sync = Synchronizer(SyncConfig(), ["a", "b"])
+    assert sync.push(_msg("b", 1, 1000.0, 0)) is None
+    sync.set_offset("b", 0.05)
+    assert sync._stamps["b"] == [pytest.approx(999.95)]
+    assert sync.push(_msg("b", 1, 1000.0, 0)) == "duplicate"  # the same raw message again
+    with pytest.raises(KeyError):
+        sync.set_offset("nope", 0.1)
+
+
+@pytest.fixture(scope="module")
+def short_run():
+    """6 cameras of the lab, 2 persons, 40 s, no detector noise, two sensors 150 ms
+    early / 90 ms late; the estimator fed with the reference poses."""
+    from edge_clients.sim import Scene, SimConfig, Simulator
+
+    names = [f"cam_{i}" for i in (1, 2, 8, 9, 10, 14)]
+    offsets = {"cam_2": -0.15, "cam_9": 0.09}
+    sim = Simulator(Scene.load(LAB), SimConfig(persons=2, duration=40.0, seed=3, noise=False,
+                                               heights=(1.96, 1.70), clock_offsets=offsets))
+    intr = load_intrinsics(LAB / "intrinsics.yaml")
+    ref = load_extrinsics(LAB / "reference.yaml")
+    cams = CameraSet.combine({n: intr[n] for n in names}, {n: ref[n] for n in names})
+    cfg = EngineConfig.from_dict({"clock": {"estimate": True}, "refine": {"final_batch": False},
+                                  "associate": {"relocalize": False}})
+    p = Pipeline(cams, cfg)
+    for _, msg in sim.messages(names):
+        p.push(msg)
+        if p.clock is not None:
+            p.advance(p.clock)  # poses stay the reference: the estimator alone is tested
+    p.finish()
+    return p, offsets, names
+
+
+@pytest.mark.xfail(strict=True, reason="the bar the estimator does not meet yet (docs/clock_offsets.md): "
+                   "with 2 of 6 sensors off, the 3D from the others is mistimed too and 40 s do not settle it")
+def test_short_run_estimates_offsets_within_a_few_ms(short_run):
+    p, offsets, names = short_run
+    clocks = {c.sensor: c for c in p.state().clocks}
+    true = np.array([offsets.get(n, 0.0) for n in names])
+    true = true - np.median(true)
+    for n, tr in zip(names, true):
+        c = clocks[n]
+        assert c.offset is not None, n
+        assert abs(c.offset - tr) < 0.004, (n, c.offset, tr)
+        assert 0 < c.std < 0.01
+    for n in offsets:  # the big ones are applied
+        assert abs(clocks[n].applied - true[names.index(n)]) < 0.005
+    assert p.sync.offset("cam_2") == pytest.approx(clocks["cam_2"].applied)
+
+
+def test_state_and_snapshot_carry_applied_offsets(short_run):
+    p, _, _ = short_run
+    d = p.state().to_dict()
+    assert set(d["clocks"]) == set(p.names)
+    for n, c in d["clocks"].items():
+        assert c["applied"] == pytest.approx(p.sync.offset(n))
+    # an applied offset survives a restart: the data stay timed as before
+    p.clocks.applied[p.names.index("cam_2")] = -0.15
+    p._retime(["cam_2"])
+    assert p.sync.offset("cam_2") == -0.15
+    q = Pipeline.restore(p.cameras, p.cfg, p.snapshot())
+    assert q.sync.offset("cam_2") == -0.15 and q.clocks.applied[q.names.index("cam_2")] == -0.15
+
+
+def test_retime_drops_archived_views_timed_otherwise(short_run):
+    p, _, _ = short_run
+    c = p.names.index("cam_8")
+    before = sum(1 for _, views in p.frames for v in views if v[0].cam == c)
+    assert before > 0
+    p.clocks.applied[c] = p.sync.offset("cam_8") + 0.05
+    p._retime(["cam_8"])
+    assert sum(1 for _, views in p.frames for v in views if v[0].cam == c) == 0
+    assert sum(len(views) for _, views in p.frames) > 0  # the other cameras' views stay
+
+
+def test_estimation_off_applies_nothing():
+    cfg = EngineConfig()
+    assert cfg.clock.estimate is False  # opt-in until it meets its accuracy bar (docs/clock_offsets.md)
+    est = ClockOffsetEstimator(cfg.clock, ("a",), {"a": load_intrinsics(LAB / "intrinsics.yaml")["cam_0"]}, 0.6)
+    assert not est.due(1000.0)
