@@ -112,15 +112,17 @@ class RefineConfig(_Section):
 
 
 class MonitorConfig(_Section):
-    """Cameras that move after they converged (backend/monitor.py)."""
+    """Cameras that move after they converged (backend/monitor.py; experimental, see docs/monitor.md)."""
 
-    enabled: bool = True
-    min_views: int = Field(3, ge=1, description="views a camera needs in a cycle for its residual to count")
-    min_baseline: int = Field(5, ge=1, description="cycles of a converged camera before it is watched")
-    baseline_cycles: int = Field(50, ge=1, description="cycles its baseline residual ratio is the median of")
-    ratio: float = Field(2.0, gt=1, description="a cycle is suspect when the camera's residual ratio exceeds its baseline this many times ...")
-    margin_px: float = Field(1.5, ge=0, description="... and its residual exceeds the baseline's by this many px")
-    consecutive: int = Field(3, ge=1, description="suspect cycles in a row that flag the camera")
+    enabled: bool = Field(False, description="watch converged cameras and re-open those the data say moved (experimental: "
+                          "flags 2° bumps within seconds, not 3 cm ones, and also cameras the filter let wrong data drag)")
+    window: int = Field(4, ge=1, description="cycles whose innovations (data-only pose deviations) are averaged")
+    model_std_translation: float = Field(0.02, ge=0, description="m: error of a converged pose that more data do not remove "
+                                         "(lens model, the estimate a little off its optimum): a floor of the test's covariance")
+    model_std_rotation: float = Field(0.2, ge=0, description="deg")
+    chi2: float = Field(40.0, gt=0, description="significance of the mean innovation (6 dof; 40 ≈ p 1e-6)")
+    min_translation: float = Field(0.015, ge=0, description="m: ... and its size, translation ...")
+    min_rotation: float = Field(0.3, ge=0, description="deg ... or rotation, that flag a converged camera as moved")
     reopen_std_translation: float = Field(0.10, gt=0, description="m: the flagged camera's uncertainty from then on")
     reopen_std_rotation: float = Field(5.0, gt=0, description="deg")
 

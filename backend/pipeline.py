@@ -31,7 +31,7 @@ from .associate import Associator
 from .cameras import CameraSet
 from .clock_offsets import ClockOffsetEstimator
 from .config import EngineConfig
-from .monitor import Alarm, Monitor
+from .monitor import Alarm, Monitor, innovation
 from .optimize import Problem, Solution, solve
 from .preprocess import Detection, Preprocessor
 from .refine import Refiner, initial_covariance
@@ -59,6 +59,7 @@ class Pipeline:
         self.queue = HypothesisQueue(self.cfg.select)
         self.refiner = Refiner(self.cfg.refine, R0, t0)
         self.monitor = Monitor(self.cfg.monitor, C)
+        self.watched = np.zeros(C, dtype=bool)
         self.clocks = ClockOffsetEstimator(self.cfg.clock, self.names, cameras.intrinsics,
                                            self.cfg.preprocess.min_confidence)
         # per camera: (frameset time from which, offset applied), to know how archived views were timed
@@ -329,21 +330,24 @@ class Pipeline:
                 self.refiner.relocate(c, solution.R[c], solution.t[c])
                 self.relocalized.append(self.names[c])
         elif accepted:
-            # converged before this cycle: the ones the monitor watches
-            watched = np.array([self.refiner.converged(c) for c in range(len(self.names))])
             upd = self.refiner.update(solution.active, solution.R, solution.t, solution.cov, posterior=batch or first,
                                       cov_shape=solution.cov_shape, final=batch)
+            # the monitor watches cameras from their convergence until it finds them moved
+            self.watched |= np.array([self.refiner.converged(c) for c in range(len(self.names))])
             change_t = float(upd.changed_translation.max())
             change_r = float(upd.changed_rotation.max())
             if batch:
                 self.observations_batch = solution.obs_per_camera.copy()
             else:
                 self.observations += solution.obs_per_camera
-            if problem.kind == "cycle" and solution.camera_residual_px is not None:
+            if problem.kind == "cycle":
                 m = self.cfg.monitor
-                for alarm in self.monitor.observe(float(self.clock or 0.0), watched, solution.camera_residual_px,
-                                                  solution.camera_views):
+                inn = [innovation(problem.prior_R[c], problem.prior_t[c], problem.prior_cov[c], solution.R[c],
+                                  solution.t[c], solution.cov[c]) if solution.active[c] else None
+                       for c in range(len(self.names))]
+                for alarm in self.monitor.observe(float(self.clock or 0.0), self.watched, inn):
                     self.refiner.reopen(alarm.cam, m.reopen_std_translation, m.reopen_std_rotation)
+                    self.watched[alarm.cam] = False
                     alarms.append(self.names[alarm.cam])
         else:
             self.cycles_rejected += 1
@@ -472,7 +476,8 @@ class Pipeline:
             "history": [[[t.tolist(), R.tolist()] for t, R in h] for h in rf.history],
             "cycle": self.cycle,
             "first_passes": self.first_passes,
-            "moved": [[a.time, a.cam, a.ratio, a.baseline, a.residual_px] for a in self.monitor.alarms],
+            "moved": [[a.time, a.cam, a.chi2, a.translation, a.rotation] for a in self.monitor.alarms],
+            "watched": self.watched.tolist(),
             "batched": rf.batched.tolist(),
             "observations": self.observations.tolist(),
             "observations_batch": self.observations_batch.tolist(),
@@ -495,6 +500,7 @@ class Pipeline:
         # a snapshot from before first passes existed had its first cycles long ago
         p.first_passes = int(snapshot.get("first_passes", 2))
         p.monitor.alarms = [Alarm(float(a[0]), int(a[1]), *map(float, a[2:])) for a in snapshot.get("moved", [])]
+        p.watched = np.array(snapshot.get("watched", [False] * len(p.names)), dtype=bool)
         rf.batched = np.array(snapshot.get("batched", [False] * len(p.names)), dtype=bool)
         p.observations = np.array(snapshot["observations"], dtype=np.int64)
         p.observations_batch = np.array(snapshot.get("observations_batch", [0] * len(p.names)), dtype=np.int64)
