@@ -72,6 +72,8 @@ class SelectConfig(_Section):
                              "start a few wrong associations outweigh a cycle's worth of data and drag cameras metres "
                              "off; many hypotheses outvote them (0 = the first cycle is like any other)")
     first_wait: float = Field(20.0, ge=0, description="s of data time after the first hypothesis that the first cycle waits at most")
+    first_passes: int = Field(2, ge=1, description="passes of the first adjustment, each re-associating every frame so far "
+                              "with the last pass's estimate")
 
 
 class OptimizeConfig(_Section):

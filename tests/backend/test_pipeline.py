@@ -237,13 +237,14 @@ def _first_adjustment(cams, msgs, cfg):
             continue
         p.advance(p.clock)
         prob = p.next_problem(p.clock)
-        if prob is not None:
-            probs.append(prob)
-            reports.append(p.apply(prob, solve(prob)))
-            if prob.kind != "first":
-                break
-            if p.first_passes == 2:
-                break
+        if prob is None:
+            continue
+        if prob.kind != "first" and probs:
+            break  # the first adjustment is over
+        probs.append(prob)
+        reports.append(p.apply(prob, solve(prob)))
+        if prob.kind != "first":
+            break
     assert reports, "no cycle in the data"
     return probs, reports, p.state()
 
@@ -262,7 +263,7 @@ def test_first_adjustment_from_a_rough_start_pulls_no_camera_off(lab20_rough, fi
     before = evaluate(cams.poses(), truth, active)
     after = evaluate(state.poses(), truth, active)
     if first_scope:
-        assert [p.kind for p in probs] == ["first", "first"]
+        assert 2 <= len(probs) <= cfg.select.first_passes and {p.kind for p in probs} == {"first"}
         assert reports[0].hypotheses >= 100 and len(active) >= 10
         assert after.orientation.mean < before.orientation.mean / 10, after.summary()
         assert after.orientation.max < 2.0 < before.orientation.max / 4, after.summary()
