@@ -503,18 +503,14 @@ class ClockOffsetEstimator:
         times = np.array([h.time for h in hyps])
         X_all, X_wo = triangulate_without(R, t, hyps)
         common = self._common_scale()
-        suspect = self._suspect_views(hyps, X_wo, R, t, common)
         for s, fit in enumerate(self.fits):
             # persons from the others: without this sensor's own view, which would pull
-            # the fit to the offset applied when the frameset was made; and only persons
-            # none of whose other views is suspect of being mistimed
+            # the fit to the offset applied when the frameset was made
             X = X_all.copy()
             for m, h in enumerate(hyps):
                 hit = np.flatnonzero(h.cams == s)
                 if len(hit):
                     X[m] = X_wo[m, hit[0]] if len(h.cams) >= 3 else np.nan
-                if suspect[m, :len(h.cams)][h.cams != s].any():
-                    X[m] = np.nan
             Xc = (X - t[s]) @ R[s]  # camera frame: R^T (X - t)
             with np.errstate(invalid="ignore"):
                 front = Xc[..., 2] > 0.1
@@ -563,34 +559,6 @@ class ClockOffsetEstimator:
                 fit.blocks.append((t1, st, joints))
             while fit.blocks and fit.blocks[0][0] < t1 - cfg.window:
                 fit.blocks.popleft()
-
-    def _suspect_views(self, hyps: list[Hypothesis], X_wo: np.ndarray, R: np.ndarray, t: np.ndarray,
-                       common: float) -> np.ndarray:
-        """(M, Vmax) bool: views that disagree with the others of their hypothesis far more
-        than its views usually do (their sensor's clock, or its pose, is off: a view
-        200 ms late is ~30 cm off a walking person). Persons triangulated with such a
-        view would pass its error on to the sensor being timed against them."""
-        M = len(hyps)
-        Vmax = X_wo.shape[1]
-        out = np.zeros((M, Vmax), bool)
-        if not self.cfg.suspect or M == 0:
-            return out
-        r = np.full((M, Vmax), np.nan)
-        for m, h in enumerate(hyps):
-            if len(h.cams) < 3:
-                continue
-            for v, c in enumerate(h.cams):
-                Xc = (X_wo[m, v] - t[c]) @ R[c]  # (J, 3)
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    uv = Xc[:, :2] / Xc[:, 2:3]
-                    d = np.linalg.norm(uv - h.xy[v, BODY], axis=1) * self.focal[c]
-                d = d[np.isfinite(d)]
-                if len(d) >= self.cfg.min_joints:
-                    r[m, v] = float(np.median(d))
-        with np.errstate(invalid="ignore"):
-            med = np.nanmedian(np.where(np.isfinite(r).sum(1, keepdims=True) > 0, r, 0.0), axis=1)
-            out = np.isfinite(r) & (r > np.maximum(self.cfg.suspect * med[:, None], self.cfg.suspect * common))
-        return out
 
     def _estimate(self, now: float) -> list[str]:
         cfg = self.cfg

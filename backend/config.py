@@ -162,9 +162,6 @@ class ClockConfig(_Section):
     initial_scale_px: float = Field(10.0, gt=0, description="px: median reprojection distance of a correct fit assumed until the data tell")
     min_scale_px: float = Field(0.5, gt=0, description="px: floor of that learned median")
     gate: float = Field(5.0, gt=0, description="a fit whose median reprojection distance exceeds this many times the sensor's usual one is not the person")
-    suspect: float = Field(3.0, ge=0, description="a view of a person whose reprojection against the others exceeds this many times "
-                           "the median of its views (and of all fits) is suspect of being mistimed: the person is not used to time "
-                           "the other sensors (0 = off)")
     max_std: float = Field(0.01, gt=0, description="s: an offset is applied once its std is below this ...")
     min_apply: float = Field(0.003, ge=0, description="s: ... and it is larger than this (and 3 std); a change smaller than this (or 2 std) is not applied")
     drift_warning: float = Field(0.01, gt=0, description="s: warn when a sensor's estimate moves by more than this")
