@@ -25,14 +25,13 @@ it view-invariant is too noisy), and the gait signal aliases at the step period.
 
 from __future__ import annotations
 
+import argparse
 import math
+import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
-
-import argparse
-import sys
-from pathlib import Path
 
 from proto import KeypointMessage
 
