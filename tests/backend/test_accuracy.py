@@ -15,12 +15,17 @@ associations, same data and scale rule, as in bench/accuracy.py):
     7d3cf9b         0.0627 m    0.0164 m    0.175°        0.31°
     29dbd85         0.0466 m    0.0164 m    0.178°        0.32°
     limit 29dbd85   0.0457 m    0.0147 m    0.176°        0.27°
+    first adj.      0.0445 m    0.0196 m    0.228°        0.60°
+    + LS scale      0.0647 m    0.0196 m    0.227°        0.61°
 
 The rigid figure is mostly the initial estimate's scale (about 1 % off in this small
 room), which the method keeps by design (its estimate changed between the two engine
 versions); shape and orientation are what the data decide. The bars catch, e.g., the
 paper's filter settings (0.41°, worst camera 1.26°) and a run without the final batch
-(worst camera 0.66°).
+(0.535°, worst camera 1.22°, measured with the first adjustment). The first adjustment (select.first_scope,
+two passes over the first 20 s) costs this short run cycles: its worst camera went from
+0.44° to 0.60° (the 20-camera lab gained: no camera dragged off, docs/accuracy.md); the
+least-squares scale (refine.keep_scale) moved the rigid figure, which is the scale's.
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ SEED = 0
 RIGID_POSITION = 0.090  # m (its floor is the kept scale)
 SHAPE_POSITION = 0.030  # m
 ORIENTATION = 0.35  # deg
-WORST_ORIENTATION = 0.60  # deg, any one camera
+WORST_ORIENTATION = 0.80  # deg, any one camera
 
 
 @pytest.fixture(scope="module")
