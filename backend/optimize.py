@@ -13,8 +13,9 @@ std divided by the focal length.
 People keep their size (``optimize.bones``, docs/bones.md): the hypotheses are told apart
 into persons (``people.label_persons``: tracks grouped by their size) and each person gets
 one length per bone, measured anew before each of ``solve``'s rounds; a range factor per
-bone of each hypothesis ties its joints' distance to it. Keypoints alone leave the scale of each part of a camera network that
-shares no person with a third camera free; these factors carry it along.
+bone of each hypothesis ties its joints' distance to it. Keypoints alone leave the scale
+of each part of a camera network that shares no person with a third camera free; these
+factors carry it along.
 """
 
 from __future__ import annotations
@@ -298,6 +299,8 @@ def solve(p: Problem) -> Solution:
     out = _solve_graph(p, g, R, t, marginals=p.marginals, person=person)
     if isinstance(out, str):
         return _failed(p, g, out, first_error, t0)
+    if person is not None and p.config.outlier_rounds == 0:  # the first solve with bones
+        first_error = out[3]
     if len(out) == 7:  # marginals not asked for
         nan = np.full((C, 6, 6), np.nan)
         out = out + (nan, nan.copy(), "")

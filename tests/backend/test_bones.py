@@ -72,6 +72,9 @@ def test_bone_lengths_carry_scale_along_the_chain(chain):
     assert L.shape == (1, len(BONE_NAMES)) and np.all(np.isfinite(L))
     thigh, shank = L[0, BONE_NAMES.index("thigh")], L[0, BONE_NAMES.index("shank")]
     assert thigh == pytest.approx(0.245 * HEIGHT, rel=0.1) and shank == pytest.approx(0.246 * HEIGHT, rel=0.1)
+    # without outlier rounds the one solve has the bones, and its error is compared with its own start
+    one = solve(replace(prob, config=prob.config.model_copy(update={"bones": "batch", "outlier_rounds": 0})))
+    assert one.ok and one.final_error < one.initial_error and one.bone_lengths is not None
 
 
 def test_cycles_do_not_get_bones_by_default():
