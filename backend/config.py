@@ -87,6 +87,12 @@ class OptimizeConfig(_Section):
     min_triangulation_angle: float = Field(2.0, ge=0, description="deg: landmarks whose rays meet at a smaller angle carry no pose information and are left out")
     outlier_rounds: int = Field(2, ge=0, description="solve, drop views (one person in one camera) that reproject badly, solve again")
     outlier_px: float = Field(15.0, gt=0, description="px: a view whose median joint residual exceeds this (and 4x the median view residual) is an outlier")
+    bones: Literal["off", "batch", "all"] = Field("batch", description="people keep their size: tie the bone lengths of "
+                                                  "each person's hypotheses to one unknown length per bone and person "
+                                                  "(docs/bones.md); 'batch': in the first and the final adjustment, "
+                                                  "'all': in every cycle too")
+    bone_sigma: float = Field(0.02, gt=0, description="m: std of one measured bone length about the person's own "
+                                                       "(keypoints are not joint centres; shoulders shrug)")
 
 
 class RefineConfig(_Section):

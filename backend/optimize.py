@@ -9,12 +9,19 @@ Landmarks are one per (hypothesis, joint) seen in >= 2 views, initialised by
 triangulation with the current estimate. Observations are undistorted normalised
 coordinates, so one unit calibration serves every camera and the noise is the pixel
 std divided by the focal length.
+
+People keep their size (``optimize.bones``, docs/bones.md): the hypotheses are told apart
+into persons (``people.label_persons``: tracks grouped by their size) and each person gets
+one length per bone, measured anew before each of ``solve``'s rounds; a range factor per
+bone of each hypothesis ties its joints' distance to it. Keypoints alone leave the scale
+of each part of a camera network that shares no person with a third camera free; these
+factors carry it along.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
@@ -22,6 +29,7 @@ import numpy as np
 from .associate import Associator, Hypothesis
 from .config import AssociateConfig, OptimizeConfig
 from .geometry import rotation_angle_deg, triangulate_batch
+from .people import label_persons, segments
 from .preprocess import Detection
 from .selection import select_spaced
 
@@ -123,6 +131,13 @@ class Solution:
     seconds: float
     camera_residual_px: np.ndarray | None = None  # (C,) median residual of each camera's observations, NaN = none
     camera_views: np.ndarray | None = None  # (C,) int views (hypotheses) of each camera
+    bone_lengths: np.ndarray | None = None  # (K, len(BONE_NAMES)) bone lengths per person after the solve, NaN = unseen
+
+
+# COCO-17 bones; left and right share one length: (length index, joint a, joint b)
+BONE_NAMES = ("shoulder width", "hip width", "upper arm", "forearm", "thigh", "shank", "flank")
+BONES = np.array([(0, 5, 6), (1, 11, 12), (2, 5, 7), (2, 6, 8), (3, 7, 9), (3, 8, 10),
+                  (4, 11, 13), (4, 12, 14), (5, 13, 15), (5, 14, 16), (6, 5, 11), (6, 6, 12)], dtype=np.int64)
 
 
 # ------------------------------------------------------------------ building
@@ -188,15 +203,34 @@ def build_graph(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, config
 
 def hypotheses_of(p: Problem) -> list[Hypothesis]:
     """The problem's hypotheses: given, or re-associated from its frames with R, t."""
-    if not p.frames:
-        return list(p.hypotheses)
-    assoc = Associator(p.associate)
-    hyps: list[Hypothesis] = []
-    for time_, views in p.frames:
-        hyps.extend(assoc(time_, views, p.R, p.t, p.gate_px))
-    if p.max_hypotheses and len(hyps) > p.max_hypotheses or p.spacing > 0:
+    return hypotheses_and_persons(p)[0]
+
+
+def bones_wanted(p: Problem) -> bool:
+    """Bone-length factors in this problem (``optimize.bones``)."""
+    b = p.config.bones
+    return b == "all" or (b == "batch" and p.kind in ("first", "batch"))
+
+
+def hypotheses_and_persons(p: Problem) -> tuple[list[Hypothesis], np.ndarray]:
+    """The problem's hypotheses and (H,) int the person of each (-1 = none; all -1 when
+    ``bones_wanted`` is not). Persons are told apart on every hypothesis before the
+    thinning to ``max_hypotheses``: tracking needs the neighbours in time."""
+    if p.frames:
+        assoc = Associator(p.associate)
+        hyps: list[Hypothesis] = []
+        for time_, views in p.frames:
+            hyps.extend(assoc(time_, views, p.R, p.t, p.gate_px))
+    else:
+        hyps = list(p.hypotheses)
+    person = np.full(len(hyps), -1, np.int64)
+    if bones_wanted(p) and hyps:
+        person = label_persons(segments(hyps, p.R, p.t))
+    if p.frames and (p.max_hypotheses and len(hyps) > p.max_hypotheses or p.spacing > 0):
+        index = {id(h): i for i, h in enumerate(hyps)}
         hyps = select_spaced(hyps, p.max_hypotheses or len(hyps), p.spacing, np.random.default_rng(p.seed))
-    return hyps
+        person = person[[index[id(h)] for h in hyps]]
+    return hyps, person
 
 
 def residuals_px(R, t, landmarks, obs_cam, obs_lm, obs_xy, focal) -> np.ndarray:
@@ -224,20 +258,28 @@ def solve(p: Problem) -> Solution:
         return _relocalize(p)
     t0 = time.perf_counter()
     C = len(p.R)
-    hyps = hypotheses_of(p)
+    hyps, person = hypotheses_and_persons(p)
+    person = person if (person >= 0).any() else None
     g = build_graph(hyps, p.R, p.t, p.config)
     R, t = p.R, p.t
     first_error = None
     iterations = 0
     for round_ in range(p.config.outlier_rounds + 1):
         last = round_ == p.config.outlier_rounds
+        # The first round without bones: the lengths are measured on its solution (from a
+        # rough start, links at different scales make the first steps of LM with them stall).
+        who = person if round_ > 0 else None
         # outlier rounds only need to find the bad views: a loose tolerance will do
-        out = _solve_graph(p, g, R, t, marginals=False, tolerance=max(p.config.relative_tolerance, 1e-3))
+        out = _solve_graph(p, g, R, t, marginals=False, tolerance=max(p.config.relative_tolerance, 1e-3),
+                           person=who)
         if isinstance(out, str):
             return _failed(p, g, out, first_error, t0)
-        R, t, lms, e0, e1, its = out
-        first_error = e0 if first_error is None else first_error
+        R, t, lms, e0, e1, its, _ = out
+        # the error at the start of the first solve with the final solve's kinds of factors
+        first_error = e0 if first_error is None or (round_ == 1 and who is not None) else first_error
         iterations += its
+        if person is not None:  # the next solve measures the people's bones on this solution
+            g = replace(g, landmarks=_retriangulate(g, R, t))
         if last:
             break
         res = residuals_px(R, t, lms, g.obs_cam, g.obs_lm, g.obs_xy, p.focal)
@@ -247,23 +289,27 @@ def solve(p: Problem) -> Solution:
         limit = max(p.config.outlier_px, 4.0 * float(np.median(med)))
         bad_views = med > limit
         if not bad_views.any():
-            break
+            if person is None or round_ >= 1:
+                break
+            continue  # with bones: at least one round with them before the final solve
         g = g.without(bad_views[inv], p.config)
         # landmarks move with the solution: start the next round from it
         g = Graph(g.active, g.obs_cam, g.obs_lm, g.obs_xy, g.obs_sigma,
                   _retriangulate(g, R, t), g.lm_hyp, g.lm_joint)
-    out = _solve_graph(p, g, R, t, marginals=p.marginals)
+    out = _solve_graph(p, g, R, t, marginals=p.marginals, person=person)
     if isinstance(out, str):
         return _failed(p, g, out, first_error, t0)
-    if len(out) == 6:  # marginals not asked for
+    if person is not None and p.config.outlier_rounds == 0:  # the first solve with bones
+        first_error = out[3]
+    if len(out) == 7:  # marginals not asked for
         nan = np.full((C, 6, 6), np.nan)
         out = out + (nan, nan.copy(), "")
-    R, t, lms, _, final_error, its, cov, cov_shape, reason = out
+    R, t, lms, _, final_error, its, lengths, cov, cov_shape, reason = out
     res = residuals_px(R, t, lms, g.obs_cam, g.obs_lm, g.obs_xy, p.focal)
     cam_res, cam_views = per_camera(g, res, C)
     return Solution(reason == "", reason, R, t, cov, cov_shape, g.active, np.bincount(g.obs_cam, minlength=C),
                     int(len(np.unique(g.lm_hyp))), res, float(first_error), float(final_error),
-                    iterations + its, time.perf_counter() - t0, cam_res, cam_views)
+                    iterations + its, time.perf_counter() - t0, cam_res, cam_views, lengths)
 
 
 def per_camera(g: Graph, res: np.ndarray, C: int) -> tuple[np.ndarray, np.ndarray]:
@@ -348,9 +394,11 @@ def _retriangulate(g: Graph, R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, marginals: bool,
-                 tolerance: float | None = None):
-    """One GTSAM solve of graph g from poses R0, t0. Returns a failure reason (str), or
-    (R, t, landmarks, initial error, final error, iterations[, cov, reason])."""
+                 tolerance: float | None = None, person: np.ndarray | None = None):
+    """One GTSAM solve of graph g from poses R0, t0; ``person`` (H,) int labels of the
+    hypotheses for bone-length factors (None: none). Returns a failure reason (str), or
+    (R, t, landmarks, initial error, final error, iterations, bone lengths[, cov, cov_shape,
+    reason])."""
     import gtsam
 
     C, L = len(p.R), len(g.landmarks)
@@ -380,6 +428,7 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         if robust is not None:
             noise = gtsam.noiseModel.Robust.Create(robust, noise)
         graph.add(gtsam.GenericProjectionFactorCal3_S2(xy, noise, X(c), Lk(l), K))
+    lengths = _add_bones(graph, g, person, cfg, robust, Lk, gtsam) if person is not None else None
 
     initial_error = graph.error(values)
     # Landmarks first, cameras last: the Schur complement of bundle adjustment; with
@@ -416,7 +465,9 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         R[c] = pose.rotation().matrix()
         t[c] = pose.translation()
     lms = np.array([result.atPoint3(Lk(l)) for l in range(L)]).reshape(-1, 3)
-    out = (R, t, lms, float(initial_error), float(final_error), int(optimizer.iterations()))
+    if lengths is not None:
+        lengths = bone_lengths(g, person, lms)
+    out = (R, t, lms, float(initial_error), float(final_error), int(optimizer.iterations()), lengths)
     if not marginals:
         return out
     cov = np.full((C, 6, 6), np.nan)
@@ -448,6 +499,56 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
             dropped.add(key)
             graph = _without_key(graph, key, gtsam)
     return out + (cov, cov_shape, reason)
+
+
+def _bone_instances(g: Graph, person: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Bones of the graph's hypotheses that have a person and both landmarks:
+    (hypothesis, length index, landmark a, landmark b), each (N,) int."""
+    L = len(g.landmarks)
+    H = int(g.lm_hyp.max()) + 1 if L else 0
+    lm_of = np.full((H, 17), -1, np.int64)
+    lm_of[g.lm_hyp, g.lm_joint] = np.arange(L)
+    h = np.repeat(np.arange(H), len(BONES))
+    kind, a, b = (np.tile(BONES[:, i], H) for i in range(3))
+    la, lb = lm_of[h, a], lm_of[h, b]
+    ok = (la >= 0) & (lb >= 0) & (person[h] >= 0)
+    return h[ok], kind[ok], la[ok], lb[ok]
+
+
+def bone_lengths(g: Graph, person: np.ndarray, landmarks: np.ndarray | None = None) -> np.ndarray:
+    """(K, len(BONE_NAMES)) each person's bone lengths: the median over its hypotheses of
+    the distances between the landmarks (default: the graph's), NaN where unseen."""
+    X = g.landmarks if landmarks is None else landmarks
+    h, kind, la, lb = _bone_instances(g, person)
+    K = int(person.max()) + 1 if len(person) else 0
+    out = np.full((K, len(BONE_NAMES)), np.nan)
+    d = np.linalg.norm(X[la] - X[lb], axis=1)
+    who = person[h]
+    for k in range(K):
+        for j in range(len(BONE_NAMES)):
+            m = (who == k) & (kind == j)
+            if m.any():
+                out[k, j] = float(np.median(d[m]))
+    return out
+
+
+def _add_bones(graph, g: Graph, person: np.ndarray, cfg: OptimizeConfig, robust, Lk, gtsam) -> np.ndarray:
+    """A range factor per bone of each hypothesis with a person: its two landmarks
+    ``bone_lengths`` apart, ``bone_sigma`` each. Returns the lengths used.
+
+    The lengths are the people's, measured anew before each solve of ``solve``'s rounds
+    (block coordinate descent of the same least squares: lengths given the landmarks,
+    landmarks and cameras given the lengths). A length variable inside the graph would
+    need a Python factor, which made GTSAM's LM ten times slower here; GTSAM's native
+    range factors cost next to nothing."""
+    lengths = bone_lengths(g, person)
+    h, kind, la, lb = _bone_instances(g, person)
+    noise = gtsam.noiseModel.Isotropic.Sigma(1, cfg.bone_sigma)
+    if robust is not None:
+        noise = gtsam.noiseModel.Robust.Create(robust, noise)
+    for k, j, a, b in zip(person[h], kind, la, lb):
+        graph.add(gtsam.RangeFactor3(Lk(a), Lk(b), float(lengths[k, j]), noise))
+    return lengths
 
 
 def _named_key(message: str) -> int | None:

@@ -198,16 +198,28 @@ class ScaleEstimate:
                 f"({self.persons} person{'s' if self.persons != 1 else ''}: {hs} m)")
 
 
-def persons(seg: Segments, *, count: int | None = None, min_hypotheses: int = 10) -> list[Person]:
-    """Tell persons apart: tracks, each with per-segment medians, grouped by chain length
+def label_persons(seg: Segments, *, count: int | None = None, min_track: int = 3) -> np.ndarray:
+    """(N,) person label of each hypothesis (0 .. K-1, -1 = none): tracks (``tracks``),
+    each summarised by its median chain (shank + thigh + torso), grouped by chain length
     into ``count`` persons (default: the number of hypotheses seen at one instant in at
-    least 10 % of the instants with any). Persons sorted tallest first."""
+    least 10 % of the instants with any). Hypotheses without a full chain, and tracks of
+    fewer than ``min_track`` hypotheses, get -1. Labels are in no particular order."""
+    return _label(seg, count, min_track)[0]
+
+
+def _label(seg: Segments, count: int | None, min_track: int) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) person labels and (N,) track ids (-1 where none) of ``label_persons``."""
+    N = len(seg.time)
+    labels = np.full(N, -1, np.int64)
+    track_of = np.full(N, -1, np.int64)
     ok = np.isfinite(seg.shank) & np.isfinite(seg.thigh) & np.isfinite(seg.torso)
-    if ok.sum() < min_hypotheses:
-        return []
+    if not ok.any():
+        return labels, track_of
+    idx = np.flatnonzero(ok)
     time, com = seg.time[ok], seg.com[ok]
     parts = np.stack([seg.shank[ok], seg.thigh[ok], seg.torso[ok]], axis=1)
     ids = tracks(time, com)
+    track_of[idx] = ids
     if count is None:
         _, per_instant = np.unique(time, return_counts=True)
         counts = np.bincount(per_instant)
@@ -216,18 +228,30 @@ def persons(seg: Segments, *, count: int | None = None, min_hypotheses: int = 10
     tr = []
     for i in np.unique(ids):
         m = ids == i
-        if m.sum() < 3:
+        if m.sum() < min_track:
             continue
         tr.append((float(np.median(parts[m], axis=0).sum()), int(m.sum()), m))
     if not tr:
-        return []
+        return labels, track_of
     chains = np.log([c for c, _, _ in tr])
     w = np.array([n for _, n, _ in tr], dtype=np.float64)
-    labels = _kmeans_1d(chains, w, min(count, len(tr)))
+    cluster = _kmeans_1d(chains, w, min(count, len(tr)))
+    for (_, _, m), k in zip(tr, cluster):
+        labels[idx[m]] = k
+    return labels, track_of
+
+
+def persons(seg: Segments, *, count: int | None = None, min_hypotheses: int = 10) -> list[Person]:
+    """Tell persons apart (``label_persons``) and measure each: per-segment medians
+    summed into the chain. Persons sorted tallest first."""
+    ok = np.isfinite(seg.shank) & np.isfinite(seg.thigh) & np.isfinite(seg.torso)
+    if ok.sum() < min_hypotheses:
+        return []
+    labels, track_of = _label(seg, count, 3)
+    parts = np.stack([seg.shank, seg.thigh, seg.torso], axis=1)
     out = []
-    for k in np.unique(labels):
-        members = [tr[i] for i in np.flatnonzero(labels == k)]
-        m = np.any([mm for _, _, mm in members], axis=0)
+    for k in np.unique(labels[labels >= 0]):
+        m = labels == k
         if m.sum() < min_hypotheses:
             continue
         chain = float(np.median(parts[m], axis=0).sum())
@@ -236,7 +260,8 @@ def persons(seg: Segments, *, count: int | None = None, min_hypotheses: int = 10
         mad = 1.4826 * np.median(np.abs(c - np.median(c)))
         # neighbouring instants are correlated (10 Hz, the detector's noise over ~0.3 s)
         n_eff = max(1.0, m.sum() / 5.0)
-        out.append(Person(chain, float(mad / chain / np.sqrt(n_eff)), int(m.sum()), len(members)))
+        members = len(np.unique(track_of[m]))
+        out.append(Person(chain, float(mad / chain / np.sqrt(n_eff)), int(m.sum()), members))
     return sorted(out, key=lambda p: -p.chain)
 
 

@@ -73,6 +73,7 @@ class Pipeline:
         self.associated = np.zeros(C, dtype=np.int64)
         self.detected_total = np.zeros(C, dtype=np.int64)
         self.associated_total = np.zeros(C, dtype=np.int64)
+        self.associated_multi = np.zeros(C, dtype=np.int64)  # ... in hypotheses of >= min_views_unsettled views
         self.last_lost_check: float | None = None
         self.first_passes = 0  # passes of the first adjustment done (select.first_scope)
         self.relocalized: list[str] = []
@@ -158,6 +159,8 @@ class Pipeline:
             for h in hyps:
                 self.associated[h.cams] += 1
                 self.associated_total[h.cams] += 1
+                if len(h.cams) >= self.cfg.associate.min_views_unsettled:
+                    self.associated_multi[h.cams] += 1
         return new
 
     def _retime(self, sensors: list[str]) -> None:
@@ -238,7 +241,7 @@ class Pipeline:
                 if not self.queue.ready():
                     return None
                 self.cycle += 1
-                settled = rf.cycles >= a.settled_cycles
+                settled = (rf.cycles >= a.settled_cycles) | self._pairwise_only()
                 hyps = self.queue.select(self.rng, None,
                                          lambda h: len(h.cams) >= a.min_views_unsettled or settled[h.cams].all())
                 p = Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
@@ -288,6 +291,13 @@ class Pipeline:
         self.detected = det // 2
         self.associated = assoc // 2
         return [int(c) for c in np.flatnonzero(lost | self._never_associated())]
+
+    def _pairwise_only(self) -> np.ndarray:
+        """(C,) cameras that see people with one other camera but (almost) never with two
+        more (a corridor): waiting for min_views_unsettled views would leave them out for good."""
+        a = self.cfg.associate
+        n = self.associated_total
+        return (n >= a.lost_min_detections) & (self.associated_multi < 0.05 * n)
 
     def _never_associated(self) -> np.ndarray:
         """(C,) cameras that never took part in a cycle though they saw people often."""

@@ -67,6 +67,9 @@ def register(app: typer.Typer) -> None:
                                                 "the ground truth goes to OUT.truth.npz")],
         cameras: Annotated[Path, typer.Option(help="directory with intrinsics.yaml and reference.yaml "
                                                    "(+ optional room.yaml with a floor plan)")] = LAB,
+        scene: Annotated[Optional[str], typer.Option(help="a generated scene instead of --cameras: 'corridor' (6 cameras "
+                                                         "along a corridor, each overlapping only its neighbours); its "
+                                                         "camera files are written to OUT.cameras/")] = None,
         persons: Annotated[int, typer.Option(help="people walking", min=0)] = 2,
         duration: Annotated[float, typer.Option(help="seconds of simulated time", min=0.1)] = 180.0,
         seed: int = 0,
@@ -99,14 +102,19 @@ def register(app: typer.Typer) -> None:
         kw.setdefault("camera_height", camera_height)
         t0 = time.perf_counter()
         try:
-            scene = Scene.load(cameras, camera_height=kw["camera_height"])
+            if scene is not None:
+                from edge_clients.sim.scenes import make, write_scene
+
+                generated = make(scene)
+                cameras = write_scene(generated, Path(f"{out}.cameras"), f"generated scene {scene!r}")
+            scene_ = Scene.load(cameras, camera_height=kw["camera_height"])
             config = SimConfig(persons=persons, duration=duration, seed=seed, noise=noise,
                                noise_scale=noise_scale, start_time=start_time, **kw)
-            sim = Simulator(scene, config)
+            sim = Simulator(scene_, config)
         except (CameraFileError, FileNotFoundError, ValueError, TypeError) as e:
             raise fail(str(e))
         if not json_out:
-            typer.echo(f"simulating {duration:g} s of {persons} persons in {cameras} ({len(scene.names)} cameras)...",
+            typer.echo(f"simulating {duration:g} s of {persons} persons in {cameras} ({len(scene_.names)} cameras)...",
                        err=True)
         stats = sim.write(out)
         wall = time.perf_counter() - t0

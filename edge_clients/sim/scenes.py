@@ -1,0 +1,146 @@
+"""Generated scenes: camera layouts that the lab does not have.
+
+``corridor``: a long corridor with cameras mounted under the ceiling, all looking down the
+corridor the same way, each overlapping only its neighbours (no floor point is seen by
+three cameras). Every hypothesis then has two views, each pair of neighbours shares its
+own persons, and nothing in one pair's images fixes the scale of the next pair: the
+layout that tests whether the people's constant size carries scale along a chain
+(docs/bones.md).
+
+``write_scene`` writes a scene as a camera directory (intrinsics.yaml, reference.yaml,
+room.yaml, floorplan.pgm) that ``Scene.load``, ``extrcal simulate --cameras`` and
+``extrcal calibrate`` read like the lab's.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from backend.cameras import Extrinsics, Intrinsics, Pose, dump_extrinsics, dump_intrinsics, project, write_atomic
+
+from .area import CELL, fov_limit, in_fov, wall_map
+from .scene import Floor, FloorPlan, Scene
+
+SCENES = ("corridor",)
+
+_MPP = 0.05  # m per floor plan pixel
+_WALL = 0.2  # m wall thickness in the plan
+
+
+def corridor(cameras: int = 6, *, spacing: float = 3.5, width: float = 2.5, height: float = 2.6,
+             pitch: float = 40.0, lateral: float = 0.5, yaw: float = 6.0) -> Scene:
+    """A straight corridor along the floor's x axis, ``width`` m wide, with ``cameras``
+    cameras ``spacing`` m apart at ``height`` m, looking down the corridor (+x),
+    pitched ``pitch`` deg down, alternately ``lateral`` m left and right of the centre
+    line and turned ``yaw`` deg towards it (so that neighbours' baselines are not along
+    their optical axes). The lab's 848x480 lens (about 90° x 59°).
+
+    With the defaults a standing person's torso and head are in view from about 0.6 m to
+    5.3 m ahead of a camera: neighbours share about 1.2 m of the corridor, and the next
+    but one starts 2 m beyond where a camera stops seeing (``floor_views`` checks it).
+    World frame = floor frame: z up, the floor at z = 0, camera 0 above the origin.
+    """
+    if cameras < 2:
+        raise ValueError(f"a corridor needs at least 2 cameras, got {cameras}")
+    if not (spacing > 0 and width > 0.5 and height > 1.8 and 0 < pitch < 90):
+        raise ValueError("corridor: spacing > 0, width > 0.5 m, height > 1.8 m, 0 < pitch < 90 deg expected")
+    names = tuple(f"cam_{i}" for i in range(cameras))
+    intr, poses = {}, {}
+    th = math.radians(pitch)
+    for i, n in enumerate(names):
+        side = 1.0 if i % 2 == 0 else -1.0
+        y = side * lateral
+        psi = -side * math.radians(yaw)  # towards the centre line
+        fwd = np.array([math.cos(psi), math.sin(psi), 0.0])
+        z = math.cos(th) * fwd + np.array([0, 0, -math.sin(th)])
+        x = np.array([math.sin(psi), -math.cos(psi), 0.0])  # image right: horizontal
+        yv = np.cross(z, x)
+        R = np.stack([x, yv, z], axis=1)
+        poses[n] = Pose(R, np.array([i * spacing, y, height]))
+        intr[n] = Intrinsics(n, 426.0, 426.0, 424.0, 240.0, np.array([-0.054, 0.063, 0.0, 0.0, -0.020]), (848, 480))
+    # free floor: from 1 m behind the first camera to 6 m beyond the last one
+    x0, x1 = -1.0, (cameras - 1) * spacing + 6.0
+    lo = np.array([x0 - _WALL, -width / 2 - _WALL])
+    W = int(round((x1 - x0 + 2 * _WALL) / _MPP))
+    H = int(round((width + 2 * _WALL) / _MPP))
+    free = np.zeros((H, W), bool)
+    k = int(round(_WALL / _MPP))
+    free[k:H - k, k:W - k] = True
+    plan = FloorPlan(occupied=~free, free=free, metres_per_pixel=_MPP, map_R=np.eye(2), map_t=lo)
+    floor = Floor.make(np.zeros(3), [1.0, 0, 0], [0, 0, 1.0])
+    return Scene(names, intr, poses, floor, plan)
+
+
+def make(name: str, **kw) -> Scene:
+    """A generated scene by name (``SCENES``)."""
+    if name == "corridor":
+        return corridor(**kw)
+    raise ValueError(f"unknown scene {name!r} (known: {', '.join(SCENES)})")
+
+
+def write_scene(scene: Scene, directory: str | os.PathLike, description: str = "") -> Path:
+    """The scene as a camera directory: intrinsics.yaml, reference.yaml, room.yaml and
+    (with a plan) floorplan.pgm; returns the directory."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    write_atomic(d / "intrinsics.yaml", dump_intrinsics({n: scene.intrinsics[n] for n in scene.names}))
+    write_atomic(d / "reference.yaml", dump_extrinsics(
+        {n: Extrinsics(scene.poses[n], scene.intrinsics[n].resolution) for n in scene.names}))
+    f = scene.floor
+    room: dict = {"description": description or f"generated scene, {len(scene.names)} cameras",
+                  "floor": {"origin": f.origin.tolist(), "e1": f.e1.tolist(), "normal_up": f.up.tolist()}}
+    plan = scene.floorplan
+    if plan is not None:
+        if not np.allclose(plan.map_R, np.eye(2)):
+            raise ValueError("write_scene: only axis-aligned floor plans are supported")
+        img = np.where(plan.occupied, 0, np.where(plan.free, 254, 205)).astype(np.uint8)
+        H, W = img.shape
+        write_atomic(d / "floorplan.pgm", f"P5\n{W} {H}\n255\n".encode() + img.tobytes())
+        room["floorplan"] = {"image": "floorplan.pgm", "metres_per_pixel": plan.metres_per_pixel,
+                             "floor_T_map": [float(plan.map_t[0]), float(plan.map_t[1]), 0.0, 0.0, 0.0, 0.0, 1.0]}
+    write_atomic(d / "room.yaml", yaml.safe_dump(room, sort_keys=False, default_flow_style=None, width=120))
+    return d
+
+
+def floor_views(scene: Scene, heights: tuple[float, ...] = (1.0, 1.6), *, any_height: bool = False,
+                coverage_range: float = 12.0) -> tuple[np.ndarray, np.ndarray]:
+    """Which camera sees which floor cell (a 0.1 m grid over the floor plan, or 12 m
+    around the cameras): a standing person's points at ``heights`` m above the cell are
+    in its image (3 % margin), in front, within range and not behind a wall; all of them
+    (the simulator's coverage) or, ``any_height``, any of them (a person partly in view).
+    Returns (xy (N, 2) floor cell centres, seen (C, N) bool)."""
+    floor, plan = scene.floor, scene.floorplan
+    Cf = floor.to_floor(scene.centres())
+    lo, hi = Cf[:, :2].min(0) - coverage_range, Cf[:, :2].max(0) + coverage_range
+    if plan is not None:
+        plo, phi = plan.extent()
+        lo, hi = np.maximum(lo, plo), np.minimum(hi, phi)
+    nx, ny = np.ceil((hi - lo) / CELL).astype(int)
+    gx, gy = np.meshgrid(lo[0] + (np.arange(nx) + 0.5) * CELL, lo[1] + (np.arange(ny) + 0.5) * CELL)
+    xy = np.stack([gx.ravel(), gy.ravel()], 1)
+    if plan is not None:
+        xy = xy[plan.free_at(xy) & ~plan.occupied_at(xy)]
+    walls = wall_map(scene)
+    seen = np.zeros((len(scene.names), len(xy)), bool)
+    for k, name in enumerate(scene.names):
+        intr, pose = scene.intrinsics[name], scene.poses[name]
+        w, h = intr.resolution
+        lim = fov_limit(intr)
+        per = []
+        for hgt in heights:
+            X = floor.to_world(np.concatenate([xy, np.full((len(xy), 1), hgt)], 1))
+            uv, z = project(X, intr, pose)
+            with np.errstate(invalid="ignore"):
+                ok = (in_fov(pose.to_camera(X), lim) & (z > 0.3) & (uv[:, 0] >= 0.03 * w) & (uv[:, 0] <= 0.97 * w)
+                      & (uv[:, 1] >= 0.03 * h) & (uv[:, 1] <= 0.97 * h))
+            per.append(ok & (np.linalg.norm(xy - Cf[k, :2], axis=1) <= coverage_range))
+        s = np.any(per, axis=0) if any_height else np.all(per, axis=0)
+        if walls is not None:
+            s &= ~walls.blocked(k, xy)
+        seen[k] = s
+    return xy, seen

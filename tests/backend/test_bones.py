@@ -1,0 +1,131 @@
+"""People keep their size: bone-length factors carry scale along a camera chain."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from backend.cameras import CameraSet, Extrinsics, Pose
+from backend.config import EngineConfig
+from backend.evaluate import evaluate
+from backend.optimize import BONE_NAMES, Problem, hypotheses_and_persons, solve
+from backend.people import label_persons, segments
+from backend.perturb import perturb_extrinsics
+from backend.pipeline import Pipeline
+from backend.refine import Refiner
+from edge_clients.sim import SimConfig, Simulator
+from edge_clients.sim.scenes import corridor
+
+HEIGHT = 1.80
+
+
+@pytest.fixture(scope="module")
+def chain():
+    """A 3-camera corridor (each camera overlaps only its neighbours), 1 walker for 90 s,
+    the initial estimate 0.25 m / 10° off; the pipeline's front end (no cycles) archives
+    the frames and a batch problem over them is built as the final batch would be."""
+    scene = corridor(3)
+    sim = Simulator(scene, SimConfig(persons=1, duration=90.0, seed=3, heights=(HEIGHT,)))
+    ref = {n: Extrinsics(scene.poses[n], scene.intrinsics[n].resolution) for n in scene.names}
+    init = perturb_extrinsics(ref, 0.25, 10.0, seed=1)
+    cams = CameraSet.combine(dict(scene.intrinsics), init)
+    p = Pipeline(cams, EngineConfig())
+    for _, msg in sim.messages():
+        p.push(msg)
+        p.advance(p.clock)
+    p.advance(p.clock + 1.0)
+    assert len(p.frames) > 100
+    prob = p._batch_problem(1000, 0.1)
+    return prob, {n: e.pose for n, e in ref.items()}, list(scene.names), p
+
+
+def _solved(prob: Problem, bones: str, names, cfg):
+    sol = solve(replace(prob, config=prob.config.model_copy(update={"bones": bones})))
+    assert sol.ok, sol.reason
+    rf = Refiner(cfg.refine, prob.prior_R, prob.prior_t)
+    rf.update(sol.active, sol.R, sol.t, sol.cov, posterior=True)  # the pipeline's batch path: scale kept
+    return sol, {n: Pose(rf.R[c], rf.t[c]) for c, n in enumerate(names)}
+
+
+def test_every_hypothesis_of_the_chain_has_two_views(chain):
+    prob, _, _, _ = chain
+    hyps, person = hypotheses_and_persons(replace(prob, config=prob.config.model_copy(update={"bones": "batch"})))
+    assert hyps and {len(h.cams) for h in hyps} == {2}
+    # one walker: every hypothesis with a measured chain is the same person
+    assert set(person[person >= 0].tolist()) == {0} and (person >= 0).mean() > 0.3
+
+
+def test_bone_lengths_carry_scale_along_the_chain(chain):
+    prob, ref, names, p = chain
+    before = evaluate({n: Pose(prob.R[c], prob.t[c]) for c, n in enumerate(names)}, ref)
+    off, poses_off = _solved(prob, "off", names, p.cfg)
+    on, poses_on = _solved(prob, "batch", names, p.cfg)
+    e_off, e_on = evaluate(poses_off, ref), evaluate(poses_on, ref)
+    # without them each link keeps the scale its priors give it; with them the chain is one shape
+    assert e_on.shape_position.mean < 0.5 * e_off.shape_position.mean, (e_off.summary(), e_on.summary())
+    assert e_on.position.mean < 0.08 < before.position.mean, (before.summary(), e_on.summary())
+    assert off.bone_lengths is None
+    # one person, lengths like a 1.80 m person's (in the estimate's units: scale within ~5 %)
+    L = on.bone_lengths
+    assert L.shape == (1, len(BONE_NAMES)) and np.all(np.isfinite(L))
+    thigh, shank = L[0, BONE_NAMES.index("thigh")], L[0, BONE_NAMES.index("shank")]
+    assert thigh == pytest.approx(0.245 * HEIGHT, rel=0.1) and shank == pytest.approx(0.246 * HEIGHT, rel=0.1)
+    # without outlier rounds the one solve has the bones, and its error is compared with its own start
+    one = solve(replace(prob, config=prob.config.model_copy(update={"bones": "batch", "outlier_rounds": 0})))
+    assert one.ok and one.final_error < one.initial_error and one.bone_lengths is not None
+
+
+def test_cycles_do_not_get_bones_by_default():
+    from backend.optimize import bones_wanted
+
+    cfg = EngineConfig().optimize
+    R = np.repeat(np.eye(3)[None], 2, axis=0)
+    t = np.zeros((2, 3))
+    P = np.repeat(np.eye(6)[None], 2, axis=0)
+    prob = Problem(cycle=1, R=R, t=t, prior_R=R, prior_t=t, prior_cov=P, focal=np.ones(2), config=cfg)
+    assert cfg.bones == "batch"
+    assert not bones_wanted(prob) and bones_wanted(replace(prob, kind="batch")) and bones_wanted(replace(prob, kind="first"))
+    assert bones_wanted(replace(prob, config=cfg.model_copy(update={"bones": "all"})))
+    assert not bones_wanted(replace(prob, kind="batch", config=cfg.model_copy(update={"bones": "off"})))
+
+
+def test_label_persons_splits_two_sizes_and_skips_short_tracks():
+    from backend.people import Segments
+
+    rng = np.random.default_rng(0)
+    T = np.repeat(np.arange(100) * 0.1, 2)
+    com = np.zeros((200, 3))
+    com[0::2, 0] = np.arange(100) * 0.1
+    com[1::2, 0] = 5.0 - np.arange(100) * 0.1
+    com[1::2, 1] = 3.0
+    size = np.where(np.arange(200) % 2 == 0, 1.96, 1.70)
+    n = lambda: rng.normal(0, 0.01, 200)  # noqa: E731
+    seg = Segments(T, com, 0.246 * size + n(), 0.245 * size + n(), 0.2924 * size + n(), np.zeros((200, 2, 3)),
+                   np.zeros((200, 3)))
+    lab = label_persons(seg)
+    assert len(set(lab[0::2])) == 1 and len(set(lab[1::2])) == 1 and lab[0] != lab[1]
+    # a hypothesis alone in its track (fewer than min_track) gets no person
+    com2 = com.copy()
+    com2[50, 0] = 100.0
+    assert label_persons(replace(seg, com=com2))[50] == -1
+    assert segments([], np.zeros((0, 3, 3)), np.zeros((0, 3))).time.shape == (0,)
+
+
+def test_pipeline_cycles_run_on_a_chain_without_three_view_hypotheses():
+    """Cycles wait for hypotheses of >= 3 views while a camera is unsettled; in a corridor
+    there are none, and the cameras that only ever share people pairwise take part anyway."""
+    from backend.pipeline import run_offline
+
+    scene = corridor(3)
+    sim = Simulator(scene, SimConfig(persons=1, duration=60.0, seed=3, heights=(HEIGHT,)))
+    ref = {n: Extrinsics(scene.poses[n], scene.intrinsics[n].resolution) for n in scene.names}
+    cams = CameraSet.combine(dict(scene.intrinsics), perturb_extrinsics(ref, 0.25, 10.0, seed=1))
+    reports = []
+    p = run_offline(cams, EngineConfig(), (m for _, m in sim.messages()), progress=lambda s, r: reports.append(r),
+                    finish=False)
+    pairwise = p._pairwise_only()
+    assert pairwise.sum() >= 2 and np.array_equal(pairwise, p.associated_total >= 30)
+    accepted = [r for r in reports if r.accepted and r.hypotheses > 0]
+    assert accepted and {c for r in accepted for c in r.cameras} >= {n for n, w in zip(scene.names, pairwise) if w}

@@ -1,0 +1,78 @@
+"""Generated scenes: the corridor's overlap property, its files, the CLI option."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from edge_clients.sim import Scene, SimConfig, Simulator
+from edge_clients.sim.scenes import corridor, floor_views, make, write_scene
+
+# a standing person's torso as the association needs it (both hips and both shoulders),
+# for statures 1.55-2.0 m: hips 0.53 H, shoulders 0.818 H
+TORSOS = ((0.82, 1.27), (0.95, 1.47), (1.06, 1.64))
+
+
+def test_corridor_cameras_overlap_only_their_neighbours():
+    scene = corridor()
+    C = len(scene.names)
+    assert C == 6
+    for torso in TORSOS:
+        _, seen = floor_views(scene, torso)
+        # no floor point where a torso is in three views
+        assert seen.sum(0).max() == 2, torso
+        for a in range(C):
+            for b in range(a + 1, C):
+                shared = int((seen[a] & seen[b]).sum())
+                if b == a + 1:
+                    assert shared >= 50, (torso, a, b, shared)  # >= 0.5 m² of floor (0.1 m cells)
+                else:
+                    assert shared == 0, (torso, a, b, shared)
+    # the simulator's own coverage (torso and head) agrees: walkers' targets are the overlaps
+    _, seen = floor_views(scene)
+    assert seen.sum(0).max() == 2
+
+
+def test_corridor_geometry_and_errors():
+    s = corridor(4, spacing=3.0)
+    c = s.centres()
+    assert np.allclose(np.diff(c[:, 0]), 3.0) and np.allclose(c[:, 2], 2.6)
+    for n in s.names:  # rotations are proper, cameras look forward and down
+        R = s.poses[n].R
+        assert np.allclose(R.T @ R, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
+        assert R[0, 2] > 0.5 and R[2, 2] < -0.3
+    with pytest.raises(ValueError, match="at least 2"):
+        corridor(1)
+    with pytest.raises(ValueError, match="unknown scene"):
+        make("cathedral")
+
+
+def test_written_scene_loads_and_simulates(tmp_path):
+    scene = corridor()
+    d = write_scene(scene, tmp_path / "corridor")
+    loaded = Scene.load(d)
+    assert loaded.names == scene.names
+    for n in scene.names:
+        assert loaded.poses[n] == scene.poses[n] and loaded.intrinsics[n] == scene.intrinsics[n]
+    assert np.allclose(loaded.floor.up, [0, 0, 1]) and loaded.floorplan is not None
+    assert np.array_equal(loaded.floorplan.occupied, scene.floorplan.occupied)
+    # a walker stays inside the corridor and is seen by two cameras most of the time
+    sim = Simulator(loaded, SimConfig(persons=1, duration=20.0, seed=1, heights=(1.8,)))
+    truth = sim.truth
+    xy = truth.joints[0, :, 0, :2]  # nose, floor frame = world frame here
+    assert xy[:, 1].min() > -1.25 and xy[:, 1].max() < 1.25
+
+
+def test_cli_simulate_corridor(tmp_path):
+    from backend.cli import _register_all, app
+
+    _register_all()
+    out = tmp_path / "c.jsonl"
+    r = CliRunner().invoke(app, ["simulate", "--scene", "corridor", "--persons", "1", "--duration", "4",
+                                 "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "c.jsonl.cameras" / "reference.yaml").is_file() and out.is_file()
+    assert "6 cameras" in r.output
+    r = CliRunner().invoke(app, ["simulate", "--scene", "atrium", "--out", str(tmp_path / "d.jsonl")])
+    assert r.exit_code != 0 and "unknown scene" in r.output
