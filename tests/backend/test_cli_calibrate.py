@@ -41,7 +41,8 @@ def files(lab_dir, tmp_path_factory):
     ref = {n: Extrinsics(full.poses[n], full.intrinsics[n].resolution) for n in names}
     save_extrinsics(d / "reference.yaml", ref)
     save_extrinsics(d / "initial.yaml", perturb_extrinsics(ref, 0.05, 2.0, seed=1))
-    (d / "engine.toml").write_text("[select]\nscope = 15\n\n[refine]\nfinal_batch = true\n")
+    # 10 s of data: the first adjustment (which waits up to 20 s) would leave only the final batch
+    (d / "engine.toml").write_text("[select]\nscope = 15\nfirst_scope = 0\n\n[refine]\nfinal_batch = true\n")
     return d
 
 

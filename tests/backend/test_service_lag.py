@@ -29,7 +29,8 @@ def problem(lab_dir):
 
     init = perturb_extrinsics(load_extrinsics(lab_dir / "reference.yaml"), 0.25, 10.0, seed=3)
     cams = CameraSet.combine(load_intrinsics(lab_dir / "intrinsics.yaml"), init)
-    p = Pipeline(cams, EngineConfig(), seed=0)
+    # a paper-style cycle (no first adjustment, which waits up to 20 s of data)
+    p = Pipeline(cams, EngineConfig().merged({"select": {"first_scope": 0}}), seed=0)
     sim = Simulator(Scene.load(lab_dir), SimConfig(persons=2, duration=12.0, seed=5))
     for arrival, msg in sim.messages():
         p.push(msg, arrival)
