@@ -77,7 +77,7 @@ def test_bone_lengths_carry_scale_along_the_chain(chain):
     assert one.ok and one.final_error < one.initial_error and one.bone_lengths is not None
 
 
-def test_cycles_do_not_get_bones_by_default():
+def test_bones_are_opt_in_and_batch_means_first_and_final_adjustments():
     from backend.optimize import bones_wanted
 
     cfg = EngineConfig().optimize
@@ -85,7 +85,9 @@ def test_cycles_do_not_get_bones_by_default():
     t = np.zeros((2, 3))
     P = np.repeat(np.eye(6)[None], 2, axis=0)
     prob = Problem(cycle=1, R=R, t=t, prior_R=R, prior_t=t, prior_cov=P, focal=np.ones(2), config=cfg)
-    assert cfg.bones == "batch"
+    assert cfg.bones == "off" and not bones_wanted(replace(prob, kind="batch"))
+    cfg = cfg.model_copy(update={"bones": "batch"})
+    prob = replace(prob, config=cfg)
     assert not bones_wanted(prob) and bones_wanted(replace(prob, kind="batch")) and bones_wanted(replace(prob, kind="first"))
     assert bones_wanted(replace(prob, config=cfg.model_copy(update={"bones": "all"})))
     assert not bones_wanted(replace(prob, kind="batch", config=cfg.model_copy(update={"bones": "off"})))
