@@ -34,6 +34,11 @@ from .preprocess import Detection
 from .selection import select_spaced
 
 
+# A cycle whose hypotheses give no camera enough observations: too little data, not a
+# failure of the optimizer (the service does not count it as a solver fault).
+NO_DATA = "no camera has enough observations"
+
+
 @dataclass(frozen=True, eq=False)
 class Problem:
     """One cycle's inputs, picklable (the service solves it in a worker process).
@@ -404,7 +409,7 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
     C, L = len(p.R), len(g.landmarks)
     cams = np.flatnonzero(g.active)
     if len(cams) == 0 or L == 0:
-        return "no camera has enough observations"
+        return NO_DATA
     X = lambda c: gtsam.symbol("x", int(c))  # noqa: E731
     Lk = lambda l: gtsam.symbol("l", int(l))  # noqa: E731
     graph = gtsam.NonlinearFactorGraph()
