@@ -240,16 +240,10 @@ class Pipeline:
             else:
                 if not self.queue.ready():
                     return None
+                self.cycle += 1
                 settled = (rf.cycles >= a.settled_cycles) | self._pairwise_only()
                 hyps = self.queue.select(self.rng, None,
                                          lambda h: len(h.cams) >= a.min_views_unsettled or settled[h.cams].all())
-                if len(hyps) < max(2, cfg.select.scope // 5):
-                    # too few usable yet (e.g. right after the first adjustment emptied the
-                    # queue, while cameras need 3-view hypotheses): a cycle would have no data
-                    self.queue.extend(hyps)
-                    self.last_cycle_time = now
-                    return None
-                self.cycle += 1
                 p = Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
                             prior_cov=rf.predicted_covariance(), focal=self.focal, config=cfg.optimize,
                             hypotheses=tuple(hyps), kind="cycle")

@@ -34,11 +34,14 @@ def test_optimizer_failures_are_reported_and_the_service_recovers(tmp_path, lab_
             assert c.get("/status").json()["cycles"]["solver_fault"] is None
             plan.write_text("".join(f"{x}\n" for x in FAULTS))
             seen_failing = seen_reason = False
+            errors: set[str] = set()
             deadline = time.monotonic() + 120
             while True:  # while it fails, /status and the session say so
                 status, sess = c.get("/status").json(), c.get(f"/sessions/{sid}").json()
                 f = status["cycles"]["solver_fault"]
                 seen_failing |= f is not None and f["failing"] > 0
+                if f is not None:
+                    errors.add(f["error"])
                 if sess["solver_fault"] is not None and sess["solver_fault"]["failing"]:
                     seen_reason |= "optimizer failed" in sess["reason"]
                 if f is not None and f["count"] >= len(FAULTS) and not f["failing"]:
@@ -50,8 +53,9 @@ def test_optimizer_failures_are_reported_and_the_service_recovers(tmp_path, lab_
             assert not plan.read_text().strip()  # every fault was taken
             # recovered: the next cycle was good, the service and the session run on
             assert f["recovered_cycle"] > f["cycle"] and f["kept_cycle"] is not None and f["kept_cycle"] < f["cycle"] - 3
-            assert "died" in f["error"]  # the last fault: the worker process
-            assert status["cycles"]["solver_restarts"] == 1 and status["cycles"]["solver_faults"] == len(FAULTS)
+            # the worker process died (a cycle with too little data may also have failed meanwhile)
+            assert any("died" in e for e in errors), errors
+            assert status["cycles"]["solver_restarts"] == 1 and status["cycles"]["solver_faults"] >= len(FAULTS)
             s = live._poll(c, f"/sessions/{sid}", lambda s: s["cycles"] >= f["recovered_cycle"] + 1, 90, "no more cycles")
             assert s["live"] and s["state"] in ("calibrating", "converged") and "optimizer failed" not in s["reason"]
             assert s["solver_fault"]["recovered_cycle"] == f["recovered_cycle"]
