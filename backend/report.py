@@ -145,11 +145,19 @@ def load_session(path: str | os.PathLike, *, intrinsics: str | os.PathLike | Non
     warnings: list[str] = []
     sessions = path / "sessions"
     if path.is_dir() and sessions.is_dir() and not (path / "history.jsonl").exists():
-        # the service's state directory: report its newest session (ids sort by time)
-        ids = sorted(p.name for p in sessions.iterdir() if (p / "session.json").is_file())
-        if not ids:
+        # the service's state directory: report its newest session. Ids sort by the second
+        # they were made in; two sessions of one second are told apart by created_wall.
+        def created(p: Path) -> tuple[str, float]:
+            try:
+                wall = float(json.loads((p / "session.json").read_text()).get("created_wall", 0.0))
+            except (OSError, ValueError, TypeError, AttributeError):
+                wall = 0.0
+            return p.name.split("-")[0], wall
+
+        dirs = [p for p in sessions.iterdir() if (p / "session.json").is_file()]
+        if not dirs:
             raise ReportError(f"{path}: a state directory without sessions")
-        path = sessions / ids[-1]
+        path = max(dirs, key=created)
     meta: dict[str, Any] = {}
     config: dict[str, Any] = {}
     final_state: dict[str, Any] = {}
