@@ -17,7 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from .config import AssociateConfig
-from .geometry import closest_points_segments, triangulate_views
+from .geometry import closest_points_segments, triangulate_batch, triangulate_views
 from .preprocess import L_HIP, L_SHOULDER, R_HIP, R_SHOULDER, TORSO, Detection
 
 
@@ -215,6 +215,21 @@ class Associator:
             self.rejected["behind_camera"] += 1
             return None
         return Hypothesis(time, cams, xy, sigma, com)
+
+
+def triangulate_hypotheses(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(H, 17, 3) every hypothesis' joints triangulated with poses R (C, 3, 3), t (C, 3)
+    in one batched DLT; NaN where a joint is seen in fewer than two views."""
+    H = len(hyps)
+    if H == 0:
+        return np.zeros((0, 17, 3))
+    V = max(len(h.cams) for h in hyps)
+    cams = np.zeros((H, V), np.int64)
+    xy = np.full((H, V, 17, 2), np.nan)
+    for i, h in enumerate(hyps):
+        cams[i, :len(h.cams)], xy[i, :len(h.cams)] = h.cams, h.xy
+    return triangulate_batch(R, t, np.repeat(cams, 17, axis=0),
+                             xy.transpose(0, 2, 1, 3).reshape(H * 17, V, 2)).reshape(H, 17, 3)
 
 
 def triangulate_torso(h: Hypothesis, R: np.ndarray, t: np.ndarray, focal: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:

@@ -431,21 +431,15 @@ def pair_scales(pairs: Sequence[PairPose], cfg: BootstrapConfig) -> tuple[np.nda
     logs = np.zeros(P)
     if P == 0:
         return logs, known
-    # connected groups of related pairs
-    parent = list(range(P))
+    # connected groups of related pairs (labelled in the order of their first pair)
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
 
-    def find(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for e, f, _, _ in rel:
-        parent[find(e)] = find(f)
-    groups: dict[int, list[int]] = defaultdict(list)
-    for k in range(P):
-        groups[find(k)].append(k)
-    best = max(groups.values(), key=lambda g: (len(g), sum(pairs[k].inliers for k in g)))
+    ef = np.array([(e, f) for e, f, _, _ in rel], dtype=np.int64).reshape(-1, 2)
+    _, label = connected_components(coo_matrix((np.ones(len(ef)), (ef[:, 0], ef[:, 1])), shape=(P, P)),
+                                    directed=False)
+    groups = [np.flatnonzero(label == g).tolist() for g in range(label.max() + 1)]
+    best = max(groups, key=lambda g: (len(g), sum(pairs[k].inliers for k in g)))
     anchor = max(best, key=lambda k: pairs[k].inliers)
     if len(best) < 2:
         known[anchor] = True

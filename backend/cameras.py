@@ -64,6 +64,15 @@ class Intrinsics:
             resolution=(int(w), int(h)),
         )
 
+    def at(self, size: tuple[int, int]) -> "Intrinsics | None":
+        """The camera for a message of ``size`` (w, h): scaled to it, or None when its
+        aspect differs (by more than 2 %): another camera mode, not this calibration."""
+        w, h = size
+        bw, bh = self.resolution
+        if h <= 0 or abs((w / h) / (bw / bh) - 1) >= 0.02:
+            return None
+        return self.scaled_to((w, h))
+
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Intrinsics):
             return NotImplemented

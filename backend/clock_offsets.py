@@ -436,10 +436,7 @@ class ClockOffsetEstimator:
     def _intr(self, sensor: str, size: tuple[int, int]) -> Intrinsics | None:
         key = (sensor, tuple(size))
         if key not in self._scaled:
-            base = self.intrinsics[sensor]
-            bw, bh = base.resolution
-            w, h = size
-            self._scaled[key] = base.scaled_to((w, h)) if h > 0 and abs((w / h) / (bw / bh) - 1) < 0.02 else None
+            self._scaled[key] = self.intrinsics[sensor].at(size)
         return self._scaled[key]
 
     def push(self, msg: KeypointMessage) -> None:

@@ -66,7 +66,6 @@ class Monitor:
         self.alarms: list[Alarm] = []
         r = np.radians(cfg.model_std_rotation)
         self.floor = np.diag([r * r] * 3 + [cfg.model_std_translation ** 2] * 3)
-        self.last_chi2 = np.full(cameras, np.nan)  # of the mean innovation at the last test, for diagnosis
 
     def observe(self, time: float, watched: np.ndarray, innovations: list[tuple[np.ndarray, np.ndarray] | None]
                 ) -> list[Alarm]:
@@ -101,7 +100,6 @@ class Monitor:
                 chi2 = float(d @ np.linalg.solve(S, d))
             except np.linalg.LinAlgError:
                 continue
-            self.last_chi2[c] = chi2
             rot = float(np.degrees(np.linalg.norm(d[:3])))
             trans = float(np.linalg.norm(d[3:]))
             if chi2 > cfg.chi2 and (trans > cfg.min_translation or rot > cfg.min_rotation):

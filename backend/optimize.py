@@ -34,11 +34,6 @@ from .preprocess import Detection
 from .selection import select_spaced
 
 
-# A cycle whose hypotheses give no camera enough observations: too little data, not a
-# failure of the optimizer (the service does not count it as a solver fault).
-NO_DATA = "no camera has enough observations"
-
-
 @dataclass(frozen=True, eq=False)
 class Problem:
     """One cycle's inputs, picklable (the service solves it in a worker process).
@@ -134,8 +129,6 @@ class Solution:
     final_error: float
     iterations: int
     seconds: float
-    camera_residual_px: np.ndarray | None = None  # (C,) median residual of each camera's observations, NaN = none
-    camera_views: np.ndarray | None = None  # (C,) int views (hypotheses) of each camera
     bone_lengths: np.ndarray | None = None  # (K, len(BONE_NAMES)) bone lengths per person after the solve, NaN = unseen
 
 
@@ -311,22 +304,9 @@ def solve(p: Problem) -> Solution:
         out = out + (nan, nan.copy(), "")
     R, t, lms, _, final_error, its, lengths, cov, cov_shape, reason = out
     res = residuals_px(R, t, lms, g.obs_cam, g.obs_lm, g.obs_xy, p.focal)
-    cam_res, cam_views = per_camera(g, res, C)
     return Solution(reason == "", reason, R, t, cov, cov_shape, g.active, np.bincount(g.obs_cam, minlength=C),
                     int(len(np.unique(g.lm_hyp))), res, float(first_error), float(final_error),
-                    iterations + its, time.perf_counter() - t0, cam_res, cam_views, lengths)
-
-
-def per_camera(g: Graph, res: np.ndarray, C: int) -> tuple[np.ndarray, np.ndarray]:
-    """(C,) median residual px of each camera's observations (NaN = none) and (C,) int
-    number of its views (hypotheses)."""
-    med = np.full(C, np.nan)
-    views = np.zeros(C, np.int64)
-    for c in np.unique(g.obs_cam):
-        m = g.obs_cam == c
-        med[c] = float(np.median(res[m]))
-        views[c] = len(np.unique(g.lm_hyp[g.obs_lm[m]]))
-    return med, views
+                    iterations + its, time.perf_counter() - t0, bone_lengths=lengths)
 
 
 def _relocalize(p: Problem) -> Solution:
@@ -409,7 +389,7 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
     C, L = len(p.R), len(g.landmarks)
     cams = np.flatnonzero(g.active)
     if len(cams) == 0 or L == 0:
-        return NO_DATA
+        return "no camera has enough observations"
     X = lambda c: gtsam.symbol("x", int(c))  # noqa: E731
     Lk = lambda l: gtsam.symbol("l", int(l))  # noqa: E731
     graph = gtsam.NonlinearFactorGraph()

@@ -42,9 +42,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .associate import Associator, Hypothesis
+from .associate import Associator, Hypothesis, triangulate_hypotheses
 from .config import AssociateConfig, BootstrapConfig
-from .geometry import triangulate_batch
 
 # COCO-17 joints
 L_SHOULDER, R_SHOULDER, L_HIP, R_HIP, L_KNEE, R_KNEE, L_ANKLE, R_ANKLE = 5, 6, 11, 12, 13, 14, 15, 16
@@ -86,13 +85,7 @@ def segments(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray) -> Segmen
     if H == 0:
         z = np.zeros(0)
         return Segments(z, np.zeros((0, 3)), z, z, z, np.zeros((0, 2, 3)), np.zeros((0, 3)))
-    V = max(len(h.cams) for h in hyps)
-    cams = np.zeros((H, V), np.int64)
-    xy = np.full((H, V, 17, 2), np.nan)
-    for i, h in enumerate(hyps):
-        cams[i, :len(h.cams)], xy[i, :len(h.cams)] = h.cams, h.xy
-    X = triangulate_batch(R, t, np.repeat(cams, 17, axis=0),
-                          xy.transpose(0, 2, 1, 3).reshape(H * 17, V, 2)).reshape(H, 17, 3)
+    X = triangulate_hypotheses(hyps, R, t)
 
     def length(a, b):
         return np.linalg.norm(X[:, a] - X[:, b], axis=1)

@@ -203,13 +203,8 @@ class Pipeline:
         a = self.cfg.associate
         if not a.reassociate:
             return None
-        C = len(self.names)
-        gate = np.full(C, np.inf)
-        for c in range(C):
-            if self.refiner.cycles[c] >= 2:
-                st, sr = self.refiner.std(c, shape=False)
-                gate[c] = a.gate_pixels + 3 * self.focal[c] * (np.radians(sr) + st / 3.0)
-        return gate
+        sure = self.refiner.cycles >= 2
+        return np.where(sure, a.gate_pixels + 3 * self._pose_px(), np.inf)
 
     # ------------------------------------------------------------ optimisation
 
@@ -344,16 +339,16 @@ class Pipeline:
         elif accepted:
             upd = self.refiner.update(solution.active, solution.R, solution.t, solution.cov, posterior=batch or first,
                                       cov_shape=solution.cov_shape, final=batch)
-            # the monitor watches cameras from their convergence until it finds them moved
-            self.watched |= np.array([self.refiner.converged(c) for c in range(len(self.names))])
             change_t = float(upd.changed_translation.max())
             change_r = float(upd.changed_rotation.max())
             if batch:
                 self.observations_batch = solution.obs_per_camera.copy()
             else:
                 self.observations += solution.obs_per_camera
-            if problem.kind == "cycle":
+            if problem.kind == "cycle" and self.cfg.monitor.enabled:
                 m = self.cfg.monitor
+                # watched from their convergence until the monitor finds them moved
+                self.watched |= np.array([self.refiner.converged(c) for c in range(len(self.names))])
                 inn = [innovation(problem.prior_R[c], problem.prior_t[c], problem.prior_cov[c], solution.R[c],
                                   solution.t[c], solution.cov[c]) if solution.active[c] else None
                        for c in range(len(self.names))]
@@ -459,22 +454,17 @@ class Pipeline:
     def skeletons(self, n: int = 4) -> list[list[list[float] | None]]:
         """The newest ``n`` hypotheses of distinct persons as 3D skeletons (17 joints, world
         frame, None where a joint is not triangulated), for display."""
-        from .geometry import triangulate_batch
+        from .associate import triangulate_hypotheses
 
-        latest = self.queue.newest(8 * n)
-        out: list[list[list[float] | None]] = []
-        coms: list[np.ndarray] = []
-        rf = self.refiner
-        for h in reversed(latest):
-            if any(np.linalg.norm(h.com - c) < 0.5 for c in coms):
+        chosen = []
+        for h in reversed(self.queue.newest(8 * n)):
+            if any(np.linalg.norm(h.com - c.com) < 0.5 for c in chosen):
                 continue  # the same person a moment earlier
-            coms.append(h.com)
-            cams = np.repeat(h.cams[None], 17, axis=0)
-            X = triangulate_batch(rf.R, rf.t, cams, h.xy.transpose(1, 0, 2))
-            out.append([x.tolist() if np.all(np.isfinite(x)) else None for x in X])
-            if len(out) >= n:
+            chosen.append(h)
+            if len(chosen) >= n:
                 break
-        return out
+        X = triangulate_hypotheses(chosen, self.refiner.R, self.refiner.t)
+        return [[x.tolist() if np.all(np.isfinite(x)) else None for x in person] for person in X]
 
     def snapshot(self) -> dict:
         """JSON-able state to resume from: the estimate, not the buffered data."""

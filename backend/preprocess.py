@@ -57,11 +57,7 @@ class Preprocessor:
         """The sensor's intrinsics at a message's resolution; None if the aspect differs."""
         key = (sensor, tuple(size))
         if key not in self._scaled:
-            base = self.intrinsics[sensor]
-            bw, bh = base.resolution
-            w, h = size
-            same_aspect = abs((w / h) / (bw / bh) - 1) < 0.02
-            self._scaled[key] = base.scaled_to((w, h)) if same_aspect else None
+            self._scaled[key] = self.intrinsics[sensor].at(size)
         return self._scaled[key]
 
     def __call__(self, fs: Frameset) -> list[list[Detection]]:

@@ -120,19 +120,20 @@ class Refiner:
     def relocate(self, c: int, R: np.ndarray, t: np.ndarray) -> None:
         """Camera c found elsewhere: new pose, the initial uncertainty, no history."""
         self.R[c], self.t[c] = R, t
-        self.P[c] = initial_covariance(self.cfg)
-        self.S[c] = self.P[c].copy()
-        self.history[c].clear()
-        self.cycles[c] = 0
+        self._restart(c, initial_covariance(self.cfg))
 
     def reopen(self, c: int, std_translation: float, std_rotation: float) -> None:
         """Camera c moved: its pose stays the starting point, its uncertainty is re-opened
         and it counts as uncalibrated until cycles have calibrated it again."""
-        self.P[c] = _diag(std_rotation, std_translation)
-        self.S[c] = self.P[c].copy()
+        self._restart(c, _diag(std_rotation, std_translation))
+        self.batched[c] = False
+
+    def _restart(self, c: int, P: np.ndarray) -> None:
+        """Camera c starts over from its current pose with covariance P: no history, no cycles."""
+        self.P[c] = P
+        self.S[c] = P.copy()
         self.history[c].clear()
         self.cycles[c] = 0
-        self.batched[c] = False
 
     def keep_scale(self, active: np.ndarray | None = None) -> float:
         """Rescale the calibrated cameras' centres about their centroid to the initial
