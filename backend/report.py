@@ -46,6 +46,7 @@ import yaml
 from .cameras import (CameraFileError, Extrinsics, Intrinsics, Pose, load_extrinsics, load_intrinsics,
                       natural_key)
 from .geometry import quat_to_R, rotation_angle_deg
+from .session import SessionStore
 
 # COCO-17 joint groups, in the order of the paper's tables.
 JOINT_GROUPS: dict[str, tuple[int, ...]] = {
@@ -145,19 +146,11 @@ def load_session(path: str | os.PathLike, *, intrinsics: str | os.PathLike | Non
     warnings: list[str] = []
     sessions = path / "sessions"
     if path.is_dir() and sessions.is_dir() and not (path / "history.jsonl").exists():
-        # the service's state directory: report its newest session. Ids sort by the second
-        # they were made in; two sessions of one second are told apart by created_wall.
-        def created(p: Path) -> tuple[str, float]:
-            try:
-                wall = float(json.loads((p / "session.json").read_text()).get("created_wall", 0.0))
-            except (OSError, ValueError, TypeError, AttributeError):
-                wall = 0.0
-            return p.name.split("-")[0], wall
-
-        dirs = [p for p in sessions.iterdir() if (p / "session.json").is_file()]
-        if not dirs:
+        # the service's state directory: report its newest session (ids sort by creation)
+        ids = SessionStore(sessions).ids()
+        if not ids:
             raise ReportError(f"{path}: a state directory without sessions")
-        path = max(dirs, key=created)
+        path = sessions / ids[-1]
     meta: dict[str, Any] = {}
     config: dict[str, Any] = {}
     final_state: dict[str, Any] = {}

@@ -49,7 +49,8 @@ from .cameras import (
 )
 from .config import EngineConfig
 
-SESSION_ID = re.compile(r"^[0-9]{8}T[0-9]{6}-[0-9a-f]{4}$")
+# 20261121T181223.123-ab12; ids of older versions have no milliseconds and still sort first
+SESSION_ID = re.compile(r"^[0-9]{8}T[0-9]{6}(?:\.[0-9]{3})?-[0-9a-f]{4}$")
 
 
 class SessionState(str, Enum):
@@ -147,8 +148,15 @@ class SessionRecord:
 
 
 def new_session_id() -> str:
-    """Sortable by creation time, readable, unique enough for one host."""
-    return time.strftime("%Y%m%dT%H%M%S", time.gmtime()) + "-" + secrets.token_hex(2)
+    """Sortable by creation time, readable, unique enough for one host.
+
+    Milliseconds, because two sessions made in one second (a stop and a start from a
+    script) must still sort in the order they were made: the list and the reports read
+    "newest" from it.
+    """
+    ns = time.time_ns()
+    sec, ms = divmod(ns // 1_000_000, 1000)
+    return time.strftime("%Y%m%dT%H%M%S", time.gmtime(sec)) + f".{ms:03d}-" + secrets.token_hex(2)
 
 
 # ------------------------------------------------------------------ the camera files of a session

@@ -44,6 +44,27 @@ def test_create_load_roundtrip(tmp_path, lab_texts):
         store.dir("../../etc")  # ids are checked before they touch the file system
 
 
+def test_ids_sort_in_the_order_sessions_were_made_even_within_one_second(tmp_path, lab_texts, monkeypatch):
+    """A stop and a start from a script make two sessions in one second; the list and the
+    report take "newest" from the order of ids, so the random suffix must not decide it."""
+    import time as _time
+
+    intr, ref = lab_texts
+    store = SessionStore(tmp_path)
+    inputs = SessionInputs.parse(intr, ref, None, EngineConfig())
+    old = tmp_path / "20260101T000000-ffff"  # an id of an older version, without milliseconds
+    store.create(SessionRecord.from_dict({**_record().to_dict(), "id": old.name}), inputs)
+    base = 1_800_000_000_000_000_000  # one second, three sessions in it
+    made = []
+    for k, ms in enumerate((5, 250, 999)):
+        monkeypatch.setattr(_time, "time_ns", lambda ms=ms: base + ms * 1_000_000)
+        rec = SessionRecord.from_dict({**_record().to_dict(), "id": new_session_id()})
+        store.create(rec, inputs)
+        made.append(rec.id)
+    assert len({m.split(".")[0] for m in made}) == 1  # the same second
+    assert store.ids() == [old.name, *made]
+
+
 def test_history_drops_a_torn_line_and_is_cut_on_resume(tmp_path, lab_texts):
     intr, ref = lab_texts
     store = SessionStore(tmp_path)
