@@ -62,6 +62,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("extrcal.service")
 
 MAX_CONSECUTIVE_FAILURES = 10  # failed solves in a row before a session is marked failed
+SOLVER_NICE = 5  # the solver process's niceness above the service's (see _worker_init)
 SWITCH_INTERVAL = 0.001  # s: how soon a thread waiting for the GIL gets it (the HTTP thread)
 LINK_CHECK = 1.0  # s between checks of the Zenoh session's links
 STATUS_WAIT = 0.03  # s the HTTP thread waits for a fresh status before it serves the snapshot
@@ -171,6 +172,12 @@ def _worker_init(parent: int) -> None:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    # A solve can wait; ingest and /status cannot. When the cores are busy (overload, or a
+    # small board running the detector too), the scheduler serves the service process first.
+    try:
+        os.nice(SOLVER_NICE)
+    except OSError:  # a platform or a sandbox without nice: a slower /status, not a failure
+        pass
 
     def watch() -> None:
         while os.getppid() == parent:
