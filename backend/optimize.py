@@ -392,6 +392,10 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         return "no camera has enough observations"
     X = lambda c: gtsam.symbol("x", int(c))  # noqa: E731
     Lk = lambda l: gtsam.symbol("l", int(l))  # noqa: E731
+    # keys by list lookup: a final batch has ~10^5 observations, and two gtsam.symbol calls
+    # each were a tenth of its Python time
+    xkey = [X(c) for c in range(C)]
+    lkey = [Lk(l) for l in range(L)]
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     for c in cams:
@@ -400,7 +404,7 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         cov = 0.5 * (p.prior_cov[c] + p.prior_cov[c].T)
         graph.add(gtsam.PriorFactorPose3(X(c), prior, gtsam.noiseModel.Gaussian.Covariance(cov)))
     for l in range(L):
-        values.insert(Lk(l), g.landmarks[l])
+        values.insert(lkey[l], g.landmarks[l])
     K = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
     cfg = p.config
     robust = None
@@ -408,11 +412,13 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         robust = gtsam.noiseModel.mEstimator.Huber.Create(cfg.robust_k)
     elif cfg.robust == "cauchy":
         robust = gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_k)
-    for c, l, xy, s in zip(g.obs_cam, g.obs_lm, g.obs_xy, g.obs_sigma):
-        noise = gtsam.noiseModel.Isotropic.Sigma(2, float(s))
+    Sigma, Robust, Factor = gtsam.noiseModel.Isotropic.Sigma, gtsam.noiseModel.Robust.Create, \
+        gtsam.GenericProjectionFactorCal3_S2
+    for c, l, xy, s in zip(g.obs_cam.tolist(), g.obs_lm.tolist(), g.obs_xy, g.obs_sigma.tolist()):
+        noise = Sigma(2, s)
         if robust is not None:
-            noise = gtsam.noiseModel.Robust.Create(robust, noise)
-        graph.add(gtsam.GenericProjectionFactorCal3_S2(xy, noise, X(c), Lk(l), K))
+            noise = Robust(robust, noise)
+        graph.add(Factor(xy, noise, xkey[c], lkey[l], K))
     lengths = _add_bones(graph, g, person, cfg, robust, Lk, gtsam) if person is not None else None
 
     initial_error = graph.error(values)
@@ -420,7 +426,7 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
     # sequential Cholesky about twice as fast as COLAMD + multifrontal on these graphs.
     ordering = gtsam.Ordering()
     for l in range(L):
-        ordering.push_back(Lk(l))
+        ordering.push_back(lkey[l])
     for c in cams:
         ordering.push_back(X(c))
     if cfg.solver == "lm":
@@ -449,7 +455,7 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         pose = result.atPose3(X(c))
         R[c] = pose.rotation().matrix()
         t[c] = pose.translation()
-    lms = np.array([result.atPoint3(Lk(l)) for l in range(L)]).reshape(-1, 3)
+    lms = np.array([result.atPoint3(k) for k in lkey]).reshape(-1, 3)
     if lengths is not None:
         lengths = bone_lengths(g, person, lms)
     out = (R, t, lms, float(initial_error), float(final_error), int(optimizer.iterations()), lengths)
