@@ -1021,9 +1021,15 @@ class Service:
                 sources[what] = f"file:{name}"
             else:
                 resolved[what] = None
-        for what in ("intrinsics", "initial"):
-            if resolved[what] is None:
-                raise SessionInputError(f"{what}: give {what}_yaml (the file's text) or {what} (a configured file name)")
+        if resolved["intrinsics"] is None:
+            raise SessionInputError("intrinsics: give intrinsics_yaml (the file's text) or intrinsics (a configured file name)")
+        if resolved["initial"] is None:
+            # the bootstrap needs a minute or two of data before the first pose exists: offline for now
+            raise SessionInputError(
+                "initial: give initial_yaml (the file's text) or initial (a configured file name). Without any "
+                "initial estimate, record a few minutes of people walking (`extrcal record`), run `extrcal calibrate "
+                "RECORDING --intrinsics ...` without --initial (it bootstraps from the people, docs/bootstrap.md), "
+                "and start the session with its result as the initial estimate")
         try:
             cfg = self.base_config.merged(config) if config else self.base_config
         except ConfigError as e:

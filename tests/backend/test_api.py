@@ -85,6 +85,7 @@ def test_state_changing_endpoints_need_the_token(client, lab_body):
     ({"stop": {"duration": -1}}, 422, "stop.duration"),
     ({"surprise": 1}, 422, "surprise"),
     ({"intrinsics_yaml": None}, 422, "intrinsics"),
+    ({"initial_yaml": None}, 422, "without --initial"),  # points to the bootstrap
 ])
 def test_bad_session_bodies_are_4xx_with_a_reason(client, lab_body, patch, status, needle):
     body = {**lab_body, **patch}
