@@ -100,6 +100,7 @@ def main() -> None:
     ap.add_argument("--start", default="0.25/10", help="initial error m/deg")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/extrcal-accuracy-cache"))
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--runs", default="all", help="the runs to make, ';'-separated names as printed (default all)")
     a = ap.parse_args()
     offsets = {k: float(v) for k, v in (x.split("=") for x in a.offsets.split(","))}
     start = tuple(float(x) for x in a.start.split("/"))
@@ -111,15 +112,18 @@ def main() -> None:
     true = dict(zip(truth.sensors, truth.clock_offset.tolist()))
     truth_sync = Truth.load(Truth.sidecar_path(rec_sync))
     true_sync = dict(zip(truth_sync.sensors, truth_sync.clock_offset.tolist()))
-    runs = {
-        "offsets, estimated": run(rec_off, a.seed, True, start),
-        "synchronised clocks, estimated": run(rec_sync, a.seed, True, start),
-        "synchronised clocks": run(rec_sync, a.seed, False, start),
-        "offsets, not estimated": run(rec_off, a.seed, False, start),
+    plan = {
+        "offsets, estimated": (rec_off, True),
+        "synchronised clocks, estimated": (rec_sync, True),
+        "synchronised clocks": (rec_sync, False),
+        "offsets, not estimated": (rec_off, False),
     }
+    keep = [k for k in plan if a.runs == "all" or k in a.runs.split(";")]
+    runs = {k: run(plan[k][0], a.seed, plan[k][1], start) for k in keep}
     for name, tr_all, off in (("offsets, estimated", true, offsets),
                               ("synchronised clocks, estimated", true_sync, {})):
-        table(name, runs[name]["clocks"], tr_all, off, a)
+        if name in runs:
+            table(name, runs[name]["clocks"], tr_all, off, a)
     print()
     print("| run | rigid position (m) | orientation (°) | shape position (m) | offset sensors: position (m) / orientation (°) | wall s |")
     print("|---|---|---|---|---|---|")
