@@ -170,8 +170,9 @@ def short_run():
     return p, offsets, names
 
 
-@pytest.mark.xfail(strict=True, reason="the bar the estimator does not meet yet (docs/clock_offsets.md): "
-                   "with 2 of 6 sensors off, the 3D from the others is mistimed too and 40 s do not settle it")
+@pytest.mark.xfail(strict=True, reason="the bar is not met on this small scene (docs/clock_offsets.md): with 2 "
+                   "of 6 sensors off nearly every person's 3D from the others has a mistimed view, and 40 s "
+                   "do not let the estimates untangle that")
 def test_short_run_estimates_offsets_within_a_few_ms(short_run):
     p, offsets, names = short_run
     clocks = {c.sensor: c for c in p.state().clocks}
