@@ -7,29 +7,25 @@ ahead of that reference (positive: stamped late; the synchroniser subtracts it).
 How (docs/clock_offsets.md has the reasoning and the figures):
 
 1. Tracks, per sensor, on its raw message stream: a person's detections chained from
-   message to message (joints moved less than a fraction of the image diagonal per
-   second). A sensor far off in time need not join framesets for this.
-2. Persons in 3D from the other sensors: each hypothesis the pipeline associates (one
-   person at one frameset instant, on the synchronised clock) is triangulated with the
-   current pose estimate *without* the sensor under test.
-3. For each sensor, block of data time and candidate offset g on a grid, the sensor's
-   tracks are interpolated to the raw stamps ``T + g`` and compared with that person
-   projected into the sensor (Cauchy-robust reprojection distance, px). With two persons
-   in view the track that fits clearly best is the person (ratio test); a fit far worse
-   than the sensor's usual one is nobody (gate).
-4. The sensor's offset is the minimum of its summed curve over the recent blocks
-   (parabola through the best three grid points); its std is the blocks' jackknife
-   (blocks are long against the detector's correlated noise). A sensor first searches
-   the whole range on a coarse grid, then a fine grid around what it found; a minimum on
-   the fine grid's edge (a clock jumped) sends it back to the search.
-5. Offsets relative to the median sensor; confident ones are applied by the synchroniser,
-   which makes the other sensors' 3D (step 2) better timed in turn.
+   message to message. A sensor far off in time need not join framesets for this.
+2. The pipeline's hypotheses (one person at one frameset instant T on the synchronised
+   clock, associated over the cameras) give each sensor's samples: a hypothesis with the
+   sensor in it says which of its tracks is that person (the track through the
+   sensor's view at ``T + applied offset``), and the person in 3D comes from the
+   *other* views, triangulated with the current pose estimate. Views of sensors whose
+   current offset estimate says they were mistimed are left out of that 3D.
+3. For a candidate offset g the sensor's tracks are taken at the raw stamps ``T + g``
+   and compared with the 3D persons: the sensor's own pose is fitted to them (robust
+   Gauss-Newton PnP, Cauchy), because a mistimed camera is also badly calibrated and
+   its pose error would swamp the timing signal; the cost left is the profile cost of g.
+   A coarse grid over the whole range finds the offset, a fine grid around it and a
+   least-squares parabola measure it; its std is the jackknife over blocks of data time.
+4. Offsets relative to the median sensor; confident ones are applied by the
+   synchroniser, which makes the other sensors' 3D (step 2) better timed in turn.
 
-Reprojection and not the epipolar constraint between pairs of cameras: a pair only sees
-motion across its epipolar lines, and people walk mostly along them when the cameras
-hang at one height (measured: pairwise estimates 5-30 ms off on noisy detections). This
-estimator does not meet its 5 ms bar yet either; it is off by default
-(``clock.estimate``); docs/clock_offsets.md has the figures and the next steps.
+Joint pose and time: walking people move along few directions over a few seconds, so a
+pose correction alone could absorb a shift in time; over a window of a minute they walk
+every way and the two separate (the std says how well).
 
 Synchronous, numpy only; the pipeline feeds it messages and hypotheses and calls
 ``update`` with the current pose estimate.
@@ -40,7 +36,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterable, Mapping
 
 import numpy as np
@@ -50,7 +46,7 @@ from proto import KeypointMessage
 from .associate import Hypothesis
 from .cameras import Intrinsics, undistort
 from .config import ClockConfig
-from .geometry import triangulate_batch
+from .geometry import so3_exp, triangulate_batch
 
 log = logging.getLogger(__name__)
 
@@ -59,13 +55,15 @@ log = logging.getLogger(__name__)
 BODY = np.array([5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16])
 _MATCH_DIAG_PER_S = 1.0  # as in sync: persons move less than this many image diagonals per second
 _MATCH_MIN_FRAC = 0.03
-_FINE_STEP = 0.002  # s, grid step around a found offset
-_FINE_HALF = 0.03  # s, half-width of that grid
-_RATIO = 0.6  # the best track must fit clearly better than the runner-up (cost per joint)
-_STD_FLOOR = 0.0003  # s: the jackknife of few blocks can be optimistic
+_VIEW_MATCH_PX = 10.0  # a hypothesis' view is a track's detection when they are this close (median, px)
+_STD_FLOOR = 0.0002  # s: the jackknife of few blocks can be optimistic
+_RATIO = 0.5  # a track is the person when it fits at least this much better than any other
+_COARSE_SAMPLES = 400  # samples a coarse search uses (spread over the window)
+_POSE_ITERS = 2  # Gauss-Newton steps of the pose at each candidate (from the centre's pose)
 # Cauchy width in units of the median absolute residual: 2.385 sigma (95 % efficiency
-# for Gaussian noise), and the median of |N(0, sigma)| is 0.674 sigma.
-_CAUCHY = 2.385 / 0.674
+# for Gaussian noise), and the median of |N(0, sigma)| is 0.674 sigma (per coordinate;
+# for the 2D distance the median is 1.18 sigma).
+_CAUCHY = 2.385 / 1.18
 
 
 # ------------------------------------------------------------------ results
@@ -76,7 +74,7 @@ class SensorClock:
     """One sensor's clock as estimated.
 
     offset: s its stamps run ahead of the reference clock (the median sensor), None when
-        not estimated yet (nobody seen by it and two others).
+        not estimated yet.
     std: s, its standard deviation (jackknife over blocks of data).
     applied: s the synchroniser subtracts from its stamps now.
     blocks: blocks of data (``clock.block`` s each) the estimate rests on.
@@ -118,98 +116,105 @@ def interpolate_track(stamps: np.ndarray, xy: np.ndarray, ok: np.ndarray, q: np.
     return out, good
 
 
-def reprojection_curves(proj: np.ndarray, times: np.ndarray, track: tuple[np.ndarray, np.ndarray, np.ndarray],
-                        grid: np.ndarray, focal: float, width_px: float, max_gap: float
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Robust reprojection cost of persons against one track, per candidate offset.
-
-    proj: (M, J, 2) the persons (from the other sensors) projected into this sensor,
-    normalised, NaN = unknown; times: (M,) their instants on the synchronised clock;
-    track: (stamps (n,), xy (n, J, 2), ok (n, J)) raw stamps, normalised; grid: (K,) s,
-    the track is taken at times + grid. Only joints valid at every candidate count, so
-    costs compare across the grid.
-
-    Returns cost (M, K) summed Cauchy cost in px², count (M,) joints, (M,) the median
-    distance px at each person's best candidate (NaN when count is 0), the track's
-    positions pos (M, K, J, 2) and valid (M, J).
-    """
-    M, J, _ = proj.shape
-    K = len(grid)
-    q = times[:, None] + grid[None, :]
-    pos, ok = interpolate_track(*track, q, max_gap)  # (M, K, J, 2), (M, K, J)
-    valid = ok.all(axis=1) & np.all(np.isfinite(proj), axis=2)  # (M, J)
-    count = valid.sum(1)
-    d = np.linalg.norm(np.nan_to_num(proj)[:, None] - pos, axis=-1) * focal  # (M, K, J)
-    rho = width_px**2 * np.log1p((d / width_px) ** 2)
-    cost = np.where(valid[:, None, :], rho, 0.0).sum(-1)
-    best = np.argmin(cost, axis=1)
-    at_best = d[np.arange(M), best]  # (M, J)
-    med = np.full(M, np.nan)
-    for m in np.flatnonzero(count):
-        med[m] = float(np.median(at_best[m, valid[m]]))
-    assert cost.shape == (M, K)
-    return cost, count, med, pos, valid
+def smooth_track(stamps: np.ndarray, xy: np.ndarray, ok: np.ndarray, q: np.ndarray, max_gap: float,
+                 bandwidth: float) -> tuple[np.ndarray, np.ndarray]:
+    """Like ``interpolate_track`` (same validity) but the positions are a local linear
+    fit (Gaussian kernel, ``bandwidth`` s) at q (K,). Plain interpolation between noisy
+    detections has half the noise variance halfway between two of them and all of it
+    at one: when the query times share a phase against the sensor's frames (a 30 Hz
+    camera, framesets at 10 Hz) that variance pattern shifts the cost's minimum."""
+    lin, good = interpolate_track(stamps, xy, ok, q, max_gap)
+    lo, hi = np.searchsorted(stamps, [q.min() - 3 * bandwidth, q.max() + 3 * bandwidth])
+    lo, hi = max(lo - 1, 0), min(hi + 1, len(stamps))
+    dt = stamps[None, lo:hi] - q[:, None]  # (K, n)
+    w = np.exp(-0.5 * (dt / bandwidth) ** 2)[:, :, None] * ok[None, lo:hi]  # (K, n, J)
+    dt = dt[:, :, None]
+    s0, s1, s2 = w.sum(1), (w * dt).sum(1), (w * dt * dt).sum(1)  # (K, J)
+    x = np.nan_to_num(xy[lo:hi])[None]  # (1, n, J, 2)
+    t0 = (w[..., None] * x).sum(1)  # (K, J, 2)
+    t1 = (w[..., None] * dt[..., None] * x).sum(1)
+    det = s0 * s2 - s1 * s1
+    fine = det > 1e-6 * np.maximum(s0, 1e-12) * bandwidth**2 * np.maximum(s0, 1e-12)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = (s2[..., None] * t0 - s1[..., None] * t1) / det[..., None]
+    return np.where(fine[..., None], a, lin), good
 
 
-def affine_profile(stats: tuple[np.ndarray, np.ndarray, np.ndarray, float]) -> np.ndarray:
-    """(K,) weighted mean squared residual per candidate after the best image-plane
-    affine correction (6 parameters) common to all candidates' data: the profile of
-    ``Σ w |y_k − D θ|²`` over θ. stats = (M (6, 6) Σ w DᵀD, B (K, 6) Σ w Dᵀy_k,
-    C (K,) Σ w |y_k|², W = Σ w)."""
-    M, B, C, W = stats
-    X = np.linalg.solve(M + 1e-9 * np.trace(M) * np.eye(6), B.T)  # (6, K)
-    return (C - np.einsum("kp,pk->k", B, X)) / max(W, 1e-12)
+def fit_pose(X: np.ndarray, x: np.ndarray, R: np.ndarray, t: np.ndarray, width: float, iters: int
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Robust (Cauchy, ``width`` normalised units) Gauss-Newton fit of a camera pose to
+    world points X (N, 3) seen at normalised coordinates x (N, 2), from R (3, 3), t (3,)
+    (world_R_cam, optical centre). Returns R, t and the (N,) distances (normalised) at
+    the result (inf behind the camera)."""
+    assert X.shape[1:] == (3,) and x.shape == (len(X), 2)
+    for _ in range(iters + 1):
+        Xc = (X - t) @ R  # cam_R_world (X - t)
+        z = Xc[:, 2]
+        front = z > 0.05
+        zs = np.where(front, z, 1.0)
+        u = Xc[:, :2] / zs[:, None]
+        r = x - u
+        d = np.where(front, np.linalg.norm(r, axis=1), np.inf)
+        if _ == iters:
+            return R, t, d
+        w = np.where(front, 1.0 / (1.0 + (np.where(front, d, 0.0) / width) ** 2), 0.0)
+        # u(Xc'), Xc' = Xc - v + [Xc]x w (R' = R exp([w]), t' = t + R v)
+        du = np.zeros((len(X), 2, 3))
+        du[:, 0, 0] = du[:, 1, 1] = 1.0 / zs
+        du[:, 0, 2] = -u[:, 0] / zs
+        du[:, 1, 2] = -u[:, 1] / zs
+        hx = np.zeros((len(X), 3, 3))
+        hx[:, 0, 1], hx[:, 0, 2] = -Xc[:, 2], Xc[:, 1]
+        hx[:, 1, 0], hx[:, 1, 2] = Xc[:, 2], -Xc[:, 0]
+        hx[:, 2, 0], hx[:, 2, 1] = -Xc[:, 1], Xc[:, 0]
+        Jm = np.concatenate([du @ hx, -du], axis=2).reshape(-1, 6)  # (2N, 6)
+        Jw = Jm * np.repeat(w, 2)[:, None]
+        H = Jw.T @ Jm
+        g = Jw.T @ r.reshape(-1)
+        H += (1e-6 * np.trace(H) + 1e-12) * np.eye(6)
+        step = np.linalg.solve(H, g)
+        t = t + R @ step[3:]
+        R = R @ so3_exp(step[:3])
+    raise AssertionError("unreachable")
 
 
-def affine_stats(p: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """Sufficient statistics of ``y_k ≈ D(p) θ``: p (N, 2) projected points, y (N, K, 2)
-    observed minus projected per candidate, w (N,) weights; D(p) = [[px, py, 0, 0, 1, 0],
-    [0, 0, px, py, 0, 1]]."""
-    N = len(p)
-    D = np.zeros((N, 2, 6))
-    D[:, 0, 0:2] = p
-    D[:, 1, 2:4] = p
-    D[:, 0, 4] = 1.0
-    D[:, 1, 5] = 1.0
-    M = np.einsum("n,nip,niq->pq", w, D, D)
-    B = np.einsum("n,nip,nki->kp", w, D, y)
-    C = np.einsum("n,nki->k", w, y * y)
-    return M, B, C, float(w.sum())
+def cauchy(d: np.ndarray, width: float) -> np.ndarray:
+    """Cauchy cost of distances d (any shape), ``width``: same units; inf stays inf-free
+    (a point behind the camera costs as a far outlier)."""
+    return width**2 * np.log1p((np.minimum(d, 1e3 * width) / width) ** 2)
 
 
-def curve_minimum(cost: np.ndarray, grid: np.ndarray) -> float | None:
-    """Sub-grid minimum of a sampled curve (parabola through the best three points);
-    None when the best point lies on the grid's edge (the minimum may be outside)."""
+def parabola_minimum(cost: np.ndarray, grid: np.ndarray, half: int = 2) -> float | None:
+    """Minimum of a sampled curve: least-squares parabola through the 2·half+1 points
+    around the best one. None when the best point lies within ``half`` of the grid's
+    edge (the minimum may be outside) or the parabola opens downwards."""
     k = int(np.argmin(cost))
-    if k == 0 or k == len(cost) - 1:
+    if k < half or k >= len(cost) - half:
         return None
-    c0, c1, c2 = cost[k - 1], cost[k], cost[k + 1]
-    den = c0 - 2 * c1 + c2
-    shift = 0.5 * (c0 - c2) / den if den > 0 else 0.0
-    return float(grid[k] + np.clip(shift, -0.5, 0.5) * (grid[k + 1] - grid[k]))
+    sl = slice(k - half, k + half + 1)
+    x = grid[sl] - grid[k]
+    a, b, _ = np.polyfit(x, cost[sl] - cost[k], 2)
+    if a <= 0:
+        return None
+    m = -b / (2 * a)
+    span = grid[k + half] - grid[k]
+    return float(grid[k] + np.clip(m, -span, span))
 
 
-def _sum_stats(blocks: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    return (sum(b[0] for b in blocks), sum(b[1] for b in blocks), sum(b[2] for b in blocks),
-            float(sum(b[3] for b in blocks)))
-
-
-def jackknife_minimum(blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]], grid: np.ndarray
-                      ) -> tuple[float, float] | None:
-    """The minimum of the affine profile (``affine_profile``) of all blocks' statistics
-    and its jackknife std over blocks. None: fewer than 3 blocks, or a minimum on the
-    grid's edge (with all blocks or without one)."""
-    B = len(blocks)
+def jackknife_minimum(block_cost: np.ndarray, grid: np.ndarray) -> tuple[float, float] | None:
+    """The minimum (``parabola_minimum``) of the summed per-block curves block_cost
+    (B, K) and its jackknife std over the blocks; None with fewer than 3 blocks or when
+    a minimum is not found (with all blocks or without one)."""
+    B = block_cost.shape[0]
     if B < 3:
         return None
-    total = _sum_stats(blocks)
-    x = curve_minimum(affine_profile(total), grid)
+    total = block_cost.sum(0)
+    x = parabola_minimum(total, grid)
     if x is None:
         return None
     loo = []
     for b in range(B):
-        Mb, Bb, Cb, Wb = blocks[b]
-        y = curve_minimum(affine_profile((total[0] - Mb, total[1] - Bb, total[2] - Cb, total[3] - Wb)), grid)
+        y = parabola_minimum(total - block_cost[b], grid)
         if y is None:
             return None
         loo.append(y)
@@ -217,37 +222,74 @@ def jackknife_minimum(blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, flo
     return x, max(math.sqrt((B - 1) / B * ((a - a.mean()) ** 2).sum()), _STD_FLOOR)
 
 
-def triangulate_without(R: np.ndarray, t: np.ndarray, hyps: list[Hypothesis]) -> tuple[np.ndarray, np.ndarray]:
-    """Every hypothesis' BODY joints triangulated from all its views, and from all but
-    each one of them.
+@dataclass(frozen=True)
+class Samples:
+    """One sensor's samples: persons in 3D from the other sensors and its own track.
 
-    Returns X (M, J, 3) and X_without (M, Vmax, J, 3) world points (NaN where fewer than
-    two views remain or a point lies behind a camera); X_without[m, v] leaves out view v
-    of hypothesis m (cams[v])."""
-    M, J = len(hyps), len(BODY)
-    Vmax = max((len(h.cams) for h in hyps), default=0)
-    X_all = np.full((M, J, 3), np.nan)
-    X_wo = np.full((M, max(Vmax, 1), J, 3), np.nan)
-    if M == 0:
-        return X_all, X_wo
-    # one batch: rows (m, leave-out v or -1, joint), columns = views (padding NaN)
-    cams = np.zeros((M, Vmax + 1, Vmax), np.int64)
-    xy = np.full((M, Vmax + 1, Vmax, J, 2), np.nan)
-    for m, h in enumerate(hyps):
-        V = len(h.cams)
-        body = h.xy[:, BODY]  # (V, J, 2)
-        for r in range(V + 1):  # r = V: all views
-            keep = [v for v in range(V) if v != r]
-            cams[m, r, :len(keep)] = h.cams[keep]
-            xy[m, r, :len(keep)] = body[keep]
-    pts_xy = np.transpose(xy, (0, 1, 3, 2, 4)).reshape(-1, Vmax, 2)  # (M*(Vmax+1)*J, Vmax, 2)
-    pts_cams = np.repeat(cams[:, :, None, :], J, axis=2).reshape(-1, Vmax)
-    X = triangulate_batch(R, t, pts_cams, pts_xy).reshape(M, Vmax + 1, J, 3)
-    for m, h in enumerate(hyps):
-        V = len(h.cams)
-        X_all[m] = X[m, V]
-        X_wo[m, :V] = X[m, :V]
-    return X_all, X_wo
+    X: (N, J, 3) world joints from the others (NaN = unknown).
+    times: (N,) s frameset instants on the synchronised clock.
+    tracks: N tracks of the sensor (stamps (n,), xy (n, J, 2) normalised, ok (n, J)),
+        raw stamps.
+    memo: N dicts where ``profile`` keeps the tracks taken at a grid (they do not change).
+    """
+
+    X: np.ndarray
+    times: np.ndarray
+    tracks: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]
+    memo: tuple[dict, ...] | None = None
+
+    def __post_init__(self) -> None:
+        N = len(self.times)
+        assert self.X.shape == (N, len(BODY), 3) and len(self.tracks) == N
+        assert self.memo is None or len(self.memo) == N
+
+
+def profile(samples: Samples, grid: np.ndarray, R: np.ndarray, t: np.ndarray, max_gap: float, block: float,
+            focal: float, min_scale_px: float, anneal: bool = True, bandwidth: float = 0.05) -> tuple[np.ndarray, np.ndarray, float, int] | None:
+    """Profile cost of candidate offsets: at each g in grid (K,) the sensor's pose is
+    fitted (``fit_pose``, from the pose fitted at the grid's centre) to the samples'
+    3D joints against its tracks at ``times + g`` (``smooth_track``; ``anneal``: the start pose may be far
+    off, begin with a wide Cauchy). Only joints valid at every candidate
+    count, so costs compare across the grid.
+
+    Returns block_cost (B, K) (Cauchy px², per block of ``block`` s of data time), the
+    block ids' count B, the robust scale used (px, median distance at the centre), the
+    number of joints and the pose (R, t) fitted at the centre; None without joints.
+    """
+    K = len(grid)
+    pos, val = [], []
+    key = (round(float(grid[0]), 6), round(float(grid[-1]), 6), K)
+    for m, tr in enumerate(samples.tracks):
+        memo = samples.memo[m] if samples.memo is not None else None
+        if memo is not None and key in memo:
+            p, ok = memo[key]
+        else:
+            p, ok = smooth_track(*tr, samples.times[m] + grid, max_gap, bandwidth)  # (K, J, 2), (K, J)
+            if memo is not None:
+                memo[key] = (p, ok)
+        pos.append(p)
+        val.append(ok.all(0) & np.isfinite(samples.X[m]).all(-1))
+    valid = np.stack(val)  # (N, J)
+    if valid.sum() < 12:
+        return None
+    obs = np.stack(pos)[np.nonzero(valid)[0], :, np.nonzero(valid)[1]]  # (P, K, 2)
+    X = samples.X[valid]  # (P, 3)
+    blk = np.floor(np.repeat(samples.times[:, None], valid.shape[1], 1)[valid] / block).astype(np.int64)
+    _, blk = np.unique(blk, return_inverse=True)
+    B = int(blk.max()) + 1
+    c = K // 2
+    # the pose at the centre, annealed from a wide Cauchy (the pose may be far off)
+    Rc, tc = R, t
+    for w_px in (50.0, 20.0) if anneal else (20.0,):
+        Rc, tc, d = fit_pose(X, obs[:, c], Rc, tc, w_px / focal, 4 if anneal else 2)
+    scale = max(min_scale_px, float(np.median(d[np.isfinite(d)])) * focal if np.isfinite(d).any() else np.inf)
+    width = _CAUCHY * scale / focal
+    Rc, tc, _ = fit_pose(X, obs[:, c], Rc, tc, width, 3)
+    out = np.zeros((B, K))
+    for k in range(K):
+        _, _, d = fit_pose(X, obs[:, k], Rc, tc, width, _POSE_ITERS)
+        out[:, k] = np.bincount(blk, cauchy(d * focal, _CAUCHY * scale), minlength=B)
+    return out, B, scale, len(X), (Rc, tc)
 
 
 # ------------------------------------------------------------------ per-sensor tracks
@@ -292,23 +334,14 @@ class _SensorTracks:
         self.max_gap = max_gap
         self.tracks: list[_Track] = []
         self.last_stamp: float | None = None
-        self.first_stamp: float | None = None
-        self.count = 0
         self.out_of_order = 0
-
-    def rate(self) -> float:
-        if self.count < 2 or self.last_stamp is None or self.first_stamp is None or self.last_stamp <= self.first_stamp:
-            return 0.0
-        return (self.count - 1) / (self.last_stamp - self.first_stamp)
 
     def push(self, msg: KeypointMessage, intr: Intrinsics) -> None:
         t = msg.stamp
         if self.last_stamp is not None and t <= self.last_stamp:
             self.out_of_order += 1
             return
-        self.first_stamp = t if self.first_stamp is None else self.first_stamp
         self.last_stamp = t
-        self.count += 1
         kp = msg.keypoints()
         if not len(kp):
             return
@@ -351,42 +384,49 @@ class _SensorTracks:
         for tr in self.tracks:
             tr.trim(before)
 
-    def overlapping(self, t0: float, t1: float) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        out = []
+    def find(self, q: float, xy: np.ndarray, tol: float, lo: float, hi: float
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The track through detection xy (J, 2) normalised at raw stamp q (median joint
+        distance below tol), cut to [lo, hi]; None when no track passes there."""
+        best, best_d = None, tol
         for tr in self.tracks:
-            if len(tr.stamps) >= 2 and tr.stamps[0] <= t1 and tr.stamps[-1] >= t0:
-                out.append(tr.arrays())
-        return out
+            if len(tr.stamps) < 2 or tr.stamps[0] > q or tr.stamps[-1] < q:
+                continue
+            st, txy, tok = tr.arrays()
+            p, ok = interpolate_track(st, txy, tok, np.array(q), 2 * self.max_gap)
+            both = ok & np.isfinite(xy).all(-1)
+            if both.sum() < 4:
+                continue
+            d = float(np.median(np.linalg.norm(p[both] - xy[both], axis=-1)))
+            if d < best_d:
+                best, best_d = (st, txy, tok), d
+        if best is None:
+            return None
+        st, txy, tok = best
+        i0 = max(int(np.searchsorted(st, lo, side="right")) - 1, 0)
+        i1 = min(int(np.searchsorted(st, hi, side="left")) + 1, len(st))
+        if i1 - i0 < 2:
+            return None
+        return st[i0:i1].copy(), txy[i0:i1].copy(), tok[i0:i1].copy()
 
 
 # ------------------------------------------------------------------ the estimator
 
 
-class _Fit:
-    """One sensor's accumulated curves on its current grid of candidate offsets."""
+@dataclass
+class _Record:
+    """A hypothesis as the estimator keeps it: time, cameras (V,), BODY joints
+    (V, J, 2) normalised, the offsets applied when it was made (S,), and per view the
+    sensor's track around it (None: not found / not looked up yet); ``free``: for
+    sensors not in it, their track identified as this person by projection."""
 
-    def __init__(self, half: float, step: float):
-        self.center = 0.0
-        self.fine = False
-        self.grid = np.arange(-half, half + 1e-9, step)
-        self.blocks: deque[tuple[float, tuple, int]] = deque()  # (time, affine_stats, joints)
-        self.scales: deque[float] = deque(maxlen=200)  # median distance px of accepted fits
-        self.coarse: tuple[float, float, int] | None = None  # the search's result (offset, std, blocks)
-
-    def scale(self, floor: float, common: float, pose_px: float) -> float:
-        """px: the median reprojection distance of this sensor's fits; until it has its
-        own, the common one. Capped at a few times the common one or what its pose's
-        uncertainty allows: a sensor whose first fits were the wrong person must not
-        learn a scale that lets every wrong fit in."""
-        if len(self.scales) < 10:
-            return max(common, pose_px)
-        return min(max(floor, float(np.median(self.scales))), max(4 * common, pose_px))
-
-    def refocus(self, center: float) -> None:
-        self.center = round(center / _FINE_STEP) * _FINE_STEP
-        self.fine = True
-        self.grid = self.center + np.arange(-_FINE_HALF, _FINE_HALF + 1e-9, _FINE_STEP)
-        self.blocks.clear()
+    time: float
+    cams: np.ndarray
+    xy: np.ndarray
+    applied: np.ndarray
+    tracks: list | None = None
+    free: dict = field(default_factory=dict)  # sensor not in it -> its track identified by projection, or None
+    memo: dict = field(default_factory=dict)  # sensor -> its track taken at grids (``profile``)
 
 
 class ClockOffsetEstimator:
@@ -407,29 +447,24 @@ class ClockOffsetEstimator:
         self._scaled: dict[tuple[str, tuple[int, int]], Intrinsics | None] = {}
         self.tracks = [_SensorTracks(self.intrinsics[n], min_confidence, config.track_gap) for n in self.names]
         self.focal = np.array([0.5 * (self.intrinsics[n].fx + self.intrinsics[n].fy) for n in self.names])
-        self.fits = [_Fit(self._search, config.coarse_step) for _ in range(S)]
-        self.hyps: deque[Hypothesis] = deque()
-        self.next_block: float | None = None
+        self.records: deque[_Record] = deque()
         self.last_update: float | None = None
-        self.offset = np.full(S, np.nan)
+        self.raw = np.full(S, np.nan)  # estimates on the synchronised clock (what a raw stamp is ahead of it)
+        self.offset = np.full(S, np.nan)  # ... relative to the median sensor
         self.std = np.full(S, np.nan)
+        self.scale = np.full(S, np.nan)  # px: the robust residual scale of the sensor's last fit
         self.nblocks = np.zeros(S, np.int64)
+        self.pose: list[tuple[np.ndarray, np.ndarray] | None] = [None] * S  # the sensor's pose fitted with its offset
+        self.center = np.full(S, np.nan)  # where the fine grid is centred (NaN: search the whole range)
         self.applied = np.zeros(S)
         self.anchor = np.full(S, np.nan)  # estimate at the last drift check point
         self.anchor_std = np.full(S, np.nan)
         self.drift_warnings = np.zeros(S, np.int64)
-        self.ambiguous = 0  # fits left out: two tracks fit about as well
-        self.gated = 0  # fits left out: far worse than the sensor's usual fit
-        self._scales: deque[float] = deque(maxlen=1000)  # accepted fits' median distance px, all sensors
 
     @property
-    def _search(self) -> float:
-        return self.cfg.max_offset + 2 * self.cfg.coarse_step
-
-    def _common_scale(self) -> float:
-        if len(self._scales) < 30:
-            return self.cfg.initial_scale_px
-        return max(self.cfg.min_scale_px, float(np.median(self._scales)))
+    def _margin(self) -> float:
+        """s of data time after a hypothesis until its sensors' tracks around it are complete."""
+        return self.cfg.max_offset + 2 * self.cfg.track_gap + 0.5
 
     # -------------------------------------------------------------- input
 
@@ -450,140 +485,208 @@ class ClockOffsetEstimator:
         self.tracks[c].push(msg, intr)
 
     def add(self, hyps: Iterable[Hypothesis]) -> None:
-        """Hypotheses of one frameset (time on the synchronised clock)."""
+        """Hypotheses of one frameset (time on the synchronised clock, timed with the
+        offsets applied now)."""
         for h in hyps:
-            if len(h.cams) >= 2:
-                self.hyps.append(h)
-                if self.next_block is None:
-                    L = self.cfg.block
-                    self.next_block = math.floor(h.time / L) * L + L
+            if len(h.cams) >= 3:  # a sensor's sample needs two other views
+                self.records.append(_Record(h.time, h.cams.copy(), h.xy[:, BODY].copy(), self.applied.copy()))
 
     # -------------------------------------------------------------- estimation
 
     def due(self, now: float | None) -> bool:
-        return (self.cfg.estimate and now is not None and self.next_block is not None
+        return (self.cfg.estimate and now is not None and bool(self.records)
                 and (self.last_update is None or now - self.last_update >= self.cfg.interval))
 
-    def update(self, now: float, R: np.ndarray, t: np.ndarray, pose_px: np.ndarray | None = None, *,
-               flush: bool = False) -> list[str]:
-        """Process every block complete by ``now`` (all of them with ``flush``) with the
-        poses R (C, 3, 3), t (C, 3) and pose_px (C,) the reprojection error their
-        uncertainty allows (px, 0 = none); returns the sensors whose applied offset changed."""
+    def _attach_tracks(self, now: float, flush: bool) -> None:
+        half = self.cfg.max_offset + self.cfg.track_gap
+        for rec in self.records:
+            if rec.tracks is not None:
+                continue
+            if not flush and rec.time + self._margin > now:
+                break
+            rec.tracks = []
+            for v, c in enumerate(rec.cams):
+                q = rec.time + rec.applied[c]
+                tol = _VIEW_MATCH_PX / self.focal[c]
+                rec.tracks.append(self.tracks[c].find(q, rec.xy[v], tol, rec.time - half, rec.time + half))
+
+    def update(self, now: float, R: np.ndarray, t: np.ndarray, *, flush: bool = False) -> list[str]:
+        """Estimate from the data up to ``now`` (all of it with ``flush``) with the
+        poses R (C, 3, 3), t (C, 3); returns the sensors whose applied offset changed."""
         S = len(self.names)
         assert R.shape == (S, 3, 3) and t.shape == (S, 3)
-        pose_px = np.zeros(S) if pose_px is None else pose_px
-        assert pose_px.shape == (S,)
         self.last_update = now
-        if self.next_block is None:
-            return []
-        L = self.cfg.block
-        margin = self._search + self.cfg.track_gap + 1.0
-        last = self.hyps[-1].time if self.hyps else -math.inf
-        while self.next_block + margin <= now or (flush and self.next_block - L <= last):
-            t0, t1 = self.next_block - L, self.next_block
-            block = []
-            while self.hyps and self.hyps[0].time < t1:
-                h = self.hyps.popleft()
-                if h.time >= t0:
-                    block.append(h)
-            if block:
-                self._block(t0, t1, block, R, t, pose_px)
-            self.next_block += L
-        horizon = self.next_block - L - self._search - 2 * self.cfg.track_gap - 1.0
+        cfg = self.cfg
+        self._attach_tracks(now, flush)
+        while self.records and self.records[0].time < now - cfg.window:
+            self.records.popleft()
+        horizon = (self.records[0].time if self.records else now) - cfg.max_offset - 2 * cfg.track_gap - 1.0
         for st in self.tracks:
             st.prune(horizon)
-        return self._estimate(now)
+        recs = [r for r in self.records if r.tracks is not None]
+        if not recs:
+            return []
+        trusted = self._trusted(recs)
+        for s in range(S):
+            self._estimate_sensor(s, recs, trusted[0], R, t)
+        again = self._trusted(recs)
+        if not np.array_equal(again[1], trusted[1]):  # views found mistimed that were used: once more without them
+            for s in range(S):
+                self._estimate_sensor(s, recs, again[0], R, t)
+        return self._apply(now)
 
-    def _block(self, t0: float, t1: float, hyps: list[Hypothesis], R: np.ndarray, t: np.ndarray,
-               pose_px: np.ndarray) -> None:
-        cfg = self.cfg
-        times = np.array([h.time for h in hyps])
-        X_all, X_wo = triangulate_without(R, t, hyps)
-        common = self._common_scale()
-        for s, fit in enumerate(self.fits):
-            # persons from the others: without this sensor's own view, which would pull
-            # the fit to the offset applied when the frameset was made
-            X = X_all.copy()
-            for m, h in enumerate(hyps):
-                hit = np.flatnonzero(h.cams == s)
-                if len(hit):
-                    X[m] = X_wo[m, hit[0]] if len(h.cams) >= 3 else np.nan
-            Xc = (X - t[s]) @ R[s]  # camera frame: R^T (X - t)
-            with np.errstate(invalid="ignore"):
-                front = Xc[..., 2] > 0.1
-            proj = np.where(front[..., None], Xc[..., :2] / np.where(front, Xc[..., 2], 1.0)[..., None], np.nan)
-            use = np.flatnonzero(np.isfinite(proj).all(-1).sum(-1) >= cfg.min_joints)
-            if not len(use):
-                continue
-            lo, hi = t0 + fit.grid[0] - cfg.track_gap, t1 + fit.grid[-1] + cfg.track_gap
-            tracks = self.tracks[s].overlapping(lo, hi)
-            if not tracks:
-                continue
-            scale = fit.scale(cfg.min_scale_px, common, float(pose_px[s]))
-            res = [reprojection_curves(proj[use], times[use], tr, fit.grid, self.focal[s], _CAUCHY * scale,
-                                       cfg.track_gap) for tr in tracks]
-            cost = np.stack([r[0] for r in res])  # (Tr, M, K)
-            count = np.stack([r[1] for r in res])  # (Tr, M)
-            med = np.stack([r[2] for r in res])
-            per_joint = np.where(count >= cfg.min_joints, cost.min(-1) / np.maximum(count, 1), np.inf)  # (Tr, M)
-            order = np.argsort(per_joint, axis=0)
-            P, Y, Wt = [], [], []
-            width = _CAUCHY * scale / self.focal[s]  # normalised units
-            joints = 0
-            for m in range(len(use)):
-                b = order[0, m]
-                if not np.isfinite(per_joint[b, m]):
-                    continue
-                if len(tracks) > 1 and per_joint[b, m] > _RATIO * per_joint[order[1, m], m]:
-                    self.ambiguous += 1
-                    continue
-                if len(fit.scales) >= 10 and med[b, m] > cfg.gate * scale:
-                    self.gated += 1
-                    continue
-                fit.scales.append(float(med[b, m]))
-                self._scales.append(float(med[b, m]))
-                pos, valid = res[b][3][m], res[b][4][m]  # (K, J, 2), (J,)
-                p = proj[use[m]][valid]  # (n, 2)
-                y = np.transpose(pos[:, valid], (1, 0, 2)) - p[:, None, :]  # (n, K, 2)
-                kb = int(np.argmin(cost[b, m]))
-                e = np.linalg.norm(y[:, kb], axis=-1)
-                P.append(p)
-                Y.append(y)
-                Wt.append(1.0 / (1.0 + (e / width) ** 2))  # Cauchy weights at the person's best candidate
-                joints += int(valid.sum())
-            if joints:
-                st = affine_stats(np.concatenate(P), np.concatenate(Y), np.concatenate(Wt))
-                fit.blocks.append((t1, st, joints))
-            while fit.blocks and fit.blocks[0][0] < t1 - cfg.window:
-                fit.blocks.popleft()
+    def _trusted(self, recs: list[_Record]) -> tuple[list[np.ndarray], np.ndarray]:
+        """Per record (V,) bool: views timed right as far as the current estimates know
+        (a sensor's view made with an offset applied that its estimate now contradicts
+        is left out of the others' 3D); and a fingerprint of that choice."""
+        tol = max(self.cfg.retime_tolerance, 0.0)
+        out = []
+        for r in recs:
+            est = self.raw[r.cams]
+            ok = ~np.isfinite(est) | (np.abs(est - r.applied[r.cams]) <= tol)
+            out.append(ok)
+        return out, np.concatenate(out) if out else np.zeros(0, bool)
 
-    def _estimate(self, now: float) -> list[str]:
+    def _samples(self, s: int, recs: list[_Record], trusted: list[np.ndarray], R: np.ndarray, t: np.ndarray,
+                 keep: int | None = None) -> Samples | None:
+        """Sensor s's samples: records with s in them (its track known from its view, the
+        person from the other views) and records without it whose person one of its
+        tracks clearly is (``_identify``); at most ``keep`` of them, spread in time."""
+        self._identify(s, recs, trusted, R, t)
+        rows, trs = [], []
+        for i, r in enumerate(recs):
+            hit = np.flatnonzero(r.cams == s)
+            if len(hit):
+                tr = r.tracks[hit[0]]
+                others = trusted[i] & (r.cams != s)
+            else:
+                tr = r.free.get(s)
+                others = trusted[i]
+            if tr is None or others.sum() < 2:
+                continue
+            rows.append((r, others))
+            trs.append(tr)
+        if keep is not None and len(rows) > keep:
+            idx = np.linspace(0, len(rows) - 1, keep).round().astype(int)
+            rows, trs = [rows[i] for i in idx], [trs[i] for i in idx]
+        if not rows:
+            return None
+        return Samples(self._triangulate(rows, R, t), np.array([r.time for r, _ in rows]), tuple(trs),
+                       tuple(r.memo.setdefault(s, {}) for r, _ in rows))
+
+    @staticmethod
+    def _triangulate(rows: list[tuple[_Record, np.ndarray]], R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(N, J, 3) the BODY joints of each record from its views where the mask says."""
+        N, J = len(rows), len(BODY)
+        V = max(int(o.sum()) for _, o in rows)
+        cams = np.zeros((N, V), np.int64)
+        xy = np.full((N, V, J, 2), np.nan)
+        for n, (r, o) in enumerate(rows):
+            k = int(o.sum())
+            cams[n, :k] = r.cams[o]
+            xy[n, :k] = r.xy[o]
+        pts = np.transpose(xy, (0, 2, 1, 3)).reshape(N * J, V, 2)
+        return triangulate_batch(R, t, np.repeat(cams[:, None, :], J, axis=1).reshape(N * J, V), pts).reshape(N, J, 3)
+
+    def _identify(self, s: int, recs: list[_Record], trusted: list[np.ndarray], R: np.ndarray, t: np.ndarray) -> None:
+        """For records without sensor s (it missed the frameset or was not associated):
+        which of its tracks is that person, decided once per record. The person from the
+        other views is projected into s (its fitted pose when there is one); a track is
+        the person when, at its best offset within the range searched, it fits clearly
+        better than any other track (ratio test) and within the gate."""
         cfg = self.cfg
-        S = len(self.names)
-        g = np.full(S, np.nan)
-        sd = np.full(S, np.nan)
-        nb = np.zeros(S, np.int64)
-        for s, fit in enumerate(self.fits):
-            r = None
-            if len(fit.blocks) >= cfg.min_blocks:
-                stats = [st for _, st, _ in fit.blocks]
-                r = jackknife_minimum(stats, fit.grid)
-                if r is None and fit.fine and int(np.argmin(affine_profile(_sum_stats(stats)))) in (0, len(fit.grid) - 1):
-                    self.fits[s] = _Fit(self._search, cfg.coarse_step)  # the offset left the fine grid: search again
+        todo = [i for i, r in enumerate(recs) if s not in r.free and not (r.cams == s).any() and trusted[i].sum() >= 2]
+        if not todo:
+            return
+        Rs, ts = self.pose[s] if self.pose[s] is not None else (R[s], t[s])
+        c = self.center[s]
+        grid = (np.arange(-cfg.max_offset, cfg.max_offset + 1e-9, 2 * cfg.coarse_step) if not np.isfinite(c)
+                else c + np.arange(-2 * cfg.fine_half, 2 * cfg.fine_half + 1e-9, cfg.fine_step))
+        X = self._triangulate([(recs[i], trusted[i]) for i in todo], R, t)
+        Xc = (X - ts) @ Rs
+        with np.errstate(invalid="ignore", divide="ignore"):
+            proj = np.where((Xc[..., 2] > 0.1)[..., None], Xc[..., :2] / Xc[..., 2:3], np.nan)  # (N, J, 2)
+        live = [tr for tr in self.tracks[s].tracks if len(tr.stamps) >= 2]
+        spans = np.array([(tr.stamps[0], tr.stamps[-1]) for tr in live]).reshape(-1, 2)
+        half = cfg.max_offset + cfg.track_gap
+        gate = cfg.match_px / self.focal[s]
+        for n, i in enumerate(todo):
+            r = recs[i]
+            r.free[s] = None
+            vis = np.isfinite(proj[n]).all(-1)
+            if vis.sum() < 4 or not len(live):
+                continue
+            q = r.time + grid
+            cand = np.flatnonzero((spans[:, 0] <= q[-1]) & (spans[:, 1] >= q[0]))
+            best = []
+            for j in cand:
+                pos, ok = interpolate_track(*live[j].arrays(), q, cfg.track_gap)  # (K, J, 2), (K, J)
+                ok = ok & vis
+                enough = ok.sum(1) >= 4
+                if not enough.any():
                     continue
-                if r is not None and not fit.fine and r[1] < cfg.coarse_step:
-                    fit.coarse = (r[0], r[1], len(fit.blocks))
-                    fit.refocus(r[0])
-            if r is None and fit.fine and fit.coarse is not None:
-                r = fit.coarse[:2]  # the fine grid is still filling: the search's result stands
-                nb[s] = fit.coarse[2]
-            elif r is not None:
-                nb[s] = len(fit.blocks)
-            if r is not None and (fit.fine or r[1] < cfg.coarse_step):
-                g[s], sd[s] = r
-        est = np.isfinite(g)
-        self.offset = g - np.median(g[est]) if est.any() else g
-        self.std, self.nblocks = sd, nb
+                d = np.where(ok[enough], np.linalg.norm(pos[enough] - np.nan_to_num(proj[n]), axis=-1), np.nan)
+                best.append((float(np.nanmedian(d, axis=1).min()), j))
+            if not best:
+                continue
+            best.sort()
+            if best[0][0] > gate or (len(best) > 1 and best[0][0] > _RATIO * best[1][0]):
+                continue
+            st, txy, tok = live[best[0][1]].arrays()
+            i0 = max(int(np.searchsorted(st, r.time - half, side="right")) - 1, 0)
+            i1 = min(int(np.searchsorted(st, r.time + half, side="left")) + 1, len(st))
+            if i1 - i0 >= 2:
+                r.free[s] = (st[i0:i1].copy(), txy[i0:i1].copy(), tok[i0:i1].copy())
+
+    def _start(self, s: int, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.pose[s] if self.pose[s] is not None else (R[s], t[s])
+
+    def _estimate_sensor(self, s: int, recs: list[_Record], trusted: list[np.ndarray], R: np.ndarray,
+                         t: np.ndarray) -> None:
+        cfg = self.cfg
+        f = float(self.focal[s])
+        fine = np.arange(-cfg.fine_half, cfg.fine_half + 1e-9, cfg.fine_step)
+        center = self.center[s]
+        if not np.isfinite(center):  # search the whole range on a subsample
+            smp = self._samples(s, recs, trusted, R, t, keep=_COARSE_SAMPLES)
+            if smp is None:
+                return
+            grid = np.arange(-cfg.max_offset, cfg.max_offset + 1e-9, cfg.coarse_step)
+            res = profile(smp, grid, *self._start(s, R, t), cfg.track_gap, cfg.block, f, cfg.min_scale_px)
+            if res is None or res[1] < cfg.min_blocks or res[2] > cfg.max_scale_px:
+                return
+            k = int(np.argmin(res[0].sum(0)))
+            if k == 0 or k == len(grid) - 1:
+                return
+            center = float(grid[k])
+        smp = self._samples(s, recs, trusted, R, t)
+        if smp is None:
+            return
+        for _ in range(3):  # the fine grid follows its minimum when it lies near its edge
+            res = profile(smp, center + fine, *self._start(s, R, t), cfg.track_gap, cfg.block, f, cfg.min_scale_px,
+                          anneal=self.pose[s] is None)
+            if res is None or res[1] < cfg.min_blocks or res[2] > cfg.max_scale_px:
+                return
+            total = res[0].sum(0)
+            k = int(np.argmin(total))
+            if 2 <= k < len(fine) - 2:
+                break
+            center = float(center + fine[k])
+        else:
+            self.center[s] = np.nan  # it keeps running away: search again next time
+            return
+        r = jackknife_minimum(res[0], center + fine)
+        if r is None:
+            return
+        self.raw[s], self.std[s] = r
+        self.scale[s], self.nblocks[s] = res[2], res[1]
+        self.pose[s] = res[4]
+        self.center[s] = round(r[0] / cfg.fine_step) * cfg.fine_step if r[1] < cfg.fine_half / 2 else np.nan
+
+    def _apply(self, now: float) -> list[str]:
+        cfg = self.cfg
+        est = np.isfinite(self.raw)
+        self.offset = self.raw - np.median(self.raw[est]) if est.any() else self.raw.copy()
         changed = []
         for s, n in enumerate(self.names):
             o, e = self.offset[s], self.std[s]

@@ -139,8 +139,8 @@ class Pipeline:
             self.clock = now
         new = 0
         R, t = self.refiner.R, self.refiner.t
-        if self.clocks.due(now):
-            self._retime(self.clocks.update(now, R, t, self._pose_px()))
+        if self.clocks.due(now) and self._calibrated():
+            self._retime(self.clocks.update(now, R, t))
         ready = self.sync.pop_ready(now)
         gate = self._gate() if ready else None
         for fs in ready:
@@ -187,6 +187,12 @@ class Pipeline:
                       for T, views in self.frames]
             self.frames.clear()
             self.frames.extend(frames)
+
+    def _calibrated(self) -> bool:
+        """The first adjustment is done: the poses are good enough to time the sensors
+        against (before it, 3D from cameras 10° off says nothing about time)."""
+        s = self.cfg.select
+        return self.cycle > 0 and (s.first_scope <= 0 or self.first_passes >= s.first_passes)
 
     def _pose_px(self) -> np.ndarray:
         """(C,) px a camera's reprojections may be off by its pose's uncertainty (one std;
@@ -397,8 +403,8 @@ class Pipeline:
             self._release_pending()
         if self.clock is not None:
             self.advance(self.clock + self.cfg.sync.wait + 1.0 / self.cfg.sync.rate)
-            if self.cfg.clock.estimate:
-                self._retime(self.clocks.update(self.clock, self.refiner.R, self.refiner.t, self._pose_px(), flush=True))
+            if self.cfg.clock.estimate and self._calibrated():
+                self._retime(self.clocks.update(self.clock, self.refiner.R, self.refiner.t, flush=True))
         lost = np.flatnonzero(self._never_associated()) if self.cfg.associate.relocalize else []
         if len(lost) and self.frames and self._inflight is None:
             # one more try with the final estimate of the others, before the batch needs them

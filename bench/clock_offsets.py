@@ -6,10 +6,12 @@ offline pipeline (``backend.pipeline.run_offline``) runs three times from the sa
 initial estimate (0.25 m / 10°, ``backend.perturb``):
 
 - offsets, estimation on (``clock.estimate = true``);
-- synchronised clocks (the same seed without the offsets);
-- offsets, estimation off (what happens today).
+- synchronised clocks (the same seed without the offsets), estimation on: what it
+  invents when there is nothing to find;
+- synchronised clocks, estimation off;
+- offsets, estimation off.
 
-Printed: per sensor the true offset (relative to the median sensor, as reported), the
+Printed (for both estimated runs): per sensor the true offset (relative to the median sensor, as reported), the
 estimate, its std, the error and the offset applied; then the calibration error of each
 run (``backend.evaluate``: rigid position / orientation, shape position, mean over all 20
 cameras and over the 5 offset ones).
@@ -60,6 +62,35 @@ def run(recording: Path, seed: int, estimate: bool, start: tuple[float, float]) 
     return {"seconds": seconds, "accuracy": acc.to_dict(), "clocks": {c.sensor: c.to_dict() for c in state.clocks}}
 
 
+def table(name: str, est: dict, true: dict[str, float], offsets: dict[str, float], a) -> None:
+    """Per sensor: true offset (relative to the median sensor), estimate, std, error, applied."""
+    med = float(np.median(list(true.values())))
+    print(f"Clock offsets ({name}), 20-camera lab, 2 persons, {a.duration:g} s, seed {a.seed}, start {a.start} "
+          "(ms, relative to the median sensor)")
+    print("| sensor | true | estimated | std | error | applied |")
+    print("|---|---|---|---|---|---|")
+    errs, other = [], []
+    for n in sorted(true, key=lambda s: int(s.split("_")[-1]) if s.split("_")[-1].isdigit() else s):
+        c = est.get(n, {})
+        tr = 1000 * (true[n] - med)
+        o = c.get("offset")
+        e = None if o is None else 1000 * o - tr
+        if e is not None:
+            (errs if n in offsets else other).append(abs(e))
+        fmt = lambda x: "n/a" if x is None else f"{x:+.1f}"  # noqa: E731
+        std = "n/a" if c.get("std") is None else f"{1000 * c['std']:.1f}"
+        star = " *" if n in offsets else ""
+        print(f"| {n}{star} | {tr:+.1f} | {fmt(None if o is None else 1000 * o)} | {std} | {fmt(e)} | "
+              f"{fmt(1000 * c.get('applied', 0.0))} |")
+    if offsets:
+        print(f"offset sensors (*) estimated: {len(errs)}/{len(offsets)}, max error "
+              f"{max(errs) if errs else float('nan'):.1f} ms")
+    print(f"other sensors estimated: {len(other)}/{len(true) - len(offsets)}, max error "
+          f"{max(other) if other else float('nan'):.1f} ms; largest offset applied "
+          f"{max((abs(1000 * est[n].get('applied', 0.0)) for n in est if n not in offsets), default=0.0):.1f} ms")
+    print()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seed", type=int, default=1)
@@ -69,6 +100,7 @@ def main() -> None:
     ap.add_argument("--start", default="0.25/10", help="initial error m/deg")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/extrcal-accuracy-cache"))
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--runs", default="all", help="the runs to make, ';'-separated names as printed (default all)")
     a = ap.parse_args()
     offsets = {k: float(v) for k, v in (x.split("=") for x in a.offsets.split(","))}
     start = tuple(float(x) for x in a.start.split("/"))
@@ -78,32 +110,20 @@ def main() -> None:
 
     truth = Truth.load(Truth.sidecar_path(rec_off))
     true = dict(zip(truth.sensors, truth.clock_offset.tolist()))
-    med = float(np.median(list(true.values())))
-    runs = {
-        "offsets, estimated": run(rec_off, a.seed, True, start),
-        "synchronised clocks": run(rec_sync, a.seed, False, start),
-        "offsets, not estimated": run(rec_off, a.seed, False, start),
+    truth_sync = Truth.load(Truth.sidecar_path(rec_sync))
+    true_sync = dict(zip(truth_sync.sensors, truth_sync.clock_offset.tolist()))
+    plan = {
+        "offsets, estimated": (rec_off, True),
+        "synchronised clocks, estimated": (rec_sync, True),
+        "synchronised clocks": (rec_sync, False),
+        "offsets, not estimated": (rec_off, False),
     }
-    est = runs["offsets, estimated"]["clocks"]
-    print(f"Clock offsets, 20-camera lab, 2 persons, {a.duration:g} s, seed {a.seed}, start {a.start} "
-          "(ms, relative to the median sensor)")
-    print("| sensor | true | estimated | std | error | applied |")
-    print("|---|---|---|---|---|---|")
-    errs = []
-    for n in sorted(true, key=lambda s: int(s.split("_")[-1]) if s.split("_")[-1].isdigit() else s):
-        c = est.get(n, {})
-        tr = 1000 * (true[n] - med)
-        o = c.get("offset")
-        e = None if o is None else 1000 * o - tr
-        if e is not None and n in offsets:
-            errs.append(abs(e))
-        fmt = lambda x: "n/a" if x is None else f"{x:+.1f}"  # noqa: E731
-        std = "n/a" if c.get("std") is None else f"{1000 * c['std']:.1f}"
-        star = " *" if n in offsets else ""
-        print(f"| {n}{star} | {tr:+.1f} | {fmt(None if o is None else 1000 * o)} | {std} | {fmt(e)} | "
-              f"{fmt(1000 * c.get('applied', 0.0))} |")
-    print(f"offset sensors (*) estimated: {len(errs)}/{len(offsets)}, max error "
-          f"{max(errs) if errs else float('nan'):.1f} ms")
+    keep = [k for k in plan if a.runs == "all" or k in a.runs.split(";")]
+    runs = {k: run(plan[k][0], a.seed, plan[k][1], start) for k in keep}
+    for name, tr_all, off in (("offsets, estimated", true, offsets),
+                              ("synchronised clocks, estimated", true_sync, {})):
+        if name in runs:
+            table(name, runs[name]["clocks"], tr_all, off, a)
     print()
     print("| run | rigid position (m) | orientation (°) | shape position (m) | offset sensors: position (m) / orientation (°) | wall s |")
     print("|---|---|---|---|---|---|")
