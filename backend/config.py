@@ -148,6 +148,9 @@ class BootstrapConfig(_Section):
     min_triangulation_angle: float = Field(3.0, ge=0, description="deg: median angle between a pair's rays; below it the baseline is unknown")
     min_shared_points: int = Field(40, ge=5, description="joints two pairs triangulate at the same instants to relate their scales")
     rotation_outlier: float = Field(5.0, gt=0, description="deg: a pair disagreeing more with the averaged rotations is dropped")
+    min_agreeing_share: float = Field(0.3, ge=0, le=1, description="share of a placed camera's joints (in frames where it and the "
+                                      "others see one person) that must reproject onto the person the others triangulate; "
+                                      "a camera below it is re-localised by PnP or not placed")
     batch_rounds: int = Field(3, ge=1, description="bundle adjustments, each re-associating all frames with the previous result")
     batch_hypotheses: int = Field(800, ge=10, description="most hypotheses per bundle adjustment")
     prior_std_translation: float = Field(1.0, gt=0, description="m: the weak prior of the bundle adjustment (a gauge, not information)")
@@ -157,6 +160,16 @@ class BootstrapConfig(_Section):
     height_mean: float = Field(1.72, gt=0, description="m: population prior of adult height (mixed sexes; docs/bootstrap.md)")
     height_std: float = Field(0.10, gt=0, description="m: its spread between persons")
     ratio_std: float = Field(0.02, ge=0, description="relative spread between persons of leg + torso length / height")
+    with_initial: Literal["auto", "always", "never"] = Field(
+        "auto", description="with an initial estimate (`extrcal calibrate --initial`): bootstrap too, align the data's "
+        "shape onto the initial estimate (its frame and scale kept) and start the online pipeline there; 'auto': only "
+        "when the initial estimate disagrees with the data (a camera beyond agree_*), 'never': the paper's way "
+        "(backend/reconcile.py)")
+    agree_translation: float = Field(0.05, ge=0, description="m: a camera of the initial estimate agrees with the data when "
+                                     "its centre is within this (or 3x the bootstrap's std) of the aligned bootstrap's ...")
+    agree_rotation: float = Field(0.5, ge=0, description="deg ... and its orientation within this (or 3x the std)")
+    refuse_sigma: float = Field(6.0, gt=0, description="a bootstrap pose further from the initial estimate than this many "
+                                "of its stated std (refine.initial_std_*) is not used: one of the two is grossly wrong")
 
 
 class ClockConfig(_Section):

@@ -44,7 +44,11 @@ _CLOCK_SAMPLES = 16  # offline: messages held back to find a plausible start of 
 
 
 class Pipeline:
-    def __init__(self, cameras: CameraSet, config: EngineConfig | None = None, *, seed: int = 0):
+    def __init__(self, cameras: CameraSet, config: EngineConfig | None = None, *, seed: int = 0,
+                 start: tuple[np.ndarray, np.ndarray] | None = None):
+        """``start``: (R (C, 3, 3), t (C, 3)) where the estimate starts when not at the
+        initial estimate (e.g. the data's shape aligned onto it, backend/reconcile.py); the
+        initial estimate stays the prior, the frame and the scale."""
         self.cameras = cameras
         self.cfg = config or EngineConfig()
         self.names = cameras.names
@@ -58,6 +62,9 @@ class Pipeline:
         self.associate = Associator(self.cfg.associate)
         self.queue = HypothesisQueue(self.cfg.select)
         self.refiner = Refiner(self.cfg.refine, R0, t0)
+        if start is not None:
+            assert start[0].shape == R0.shape and start[1].shape == t0.shape
+            self.refiner.R, self.refiner.t = start[0].copy(), start[1].copy()
         self.monitor = Monitor(self.cfg.monitor, C)
         self.watched = np.zeros(C, dtype=bool)
         self.clocks = ClockOffsetEstimator(self.cfg.clock, self.names, cameras.intrinsics,
@@ -516,9 +523,10 @@ class Pipeline:
 
 def run_offline(cameras: CameraSet, config: EngineConfig, messages: Iterable[KeypointMessage], *, seed: int = 0,
                 progress: Callable[[CalibrationState, CycleReport], None] | None = None,
-                finish: bool = True) -> Pipeline:
-    """Run the online pipeline on recorded messages on virtual time (the newest stamp)."""
-    p = Pipeline(cameras, config, seed=seed)
+                finish: bool = True, start: tuple[np.ndarray, np.ndarray] | None = None) -> Pipeline:
+    """Run the online pipeline on recorded messages on virtual time (the newest stamp);
+    ``start`` as for ``Pipeline``."""
+    p = Pipeline(cameras, config, seed=seed, start=start)
     for msg in messages:
         p.push(msg)
         if p.clock is None:

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import RefineConfig
-from .geometry import pose_local, pose_retract, rotation_angle_deg, umeyama
+from .geometry import pose_local, pose_retract, rotation_angle_deg, trimmed_similarity
 
 
 @dataclass(frozen=True)
@@ -151,25 +151,10 @@ class Refiner:
         idx = np.flatnonzero(m)
         if len(idx) < 3:
             return 1.0
-        src, dst = self.t[idx], self.t0[idx]
-        i, j = np.triu_indices(len(idx), 1)
-        d = np.linalg.norm(src[i] - src[j], axis=1)
-        d0 = np.linalg.norm(dst[i] - dst[j], axis=1)
-        ok = (d > 0.2) & (d0 > 0.2)  # co-located cameras say nothing about scale
-        if not ok.any():
+        fit = trimmed_similarity(self.t[idx], self.t0[idx])
+        if fit is None:
             return 1.0
-        # a robust start (median ratio) finds the cameras that are off; then least squares
-        s = float(np.median(d0[ok] / d[ok]))
-        _, R, tr = umeyama(s * src, dst, with_scale=False)
-        keep = np.ones(len(idx), bool)
-        for _ in range(3):
-            res = np.linalg.norm(s * src @ R.T + tr - dst, axis=1)
-            # a camera off by more than 3x the median residual (and 5 cm) is not the frame
-            fit = res <= max(3.0 * float(np.median(res[keep])), 0.05)
-            if fit.sum() < 3:
-                break
-            keep = fit
-            s, R, tr = umeyama(src[keep], dst[keep], with_scale=True)
+        s = fit[0]
         c = self.t[m].mean(0)
         self.t[m] = c + s * (self.t[m] - c)
         # The uncertainty of a position scales with it.

@@ -20,13 +20,15 @@ import numpy as np
 import pytest
 
 from backend.bootstrap import (
-    BootstrapError, PairPose, average_rotations, bootstrap, camera_set, collect_frames, handover,
+    BootstrapError, PairPose, average_rotations, bootstrap, camera_set, check_cameras, collect_frames, handover,
     relative_pose, triangle_check,
 )
-from backend.cameras import Extrinsics
+from backend.cameras import CameraSet, Extrinsics
 from backend.config import EngineConfig
 from backend.evaluate import evaluate
 from backend.geometry import rotation_angle_deg, so3_exp
+from backend.perturb import perturb_extrinsics
+from backend.reconcile import reconcile_cameras
 from backend.people import Person, chain_ratio, estimate_scale, persons, segments, tracks
 from backend.preprocess import Detection
 
@@ -260,3 +262,49 @@ def test_extrinsics_of_a_result_roundtrip(booted):
     ext = res.extrinsics({n: intr[n].resolution for n in res.names})
     assert isinstance(ext[res.names[0]], Extrinsics)
     assert all(ext[n].std_translation is not None for c, n in enumerate(res.names) if res.located[c])
+
+
+# ------------------------------------------------------------------ with an initial estimate (backend/reconcile.py)
+
+
+def test_check_cameras_relocalises_a_camera_placed_wrong(booted):
+    res, _, _, _, frames = booted
+    cfg = EngineConfig()
+    names = res.names
+    intr = booted[2]
+    focal = np.array([0.5 * (intr[n].fx + intr[n].fy) for n in names])
+    R, t = res.R.copy(), res.t.copy()
+    c = 3
+    R[c] = so3_exp([0.0, np.radians(160), 0.0]) @ R[c]
+    t[c] += [4.0, -2.0, 0.5]
+    R2, t2, located, moved, dropped = check_cameras(frames, R, t, res.located, focal, cfg, seed=SEED)
+    print(moved, dropped)
+    assert moved == [c] and dropped == []
+    assert rotation_angle_deg(R2[c], res.R[c]) < 1.0 and np.linalg.norm(t2[c] - res.t[c]) < 0.1
+    # the correct cameras pass untouched
+    others = [k for k in range(len(names)) if k != c]
+    assert np.array_equal(R2[others], R[others]) and located.all()
+
+
+def test_pipeline_from_a_rough_start_takes_the_data_shape(booted):
+    """0.75 m / 20° off per camera; the online pipeline from the bootstrap's shape aligned
+    onto it: every camera's shape within the bootstrap's bars, the initial estimate's
+    frame and scale kept (the rigid error is what 7 cameras 0.75 m off leave of a frame)."""
+    res, truth, intr, msgs, _ = booted
+    from backend.pipeline import run_offline
+
+    ref = {n: Extrinsics(p, intr[n].resolution) for n, p in truth.items()}
+    init = perturb_extrinsics(ref, 0.75, 20.0, seed=4)
+    cams = CameraSet.combine(intr, init)
+    cfg = EngineConfig()
+    rec, _, note = reconcile_cameras(res, cams, cfg)
+    print(note)
+    assert rec is not None and rec.used and not rec.refused.any()
+    before = evaluate(cams.poses(), truth)
+    p = run_offline(cams, cfg, msgs, seed=SEED, start=rec.start())
+    acc = evaluate(p.state().poses(), truth)
+    print(before.summary(), "->", acc.summary())
+    assert acc.shape_position.max < 0.05 and acc.shape_orientation.max < 0.5
+    assert acc.position.mean < 0.5 * before.position.mean
+    # the prior is the initial estimate: R0/t0 unchanged, its scale kept
+    assert np.allclose(p.refiner.t0, np.array([init[n].pose.t for n in cams.names]))
