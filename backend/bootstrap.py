@@ -692,49 +692,6 @@ def floor_frame(seg: Segments, t: np.ndarray, located: np.ndarray, height: float
     return F, o, note
 
 
-def check_cameras(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located: np.ndarray, focal: np.ndarray,
-                  config: EngineConfig, *, seed: int = 0, max_frames: int = 1500
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int], list[int]]:
-    """Leave-one-out check of every placed camera against the persons the others
-    triangulate: in frames where the other cameras see one person and this one sees one,
-    its joints must reproject onto that person's (``relocalize.correspondences``). A
-    camera that explains less than ``bootstrap.min_agreeing_share`` of them is wrong (a
-    pair bridging two groups of cameras has no triangle to check it, and the bundle
-    adjustment can keep it with wrong associations): it is re-localised by PnP against
-    the others, or not placed. Cameras with too few such frames are not judged.
-
-    Returns (R, t, located, moved, dropped) (copies; moved and dropped: camera indices)."""
-    from .relocalize import correspondences, inlier_share, pnp
-
-    R, t, located = R.copy(), t.copy(), located.copy()
-    step = max(1, len(frames) // max_frames)
-    sub = list(frames[::step])
-    share = np.full(len(R), np.nan)
-    corr = {}
-    for c in np.flatnonzero(located):
-        X, x, used = correspondences(_without(sub, located), int(c), R, t, config.associate)
-        if len(X) >= 40:
-            share[c] = inlier_share(X, x, R[c], t[c], float(focal[c]))
-            corr[int(c)] = (X, x, used)
-    bad = [int(c) for c in np.argsort(np.nan_to_num(share, nan=1.0))
-           if np.isfinite(share[c]) and share[c] < config.bootstrap.min_agreeing_share]
-    moved, dropped = [], []
-    trusted = located.copy()
-    trusted[bad] = False
-    for c in bad:  # against the cameras that passed, worst first
-        keep = trusted.copy()
-        keep[c] = True
-        X, x, used = correspondences(_without(sub, keep), c, R, t, config.associate)
-        rl = pnp(c, X, x, used, R, t, float(focal[c]), seed=seed)
-        if rl is not None and inlier_share(X, x, rl.R, rl.t, float(focal[c])) >= config.bootstrap.min_agreeing_share:
-            R[c], t[c] = rl.R, rl.t
-            moved.append(c)
-        else:
-            located[c] = False
-            dropped.append(c)
-    return R, t, located, moved, dropped
-
-
 def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, config: EngineConfig, *,
               heights: Sequence[float] = (), seed: int = 0, progress: Progress | None = None) -> BootstrapResult:
     """Camera poses from ``frames`` alone (see the module doc). ``heights``: known heights
@@ -825,26 +782,16 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                 if np.all(np.isfinite(P)):
                     std_t[c] = np.sqrt(max(np.trace(P[3:, 3:]) / 3, 0))
                     std_r[c] = np.degrees(np.sqrt(max(np.trace(P[:3, :3]) / 3, 0)))
-        if last and not tried_reloc:
+        if last and not tried_reloc and not located.all():
             tried_reloc = True
-            # every placed camera against the persons the others triangulate, then PnP
-            # for the cameras no pair placed; one more adjustment when either moved one
-            R, t, located, moved, dropped = check_cameras(frames, R, t, located, focal, config, seed=seed)
-            if moved or dropped:
-                say(f"check against the others' persons: {', '.join(names[c] for c in moved) or 'none'} re-localised, "
-                    f"{', '.join(names[c] for c in dropped) or 'none'} not placed")
             found = 0
             for c in np.flatnonzero(~located):
-                if c in dropped:
-                    continue
                 rl = relocalize(frames, int(c), R, t, float(focal[c]), config.associate, seed=seed)
                 if rl is not None:
                     R[c], t[c], located[c] = rl.R, rl.t, True
                     found += 1
             if found:
-                say(f"re-localised {found} camera(s) by PnP")
-            if found or moved:
-                say("one more bundle adjustment")
+                say(f"re-localised {found} camera(s) by PnP; one more bundle adjustment")
                 rounds += 1
     stages["bundle"] = _time.perf_counter() - t0
 

@@ -117,8 +117,14 @@ def calibrate(
                                            progress=say)
         except RecordingError as e:
             raise fail(f"{e} (use --skip-bad to skip malformed records)")
+        if rec is not None:
+            cfg = rec.config(cfg)
         if not quiet:
             console.print(note, highlight=False)
+            if rec is not None and rec.used:
+                console.print(f"the online pipeline starts from the data's shape in the initial estimate's frame and "
+                              f"scale; the initial estimate's std: {cfg.refine.initial_std_translation:.3f} m / "
+                              f"{cfg.refine.initial_std_rotation:.2f}°", highlight=False)
     if ref is not None:
         common = set(ref) & set(cams.names)
         if len(common) < 3:

@@ -148,9 +148,6 @@ class BootstrapConfig(_Section):
     min_triangulation_angle: float = Field(3.0, ge=0, description="deg: median angle between a pair's rays; below it the baseline is unknown")
     min_shared_points: int = Field(40, ge=5, description="joints two pairs triangulate at the same instants to relate their scales")
     rotation_outlier: float = Field(5.0, gt=0, description="deg: a pair disagreeing more with the averaged rotations is dropped")
-    min_agreeing_share: float = Field(0.3, ge=0, le=1, description="share of a placed camera's joints (in frames where it and the "
-                                      "others see one person) that must reproject onto the person the others triangulate; "
-                                      "a camera below it is re-localised by PnP or not placed")
     batch_rounds: int = Field(3, ge=1, description="bundle adjustments, each re-associating all frames with the previous result")
     batch_hypotheses: int = Field(800, ge=10, description="most hypotheses per bundle adjustment")
     prior_std_translation: float = Field(1.0, gt=0, description="m: the weak prior of the bundle adjustment (a gauge, not information)")

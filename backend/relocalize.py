@@ -66,17 +66,9 @@ def correspondences(frames: Sequence[tuple[float, tuple[tuple[Detection, ...], .
 def relocalize(frames, cam: int, R: np.ndarray, t: np.ndarray, focal: float, cfg: AssociateConfig,
                *, min_inliers: int = 40, reprojection_px: float = 8.0, seed: int = 0) -> Relocalization | None:
     """PnP + RANSAC pose of camera ``cam`` from the archived frames, or None."""
-    X, x, used = correspondences(frames, cam, R, t, cfg)
-    return pnp(cam, X, x, used, R, t, focal, min_inliers=min_inliers, reprojection_px=reprojection_px, seed=seed)
-
-
-def pnp(cam: int, X: np.ndarray, x: np.ndarray, used: int, R: np.ndarray, t: np.ndarray, focal: float, *,
-        min_inliers: int = 40, reprojection_px: float = 8.0, seed: int = 0) -> Relocalization | None:
-    """PnP + RANSAC pose of camera ``cam`` from world points X (N, 3) and its normalised
-    points x (N, 2) (``correspondences``), or None when it does not explain them clearly
-    better than the current pose R[cam], t[cam]."""
     import cv2
 
+    X, x, used = correspondences(frames, cam, R, t, cfg)
     if len(X) < min_inliers:
         return None
     cv2.setRNGSeed(seed)
@@ -103,13 +95,6 @@ def pnp(cam: int, X: np.ndarray, x: np.ndarray, used: int, R: np.ndarray, t: np.
     if n_new < max(min_inliers, 2 * n_old):
         return None
     return Relocalization(cam, R_new, t_new, int(n_new), int(len(X)), used)
-
-
-def inlier_share(X: np.ndarray, x: np.ndarray, R: np.ndarray, t: np.ndarray, focal: float,
-                 reprojection_px: float = 8.0) -> float:
-    """Share of the correspondences X (N, 3), x (N, 2) a camera pose R, t explains within
-    ``reprojection_px``: how well the camera agrees with the persons the others triangulate."""
-    return _inliers(X, x, R, t, reprojection_px / focal) / max(len(X), 1)
 
 
 def _inliers(X: np.ndarray, x: np.ndarray, R: np.ndarray, t: np.ndarray, thr: float) -> int:

@@ -313,7 +313,9 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
             rec, _, _ = reconcile_cameras(boot, cams, cfg)
             if rec is not None:
                 start = rec.start()
-                reconciled = {**rec.to_dict(), "start": acc_start(rec) if start is not None else None}
+                cfg = rec.config(cfg)
+                reconciled = {**rec.to_dict(), "start": acc_start(rec) if start is not None else None,
+                              "initial_std": [cfg.refine.initial_std_translation, cfg.refine.initial_std_rotation]}
 
     t0 = time.perf_counter()
     p = run_offline(cams, cfg, feed(), seed=spec.seed, progress=progress, start=start)

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from backend.bootstrap import (
-    BootstrapError, PairPose, average_rotations, bootstrap, camera_set, check_cameras, collect_frames, handover,
+    BootstrapError, PairPose, average_rotations, bootstrap, camera_set, collect_frames, handover,
     relative_pose, triangle_check,
 )
 from backend.cameras import CameraSet, Extrinsics
@@ -267,25 +267,6 @@ def test_extrinsics_of_a_result_roundtrip(booted):
 # ------------------------------------------------------------------ with an initial estimate (backend/reconcile.py)
 
 
-def test_check_cameras_relocalises_a_camera_placed_wrong(booted):
-    res, _, _, _, frames = booted
-    cfg = EngineConfig()
-    names = res.names
-    intr = booted[2]
-    focal = np.array([0.5 * (intr[n].fx + intr[n].fy) for n in names])
-    R, t = res.R.copy(), res.t.copy()
-    c = 3
-    R[c] = so3_exp([0.0, np.radians(160), 0.0]) @ R[c]
-    t[c] += [4.0, -2.0, 0.5]
-    R2, t2, located, moved, dropped = check_cameras(frames, R, t, res.located, focal, cfg, seed=SEED)
-    print(moved, dropped)
-    assert moved == [c] and dropped == []
-    assert rotation_angle_deg(R2[c], res.R[c]) < 1.0 and np.linalg.norm(t2[c] - res.t[c]) < 0.1
-    # the correct cameras pass untouched
-    others = [k for k in range(len(names)) if k != c]
-    assert np.array_equal(R2[others], R[others]) and located.all()
-
-
 def test_pipeline_from_a_rough_start_takes_the_data_shape(booted):
     """0.75 m / 20° off per camera; the online pipeline from the bootstrap's shape aligned
     onto it: every camera's shape within the bootstrap's bars, the initial estimate's
@@ -301,7 +282,10 @@ def test_pipeline_from_a_rough_start_takes_the_data_shape(booted):
     print(note)
     assert rec is not None and rec.used and not rec.refused.any()
     before = evaluate(cams.poses(), truth)
-    p = run_offline(cams, cfg, msgs, seed=SEED, start=rec.start())
+    # the initial estimate says 0.25 m / 10° by default; the data show it is further off
+    run_cfg = rec.config(cfg)
+    assert run_cfg.refine.initial_std_translation > 0.5 and run_cfg.refine.initial_std_rotation > 15
+    p = run_offline(cams, run_cfg, msgs, seed=SEED, start=rec.start())
     acc = evaluate(p.state().poses(), truth)
     print(before.summary(), "->", acc.summary())
     assert acc.shape_position.max < 0.05 and acc.shape_orientation.max < 0.5
