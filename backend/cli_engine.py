@@ -16,8 +16,10 @@ def calibrate(
     intrinsics: Annotated[Path, typer.Option(help="intrinsics YAML (FORMATS.md)")],
     recording: Annotated[Path, typer.Option(help="keypoint recording: .jsonl, .jsonl.gz or .msgpack")],
     output: Annotated[Path, typer.Option(help="where to write the resulting extrinsics YAML (atomically)")],
-    initial: Annotated[Optional[Path], typer.Option(help="initial extrinsics estimate YAML; its world frame and scale are kept. "
-                                                    "Without it the cameras are found from the people alone (docs/bootstrap.md)")] = None,
+    initial: Annotated[Optional[Path], typer.Option(help="initial extrinsics estimate YAML; its world frame and scale are kept "
+                                                    "(when the data disagree with it, the run starts from the data's shape: "
+                                                    "bootstrap.with_initial). Without it the cameras are found from the people "
+                                                    "alone (docs/bootstrap.md)")] = None,
     distrust_initial: Annotated[bool, typer.Option("--distrust-initial", help="ignore the initial estimate's poses: bootstrap as without one")] = False,
     person_height: Annotated[Optional[str], typer.Option(help="known height(s) of the walkers in m, e.g. 1.85 or 1.96,1.70: "
                                                          "metric scale from them (else from a population prior)")] = None,

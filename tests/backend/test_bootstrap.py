@@ -289,6 +289,8 @@ def test_pipeline_from_a_rough_start_takes_the_data_shape(booted):
     acc = evaluate(p.state().poses(), truth)
     print(before.summary(), "->", acc.summary())
     assert acc.shape_position.max < 0.05 and acc.shape_orientation.max < 0.5
-    assert acc.position.mean < 0.5 * before.position.mean
+    # measured 0.54 m -> 0.061 m rigid, 0.0125 m shape (the rigid rest: the frame that 7
+    # cameras 0.75 m off define)
+    assert before.position.mean > 0.4 and acc.position.mean < 0.15
     # the prior is the initial estimate: R0/t0 unchanged, its scale kept
     assert np.allclose(p.refiner.t0, np.array([init[n].pose.t for n in cams.names]))
