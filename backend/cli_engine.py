@@ -179,7 +179,7 @@ def calibrate(
 
     try:
         p = run_offline(cams, cfg, messages(), seed=seed, progress=progress,
-                        start=rec.start() if rec is not None else None)
+                        start=rec.start(cfg) if rec is not None else None)
     except RecordingError as e:
         raise fail(f"{e} (use --skip-bad to skip malformed records)")
     finally:

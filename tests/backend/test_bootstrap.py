@@ -285,7 +285,7 @@ def test_pipeline_from_a_rough_start_takes_the_data_shape(booted):
     # the initial estimate says 0.25 m / 10° by default; the data show it is further off
     run_cfg = rec.config(cfg)
     assert run_cfg.refine.initial_std_translation > 0.5 and run_cfg.refine.initial_std_rotation > 15
-    p = run_offline(cams, run_cfg, msgs, seed=SEED, start=rec.start())
+    p = run_offline(cams, run_cfg, msgs, seed=SEED, start=rec.start(run_cfg))
     acc = evaluate(p.state().poses(), truth)
     print(before.summary(), "->", acc.summary())
     assert acc.shape_position.max < 0.05 and acc.shape_orientation.max < 0.5

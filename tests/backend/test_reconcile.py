@@ -94,7 +94,7 @@ def test_an_initial_estimate_the_data_confirm_is_kept():
     tb = tb + rng.normal(0, 0.002, tb.shape)  # 4 mm in metres: well within 0.05 m
     cfg = EngineConfig()
     rec = reconcile(_boot(names, Rb, tb), names, R, t, cfg)
-    assert rec is not None and rec.agrees.all() and not rec.used and rec.start() is None
+    assert rec is not None and rec.agrees.all() and not rec.used and rec.start(cfg) is None
     assert rec.scale == pytest.approx(2.0, rel=1e-2)
     # 'always' starts from the data's shape all the same; 'never' does not either way
     assert reconcile(_boot(names, Rb, tb), names, R, t, cfg, mode="always").used
