@@ -189,7 +189,15 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
     refused = both & ((np.nan_to_num(dt) > b.refuse_sigma * rc.initial_std_translation)
                       | (np.nan_to_num(dr) > b.refuse_sigma * rc.initial_std_rotation))
     usable = both & ~refused
-    if mode == "never" or (mode == "auto" and agrees[both].all()):
+    # 'auto' starts from the data's shape only when the initial estimate is further off than
+    # it claims: the case where the first adjustment, which trusts the stated std, loses
+    # cameras. An estimate within its std is left alone (the paper's way reaches the limit
+    # from it, and a bootstrap mistake cannot spoil it).
+    k = both & ~refused
+    rms_t = float(np.sqrt(np.mean(dt[k] ** 2))) if k.any() else 0.0
+    rms_r = float(np.sqrt(np.mean(dr[k] ** 2))) if k.any() else 0.0
+    off = rms_t > b.auto_sigma * rc.initial_std_translation or rms_r > b.auto_sigma * rc.initial_std_rotation
+    if mode == "never" or (mode == "auto" and (agrees[both].all() or not off)):
         use = np.zeros(C, bool)
     else:
         use = usable

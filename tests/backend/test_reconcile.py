@@ -102,7 +102,17 @@ def test_an_initial_estimate_the_data_confirm_is_kept():
     bad[3] += [0.4, 0.0, 0.0]
     assert not reconcile(_boot(names, Rb, tb), names, R, bad, cfg, mode="never").used
     rec = reconcile(_boot(names, Rb, tb), names, R, bad, cfg)
-    assert rec.used and not rec.agrees[3] and rec.agrees.sum() == 7
+    # one camera 0.4 m off is within what the estimate claims (0.25 m RMS): left to the pipeline
+    assert not rec.used and not rec.agrees[3] and rec.agrees.sum() == 7
+    assert reconcile(_boot(names, Rb, tb), names, R, bad, cfg, mode="always").used
+    # every camera 0.7 m off is not: 'auto' starts from the data's shape
+    d = rng.normal(size=t.shape)
+    far = t + 0.7 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    rec = reconcile(_boot(names, Rb, tb), names, R, far, cfg)
+    assert rec.used and not rec.agrees.any() and not rec.refused.any()
+    # ... unless the estimate says it is that rough
+    honest = cfg.merged({"refine": {"initial_std_translation": 0.7}})
+    assert not reconcile(_boot(names, Rb, tb), names, R, far, honest).used
     # fewer than 3 common cameras: nothing to align
     few = np.zeros(8, bool)
     few[:2] = True
