@@ -16,8 +16,10 @@ def calibrate(
     intrinsics: Annotated[Path, typer.Option(help="intrinsics YAML (FORMATS.md)")],
     recording: Annotated[Path, typer.Option(help="keypoint recording: .jsonl, .jsonl.gz or .msgpack")],
     output: Annotated[Path, typer.Option(help="where to write the resulting extrinsics YAML (atomically)")],
-    initial: Annotated[Optional[Path], typer.Option(help="initial extrinsics estimate YAML; its world frame and scale are kept. "
-                                                    "Without it the cameras are found from the people alone (docs/bootstrap.md)")] = None,
+    initial: Annotated[Optional[Path], typer.Option(help="initial extrinsics estimate YAML; its world frame and scale are kept "
+                                                    "(when the data disagree with it, the run starts from the data's shape: "
+                                                    "bootstrap.with_initial). Without it the cameras are found from the people "
+                                                    "alone (docs/bootstrap.md)")] = None,
     distrust_initial: Annotated[bool, typer.Option("--distrust-initial", help="ignore the initial estimate's poses: bootstrap as without one")] = False,
     person_height: Annotated[Optional[str], typer.Option(help="known height(s) of the walkers in m, e.g. 1.85 or 1.96,1.70: "
                                                          "metric scale from them (else from a population prior)")] = None,
@@ -102,6 +104,29 @@ def calibrate(
                           + (f"; not placed: {', '.join(lost)}" if lost else ""), highlight=False)
             if ref is not None and boot.located.sum() >= 3:
                 console.print(f"bootstrap vs reference: {evaluate(boot.poses(), ref).summary()}", highlight=False)
+    rec = None
+    if boot is None and cfg.bootstrap.with_initial != "never":
+        # the data's shape aligned onto the initial estimate (backend/reconcile.py)
+        from .reconcile import bootstrap_start
+
+        if not quiet:
+            console.print(f"bootstrap.with_initial = {cfg.bootstrap.with_initial}: comparing the initial estimate "
+                          f"with the data's shape (bootstrap of the first {cfg.bootstrap.max_seconds:g} s)",
+                          highlight=False)
+        say = (lambda m: None) if quiet else (lambda m: console.print(f"bootstrap: {m}", highlight=False))
+        try:
+            rec, _, note = bootstrap_start(cams, intr, cfg, read_recording(recording, skip_bad=skip_bad), seed=seed,
+                                           progress=say)
+        except RecordingError as e:
+            raise fail(f"{e} (use --skip-bad to skip malformed records)")
+        if rec is not None:
+            cfg = rec.config(cfg)
+        if not quiet:
+            console.print(note, highlight=False)
+            if rec is not None and rec.used:
+                console.print(f"the online pipeline starts from the data's shape in the initial estimate's frame and "
+                              f"scale; the initial estimate's std: {cfg.refine.initial_std_translation:.3f} m / "
+                              f"{cfg.refine.initial_std_rotation:.2f}°", highlight=False)
     if ref is not None:
         common = set(ref) & set(cams.names)
         if len(common) < 3:
@@ -153,7 +178,8 @@ def calibrate(
         console.print(line, highlight=False)
 
     try:
-        p = run_offline(cams, cfg, messages(), seed=seed, progress=progress)
+        p = run_offline(cams, cfg, messages(), seed=seed, progress=progress,
+                        start=rec.start(cfg) if rec is not None else None)
     except RecordingError as e:
         raise fail(f"{e} (use --skip-bad to skip malformed records)")
     finally:
@@ -161,12 +187,18 @@ def calibrate(
             hist_f.close()
     state = p.state()
     wall = time.perf_counter() - t_start
-    not_calibrated = [c.name for c in state.cameras if c.cycles == 0]
+    started = set(rec.to_dict()["from_bootstrap"]) if rec is not None else set()
+    not_calibrated = [c.name for c in state.cameras if c.cycles == 0 and c.name not in started]
+    only_bootstrap = [c.name for c in state.cameras if c.cycles == 0 and c.name in started]
     extr = state.extrinsics({n: cams.extrinsics[n].resolution for n in cams.names})
     comment = (f"extrcal calibrate of {recording}: {state.cycle} cycles, "
                f"converged: {sum(c.converged for c in state.cameras)}/{len(state.cameras)}")
     if not_calibrated:
         comment += f"\nnot calibrated (kept initial pose): {', '.join(not_calibrated)}"
+    if only_bootstrap:
+        comment += f"\nnot calibrated online (kept the bootstrap's pose): {', '.join(only_bootstrap)}"
+    if rec is not None:
+        comment += f"\n{rec.summary()}"
     scale = boot.scale if boot is not None else None
     if boot is not None:
         comment += f"\nno initial estimate: {boot.frame}"
@@ -182,7 +214,7 @@ def calibrate(
         if scale is not None:
             comment += f"\nscale check (people): the initial estimate's metres are {scale.factor:.4f} ± " \
                        f"{100 * scale.rel_std:.1f} % true metres ({scale.method})"
-    extra = {n: {"calibrated": n not in not_calibrated} for n in cams.names}
+    extra = {n: {"calibrated": n not in not_calibrated and n not in only_bootstrap} for n in cams.names}
     save_extrinsics(output, extr, comment=comment, extra=extra)
     if boot is not None:
         from .cameras import write_atomic

@@ -157,6 +157,18 @@ class BootstrapConfig(_Section):
     height_mean: float = Field(1.72, gt=0, description="m: population prior of adult height (mixed sexes; docs/bootstrap.md)")
     height_std: float = Field(0.10, gt=0, description="m: its spread between persons")
     ratio_std: float = Field(0.02, ge=0, description="relative spread between persons of leg + torso length / height")
+    with_initial: Literal["auto", "always", "never"] = Field(
+        "auto", description="with an initial estimate (`extrcal calibrate --initial`): bootstrap too, align the data's "
+        "shape onto the initial estimate (its frame and scale kept) and start the online pipeline there; 'auto': only "
+        "when the initial estimate is further off the data than its stated std says (auto_sigma), 'never': the paper's way "
+        "(backend/reconcile.py)")
+    agree_translation: float = Field(0.05, ge=0, description="m: a camera of the initial estimate agrees with the data when "
+                                     "its centre is within this (or 3x the bootstrap's std) of the aligned bootstrap's ...")
+    agree_rotation: float = Field(0.5, ge=0, description="deg ... and its orientation within this (or 3x the std)")
+    auto_sigma: float = Field(1.5, gt=0, description="with_initial='auto' starts from the data's shape when the initial "
+                              "estimate's RMS distance from it exceeds this many of its stated std (refine.initial_std_*)")
+    refuse_sigma: float = Field(6.0, gt=0, description="a bootstrap pose further from the initial estimate than this many "
+                                "of its stated std (refine.initial_std_*) is not used: one of the two is grossly wrong")
 
 
 class ClockConfig(_Section):

@@ -157,6 +157,38 @@ def umeyama(src: np.ndarray, dst: np.ndarray, *, with_scale: bool) -> tuple[floa
     return s, R, t
 
 
+def trimmed_similarity(src: np.ndarray, dst: np.ndarray, *, floor: float = 0.05, min_distance: float = 0.2
+                       ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Robust (s, R, t, keep) with dst ≈ s·R·src + t over the points kept.
+
+    src, dst: (N, 3) float64 (camera centres), N >= 3; keep: (N,) bool. A robust start
+    (the median ratio of pairwise distances, pairs closer than ``min_distance`` in either
+    set left out: co-located points say nothing about scale), a rigid fit, then up to 3
+    rounds of: points whose residual exceeds 3x the median of the kept ones (and
+    ``floor``) are left out, least squares with scale on the rest (one point metres off
+    would otherwise rescale and turn everyone). None when no pair is far enough apart."""
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    assert src.shape == dst.shape and src.ndim == 2 and src.shape[1] == 3 and len(src) >= 3
+    i, j = np.triu_indices(len(src), 1)
+    d = np.linalg.norm(src[i] - src[j], axis=1)
+    d0 = np.linalg.norm(dst[i] - dst[j], axis=1)
+    ok = (d > min_distance) & (d0 > min_distance)
+    if not ok.any():
+        return None
+    s = float(np.median(d0[ok] / d[ok]))
+    _, R, tr = umeyama(s * src, dst, with_scale=False)
+    keep = np.ones(len(src), bool)
+    for _ in range(3):
+        res = np.linalg.norm(s * src @ R.T + tr - dst, axis=1)
+        fit = res <= max(3.0 * float(np.median(res[keep])), floor)
+        if fit.sum() < 3:
+            break
+        keep = fit
+        s, R, tr = umeyama(src[keep], dst[keep], with_scale=True)
+    return s, R, tr, keep
+
+
 def triangulate_dlt(P: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Linear triangulation of one point.
 

@@ -34,7 +34,7 @@ from .config import EngineConfig
 from .monitor import Alarm, Monitor, innovation
 from .optimize import Problem, Solution, solve
 from .preprocess import Detection, Preprocessor
-from .refine import Refiner, initial_covariance
+from .refine import Refiner
 from .selection import HypothesisQueue
 from .state import CalibrationState, CameraState, Counters, CycleReport
 from .sync import Synchronizer
@@ -44,7 +44,13 @@ _CLOCK_SAMPLES = 16  # offline: messages held back to find a plausible start of 
 
 
 class Pipeline:
-    def __init__(self, cameras: CameraSet, config: EngineConfig | None = None, *, seed: int = 0):
+    def __init__(self, cameras: CameraSet, config: EngineConfig | None = None, *, seed: int = 0,
+                 start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
+        """``start``: (R (C, 3, 3), t (C, 3), P (C, 6, 6)): where the estimate starts and
+        what adjustments over all data are anchored to, when that is not the initial
+        estimate with ``refine.initial_std_*`` (e.g. the data's shape aligned onto a rough
+        initial estimate, backend/reconcile.py); the initial estimate keeps the frame and
+        the scale."""
         self.cameras = cameras
         self.cfg = config or EngineConfig()
         self.names = cameras.names
@@ -57,7 +63,8 @@ class Pipeline:
         self.preprocess = Preprocessor(self.cfg.preprocess, self.names, cameras.intrinsics)
         self.associate = Associator(self.cfg.associate)
         self.queue = HypothesisQueue(self.cfg.select)
-        self.refiner = Refiner(self.cfg.refine, R0, t0)
+        self.refiner = Refiner(self.cfg.refine, R0, t0, None if start is None else start[2],
+                               None if start is None else start[:2])
         self.monitor = Monitor(self.cfg.monitor, C)
         self.watched = np.zeros(C, dtype=bool)
         self.clocks = ClockOffsetEstimator(self.cfg.clock, self.names, cameras.intrinsics,
@@ -270,9 +277,8 @@ class Pipeline:
         """Prior = the initial estimate and its uncertainty: where a lost camera can be
         (the filter may have dragged it anywhere)."""
         rf = self.refiner
-        P0 = np.repeat(initial_covariance(self.cfg.refine)[None], len(self.names), axis=0)
-        return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R0.copy(), prior_t=rf.t0.copy(),
-                       prior_cov=P0, focal=self.focal, config=self.cfg.optimize,
+        return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.prior_R.copy(),
+                       prior_t=rf.prior_t.copy(), prior_cov=rf.P0.copy(), focal=self.focal, config=self.cfg.optimize,
                        frames=tuple(frames), associate=self.cfg.associate, seed=int(self.rng.integers(2**31)),
                        kind="relocalize", lost=tuple(int(c) for c in lost))
 
@@ -312,10 +318,9 @@ class Pipeline:
         posterior of all the data."""
         rf, rc = self.refiner, self.cfg.refine
         self.cycle += 1
-        P0 = np.repeat(initial_covariance(rc)[None], len(self.names), axis=0)
         opt = self.cfg.optimize.model_copy(update={"max_iterations": max(self.cfg.optimize.max_iterations, 100)})
-        return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R0.copy(), prior_t=rf.t0.copy(),
-                       prior_cov=P0, focal=self.focal, config=opt, frames=tuple(self.frames),
+        return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.prior_R.copy(),
+                       prior_t=rf.prior_t.copy(), prior_cov=rf.P0.copy(), focal=self.focal, config=opt, frames=tuple(self.frames),
                        associate=self.cfg.associate,
                        # the batch re-associates ungated: a camera the filter got wrong must
                        # keep its views to be put right; the solve's outlier rounds drop bad ones
@@ -480,6 +485,7 @@ class Pipeline:
             "names": list(self.names),
             "R": rf.R.tolist(), "t": rf.t.tolist(), "P": rf.P.tolist(), "S": rf.S.tolist(),
             "R0": rf.R0.tolist(), "t0": rf.t0.tolist(),
+            "prior_R": rf.prior_R.tolist(), "prior_t": rf.prior_t.tolist(), "P0": rf.P0.tolist(),
             "cycles": rf.cycles.tolist(),
             "history": [[[t.tolist(), R.tolist()] for t, R in h] for h in rf.history],
             "cycle": self.cycle,
@@ -501,6 +507,11 @@ class Pipeline:
         rf = p.refiner
         rf.R, rf.t, rf.P, rf.S = (np.array(snapshot[k], dtype=np.float64) for k in ("R", "t", "P", "S"))
         rf.R0, rf.t0 = np.array(snapshot["R0"]), np.array(snapshot["t0"])
+        # snapshots from before a prior of its own existed: the initial estimate was it
+        rf.prior_R = np.array(snapshot.get("prior_R", snapshot["R0"]), dtype=np.float64)
+        rf.prior_t = np.array(snapshot.get("prior_t", snapshot["t0"]), dtype=np.float64)
+        if "P0" in snapshot:
+            rf.P0 = np.array(snapshot["P0"], dtype=np.float64)
         rf.cycles = np.array(snapshot["cycles"], dtype=np.int64)
         for h, items in zip(rf.history, snapshot["history"]):
             h.extend((np.array(t, dtype=np.float64), np.array(R, dtype=np.float64)) for t, R in items)
@@ -522,9 +533,10 @@ class Pipeline:
 
 def run_offline(cameras: CameraSet, config: EngineConfig, messages: Iterable[KeypointMessage], *, seed: int = 0,
                 progress: Callable[[CalibrationState, CycleReport], None] | None = None,
-                finish: bool = True) -> Pipeline:
-    """Run the online pipeline on recorded messages on virtual time (the newest stamp)."""
-    p = Pipeline(cameras, config, seed=seed)
+                finish: bool = True, start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> Pipeline:
+    """Run the online pipeline on recorded messages on virtual time (the newest stamp);
+    ``start`` as for ``Pipeline``."""
+    p = Pipeline(cameras, config, seed=seed, start=start)
     for msg in messages:
         p.push(msg)
         if p.clock is None:

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import RefineConfig
-from .geometry import pose_local, pose_retract, rotation_angle_deg, umeyama
+from .geometry import pose_local, pose_retract, rotation_angle_deg, trimmed_similarity
 
 
 @dataclass(frozen=True)
@@ -55,13 +55,24 @@ def _sym_pd(P: np.ndarray, floor: float = 1e-14) -> np.ndarray:
 class Refiner:
     """Camera states R (C, 3, 3), t (C, 3), P (C, 6, 6) and their recent changes."""
 
-    def __init__(self, cfg: RefineConfig, R0: np.ndarray, t0: np.ndarray, P0: np.ndarray | None = None):
+    def __init__(self, cfg: RefineConfig, R0: np.ndarray, t0: np.ndarray, P0: np.ndarray | None = None,
+                 prior: tuple[np.ndarray, np.ndarray] | None = None):
+        """R0 (C, 3, 3), t0 (C, 3): the initial estimate, which gives the frame and the
+        scale. ``prior``: (R, t) where the estimate starts and what the adjustments over all
+        data are anchored to, with ``P0`` (C, 6, 6); default the initial estimate with
+        ``refine.initial_std_*``. They differ when the data's shape, aligned onto a rough
+        initial estimate, is the better start (backend/reconcile.py)."""
         C = len(R0)
         assert R0.shape == (C, 3, 3) and t0.shape == (C, 3)
         self.cfg = cfg
         self.R0, self.t0 = R0.copy(), t0.copy()  # the initial estimate: frame and scale
-        self.R, self.t = R0.copy(), t0.copy()
+        pR, pt = (R0, t0) if prior is None else prior
+        assert pR.shape == (C, 3, 3) and pt.shape == (C, 3)
+        self.prior_R, self.prior_t = pR.copy(), pt.copy()
+        self.R, self.t = pR.copy(), pt.copy()
         self.P = np.repeat(initial_covariance(cfg)[None], C, axis=0) if P0 is None else P0.copy()
+        assert self.P.shape == (C, 6, 6)
+        self.P0 = self.P.copy()
         # what is reported: the filter's covariance, or a solve's shape covariance (gauge removed)
         self.S = self.P.copy()
         self.Q = _diag(cfg.filter_std_rotation, cfg.filter_std_translation) * cfg.process_noise**2
@@ -151,25 +162,10 @@ class Refiner:
         idx = np.flatnonzero(m)
         if len(idx) < 3:
             return 1.0
-        src, dst = self.t[idx], self.t0[idx]
-        i, j = np.triu_indices(len(idx), 1)
-        d = np.linalg.norm(src[i] - src[j], axis=1)
-        d0 = np.linalg.norm(dst[i] - dst[j], axis=1)
-        ok = (d > 0.2) & (d0 > 0.2)  # co-located cameras say nothing about scale
-        if not ok.any():
+        fit = trimmed_similarity(self.t[idx], self.t0[idx])
+        if fit is None:
             return 1.0
-        # a robust start (median ratio) finds the cameras that are off; then least squares
-        s = float(np.median(d0[ok] / d[ok]))
-        _, R, tr = umeyama(s * src, dst, with_scale=False)
-        keep = np.ones(len(idx), bool)
-        for _ in range(3):
-            res = np.linalg.norm(s * src @ R.T + tr - dst, axis=1)
-            # a camera off by more than 3x the median residual (and 5 cm) is not the frame
-            fit = res <= max(3.0 * float(np.median(res[keep])), 0.05)
-            if fit.sum() < 3:
-                break
-            keep = fit
-            s, R, tr = umeyama(src[keep], dst[keep], with_scale=True)
+        s = fit[0]
         c = self.t[m].mean(0)
         self.t[m] = c + s * (self.t[m] - c)
         # The uncertainty of a position scales with it.

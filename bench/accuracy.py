@@ -212,6 +212,49 @@ def limit(p, cfg, truth, ref, seed: int, start: str, budget: int | None = None) 
     return info, res, active
 
 
+_BOOT_SOURCES = ("bootstrap", "people", "optimize", "associate", "relocalize", "preprocess", "sync", "geometry",
+                 "config")
+
+
+def bootstrap_cached(recording: str, intrinsics, cfg, seed: int, cache: Path):
+    """The bootstrap (``backend.bootstrap``) of a recording's first ``bootstrap.max_seconds``,
+    cached next to the recording, keyed by the bootstrap's sources and config: it depends
+    on the recording only, not on the start, and takes minutes. None when it fails."""
+    from backend.bootstrap import BootstrapError, BootstrapResult, bootstrap, collect_frames
+    from backend.cameras import natural_key
+    from proto import read_recording
+
+    h = hashlib.sha1()
+    for m in _BOOT_SOURCES:
+        h.update((REPO / "backend" / f"{m}.py").read_bytes())
+    h.update(repr((cfg.model_dump(), seed)).encode())
+    path = cache / f"{Path(recording).name}.boot_{h.hexdigest()[:12]}.npz"
+    names = tuple(sorted(intrinsics, key=natural_key))
+    if path.is_file():
+        z = np.load(path)
+        if not bool(z["ok"]):
+            return None
+        return BootstrapResult(names, z["R"], z["t"], z["located"], z["std_t"], z["std_r"], None, "cached",
+                               int(z["pairs"]), int(z["pairs_tried"]), int(z["frames"]), float(z["data_seconds"]),
+                               float(z["seconds"]))
+    frames = collect_frames(names, intrinsics, cfg, read_recording(recording), max_seconds=cfg.bootstrap.max_seconds)
+    focal = np.array([0.5 * (intrinsics[n].fx + intrinsics[n].fy) for n in names])
+    try:
+        b = bootstrap(frames, names, focal, cfg, seed=seed)
+    except BootstrapError:
+        b = None
+    tmp = path.with_name(f".{os.getpid()}.{path.name}")
+    with open(tmp, "wb") as f:
+        if b is None:
+            np.savez(f, ok=False)
+        else:
+            np.savez(f, ok=True, R=b.R, t=b.t, located=b.located, std_t=b.std_translation, std_r=b.std_rotation,
+                     pairs=b.pairs, pairs_tried=b.pairs_tried, frames=b.frames, data_seconds=b.data_seconds,
+                     seconds=b.seconds)
+    os.replace(tmp, path)
+    return b
+
+
 def run(spec: Spec, recording: str, overrides: list[str], config: str | None, limit_start: str,
         limit_budget: int | None = None) -> dict:
     """One calibration run of the full pipeline, its history, and its limit.
@@ -257,8 +300,25 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
                             hypotheses=report.hypotheses, converged=state.converged, poses=state.poses()))
         spent[0] += time.perf_counter() - t
 
+    # bootstrap.with_initial: the data's shape aligned onto the initial estimate
+    # (backend/reconcile.py), as `extrcal calibrate --initial` does; its time is the bootstrap's
+    start, reconciled, boot_s = None, None, 0.0
+    if cfg.bootstrap.with_initial != "never":
+        from backend.reconcile import reconcile_cameras
+
+        t0 = time.perf_counter()
+        boot = bootstrap_cached(recording, cams.intrinsics, cfg, spec.seed, Path(recording).parent)
+        boot_s = boot.seconds if boot is not None else time.perf_counter() - t0
+        if boot is not None:
+            rec, _, _ = reconcile_cameras(boot, cams, cfg)
+            if rec is not None:
+                cfg = rec.config(cfg)
+                start = rec.start(cfg)
+                reconciled = {**rec.to_dict(), "start": acc_start(rec) if start is not None else None,
+                              "initial_std": [cfg.refine.initial_std_translation, cfg.refine.initial_std_rotation]}
+
     t0 = time.perf_counter()
-    p = run_offline(cams, cfg, feed(), seed=spec.seed, progress=progress)
+    p = run_offline(cams, cfg, feed(), seed=spec.seed, progress=progress, start=start)
     run_s = time.perf_counter() - t0 - spent[0]
     state = p.state()
     online = [h for h in history if not h["final"]]
@@ -274,6 +334,8 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
 
     for h in history:
         h.update(acc(h.pop("poses")))
+    if reconciled is not None and reconciled["start"] is not None:
+        reconciled["start"] = acc(reconciled["start"])
     initial = acc(cams.poses())
     lim = None
     if lim_info is not None:
@@ -312,7 +374,16 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
         "cycle_p50": float(np.percentile(solve, 50)) if len(solve) else None,
         "cycle_p95": float(np.percentile(solve, 95)) if len(solve) else None,
         "final_batch_seconds": final_batch[-1]["solve_seconds"] if final_batch else None,
+        "reconciled": reconciled,
+        "bootstrap_seconds": boot_s,
     }
+
+
+def acc_start(rec) -> dict:
+    """The start poses of a reconciliation, name -> Pose (evaluated later like the others)."""
+    from backend.cameras import Pose
+
+    return {n: Pose(rec.R[c].copy(), rec.t[c].copy()) for c, n in enumerate(rec.names)}
 
 
 def _run_job(job) -> dict:
@@ -321,6 +392,15 @@ def _run_job(job) -> dict:
 
 def _sim_job(job) -> Path:
     return simulate(*job)
+
+
+def _boot_job(job) -> None:
+    from backend.cameras import load_intrinsics
+    from backend.config import EngineConfig
+
+    recording, seed, config, overrides = job
+    bootstrap_cached(recording, load_intrinsics(lab_dir() / "intrinsics.yaml"), EngineConfig.load(config, overrides),
+                     seed, Path(recording).parent)
 
 
 # ------------------------------------------------------------------ tables
@@ -639,6 +719,14 @@ def main(argv: list[str] | None = None) -> None:
     console.print(f"simulating {len(sims)} recording(s) (cached in {args.cache}) ...")
     paths = dict(zip(sims, mapper(_sim_job, [(*k, args.cache, sim_set) for k in sims])))
     console.print(f"  {time.perf_counter() - t0:.0f} s; {len(specs)} calibration run(s), {jobs} job(s)")
+    cfg = EngineConfig.load(args.config, args.overrides)
+    if cfg.bootstrap.with_initial != "never":  # once per recording, before the runs that share it
+        t0 = time.perf_counter()
+        recs = sorted({(str(paths[(s.persons, s.duration, s.seed)]), s.seed) for s in specs})
+        console.print(f"bootstrapping {len(recs)} recording(s) (bootstrap.with_initial = "
+                      f"{cfg.bootstrap.with_initial}, cached) ...")
+        list(mapper(_boot_job, [(r, sd, args.config, args.overrides) for r, sd in recs]))
+        console.print(f"  {time.perf_counter() - t0:.0f} s")
     runs = []
     work = [(s, str(paths[(s.persons, s.duration, s.seed)]), args.overrides, args.config, args.limit_start,
              args.limit_hypotheses) for s in specs]
@@ -650,7 +738,7 @@ def main(argv: list[str] | None = None) -> None:
                       f"| limit {lim.get('position', float('nan')):.4f} m {lim.get('orientation', float('nan')):.3f}° "
                       f"shape {lim.get('shape_position', float('nan')):.4f} m | {r['cycles']} cycles, "
                       f"{r['data_seconds'] / r['run_seconds']:.1f}x real time"
-                      + _worst(r)
+                      + _worst(r) + _start(r)
                       + (" | ARCHIVE FULL: the limit saw fewer frames" if r["frames_archive_full"] else ""))
         if args.out is not None:  # a partial file survives an interrupted run
             _write(args.out, args, runs, None)
@@ -661,6 +749,17 @@ def main(argv: list[str] | None = None) -> None:
     if args.out is not None:
         _write(args.out, args, runs, summary)
         console.print(f"\nwrote {args.out}")
+
+
+def _start(r: dict) -> str:
+    rc = r.get("reconciled")
+    if not rc:
+        return ""
+    if not rc["used"]:
+        return f" | initial kept ({rc['mode']})"
+    st = rc["start"]
+    return (f" | start from the bootstrap for {len(rc['from_bootstrap'])} cams (rigid {st['position']:.3f} m, "
+            f"shape {st['shape_position']:.3f} m){', refused ' + ','.join(rc['refused']) if rc['refused'] else ''}")
 
 
 def _worst(r: dict) -> str:

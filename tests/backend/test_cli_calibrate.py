@@ -78,6 +78,9 @@ def test_calibrate_writes_extrinsics_history_and_names_uncalibrated_cameras(file
     assert r.exit_code == 0, r.output
     assert f"wrote {out}" in r.output
     assert "vs reference: position" in r.output
+    # bootstrap.with_initial = auto: 10 s of data are too few to compare the initial
+    # estimate with the data's shape; it is said, and the initial estimate used as it is
+    assert "bootstrap not possible" in r.output and "the initial estimate is used as it is" in r.output
     assert re.search(rf"not calibrated.*{ABSENT}", r.output)
 
     result = load_extrinsics(out)

@@ -1,0 +1,119 @@
+"""The initial estimate against the data (backend/reconcile.py): the bootstrap's shape
+aligned onto a rough initial estimate keeps its frame and scale; a camera the bootstrap
+got grossly wrong is refused; an initial estimate the data confirm is left as it is.
+The whole path (bootstrap, reconcile, online pipeline from 0.75 m / 20°) and the
+bootstrap's leave-one-out camera check run on the west room simulation in
+test_bootstrap.py."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from backend.bootstrap import BootstrapResult
+from backend.cameras import Pose
+from backend.config import EngineConfig
+from backend.evaluate import evaluate
+from backend.geometry import rotation_angle_deg, so3_exp, trimmed_similarity
+from backend.reconcile import reconcile
+
+RNG = np.random.default_rng
+
+
+def _network(rng, C: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """(R (C, 3, 3), t (C, 3)) cameras around a 8 m x 6 m room at 2.6 m, random turns."""
+    t = np.c_[rng.uniform(-4, 4, C), rng.uniform(-3, 3, C), np.full(C, 2.6)]
+    R = np.stack([so3_exp(rng.normal(0, 1.0, 3)) for _ in range(C)])
+    return R, t
+
+
+def _boot(names, R, t, located=None, std=0.01) -> BootstrapResult:
+    C = len(names)
+    located = np.ones(C, bool) if located is None else located
+    return BootstrapResult(tuple(names), R, t, located, np.full(C, std), np.full(C, 0.1), None, "test", 0, 0, 0,
+                           0.0, 0.0)
+
+
+def _similar(R, t, s, Rw, tw):
+    return np.einsum("ij,cjk->cik", Rw, R), s * t @ Rw.T + tw
+
+
+def test_trimmed_similarity_ignores_a_camera_metres_off():
+    rng = RNG(3)
+    _, t = _network(rng, 12)
+    Rw = so3_exp([0.3, -0.2, 1.1])
+    dst = 1.7 * t @ Rw.T + [1.0, -2.0, 0.5] + rng.normal(0, 0.01, t.shape)
+    dst[4] += [5.0, 3.0, -1.0]
+    s, R, tr, keep = trimmed_similarity(t, dst)
+    assert s == pytest.approx(1.7, rel=5e-3)
+    assert rotation_angle_deg(R, Rw) < 0.3
+    assert not keep[4] and keep.sum() == 11
+    assert trimmed_similarity(np.zeros((3, 3)), np.zeros((3, 3))) is None
+
+
+def test_the_data_shape_is_aligned_onto_a_rough_initial_estimate_and_a_wrong_camera_refused():
+    rng = RNG(0)
+    names = [f"cam_{i}" for i in range(12)]
+    R, t = _network(rng, 12)
+    # the initial estimate: the truth, each camera 0.75 m / 20° off
+    R0 = np.stack([so3_exp(np.radians(20) * v / np.linalg.norm(v)) @ r for v, r in zip(rng.normal(size=(12, 3)), R)])
+    d = rng.normal(size=(12, 3))
+    t0 = t + 0.75 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    # the bootstrap: the truth in its own frame and scale, cam_5 160° / 6 m wrong, cam_9 not placed
+    Rb, tb = _similar(R, t, 0.31, so3_exp([0.0, 0.0, 2.0]), np.array([3.0, 1.0, 0.0]))
+    Rb[5] = so3_exp([0.0, np.radians(160), 0.0]) @ Rb[5]
+    tb[5] += [6 * 0.31, 0.0, 0.0]
+    located = np.ones(12, bool)
+    located[9] = False
+    cfg = EngineConfig()
+    rec = reconcile(_boot(names, Rb, tb, located), names, R0, t0, cfg)
+    assert rec is not None and rec.used and rec.mode == "auto"
+    assert rec.refused.tolist() == [i == 5 for i in range(12)]
+    assert np.isnan(rec.translation[9]) and not rec.from_bootstrap[9]
+    assert rec.from_bootstrap.sum() == 10
+    # the refused and the unplaced camera start from the initial estimate
+    for c in (5, 9):
+        assert np.allclose(rec.R[c], R0[c]) and np.allclose(rec.t[c], t0[c])
+    # the others: the truth's shape (exact here), in the initial estimate's frame and scale
+    ok = rec.from_bootstrap
+    shape = {n: Pose(rec.R[c], rec.t[c]) for c, n in enumerate(names) if ok[c]}
+    truth = {n: Pose(R[c], t[c]) for c, n in enumerate(names) if ok[c]}
+    acc = evaluate(shape, truth)
+    assert acc.shape_position.max < 1e-6 and acc.shape_orientation.max < 1e-4
+    # frame and scale from the initial estimate: off by what 0.75 m per camera leaves
+    assert abs(acc.scale - 1) < 0.08
+    assert acc.position.mean < 0.5
+    assert "refused" in rec.summary() and "cam_5" in rec.summary()
+
+
+def test_an_initial_estimate_the_data_confirm_is_kept():
+    rng = RNG(1)
+    names = [f"cam_{i}" for i in range(8)]
+    R, t = _network(rng, 8)
+    Rb, tb = _similar(R, t, 0.5, so3_exp([1.0, 0.2, 0.0]), np.array([0.0, 1.0, 2.0]))
+    tb = tb + rng.normal(0, 0.002, tb.shape)  # 4 mm in metres: well within 0.05 m
+    cfg = EngineConfig()
+    rec = reconcile(_boot(names, Rb, tb), names, R, t, cfg)
+    assert rec is not None and rec.agrees.all() and not rec.used and rec.start(cfg) is None
+    assert rec.scale == pytest.approx(2.0, rel=1e-2)
+    # 'always' starts from the data's shape all the same; 'never' does not either way
+    assert reconcile(_boot(names, Rb, tb), names, R, t, cfg, mode="always").used
+    bad = t.copy()
+    bad[3] += [0.4, 0.0, 0.0]
+    assert not reconcile(_boot(names, Rb, tb), names, R, bad, cfg, mode="never").used
+    rec = reconcile(_boot(names, Rb, tb), names, R, bad, cfg)
+    # one camera 0.4 m off is within what the estimate claims (0.25 m RMS): left to the pipeline
+    assert not rec.used and not rec.agrees[3] and rec.agrees.sum() == 7
+    assert reconcile(_boot(names, Rb, tb), names, R, bad, cfg, mode="always").used
+    # every camera 0.7 m off is not: 'auto' starts from the data's shape
+    d = rng.normal(size=t.shape)
+    far = t + 0.7 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    rec = reconcile(_boot(names, Rb, tb), names, R, far, cfg)
+    assert rec.used and not rec.agrees.any() and not rec.refused.any()
+    # ... unless the estimate says it is that rough
+    honest = cfg.merged({"refine": {"initial_std_translation": 0.7}})
+    assert not reconcile(_boot(names, Rb, tb), names, R, far, honest).used
+    # fewer than 3 common cameras: nothing to align
+    few = np.zeros(8, bool)
+    few[:2] = True
+    assert reconcile(_boot(names, Rb, tb, few), names, R, t, cfg) is None
