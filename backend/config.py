@@ -176,7 +176,13 @@ class ClockConfig(_Section):
     min_scale_px: float = Field(0.5, gt=0, description="px: floor of the robust residual scale (median distance) of a sensor's fit")
     max_scale_px: float = Field(12.0, gt=0, description="px: no estimate while a sensor's fit is worse than this (the poses have not settled)")
     max_std: float = Field(0.01, gt=0, description="s: an offset is applied once its std is below this ...")
-    min_apply: float = Field(0.003, ge=0, description="s: ... and it is larger than this (and 3 std); a change smaller than this (or 2 std) is not applied")
+    min_apply: float = Field(0.015, ge=0, description="s: ... and it is larger than this (and 3 std): below this NTP does the "
+                             "job (a working NTP keeps a LAN's clocks within a few ms; 15 ms of mistiming moves a walking "
+                             "person by 2 cm, below the 3D noise of the detections), and applying an offset drops the "
+                             "sensor's archived views timed with the old one; an applied offset is taken back when the "
+                             "estimate falls below half of this")
+    min_change: float = Field(0.003, ge=0, description="s: an applied offset is changed when the estimate moved by more than "
+                              "this and 2.5 std")
     drift_warning: float = Field(0.01, gt=0, description="s: warn when a sensor's estimate moves by more than this")
     retime_tolerance: float = Field(0.005, ge=0, description="s: when a new offset is applied, archived views timed with one "
                                     "further off are dropped from the final batch")

@@ -29,7 +29,7 @@ from proto import KeypointMessage
 
 from .associate import Associator
 from .cameras import CameraSet
-from .clock_offsets import ClockOffsetEstimator
+from .clock_offsets import ClockJob, ClockOffsetEstimator, ClockResult
 from .config import EngineConfig
 from .monitor import Alarm, Monitor, innovation
 from .optimize import Problem, Solution, solve
@@ -130,17 +130,20 @@ class Pipeline:
             reason = self.push(m)
         return reason
 
-    def advance(self, now: float | None) -> int:
+    def advance(self, now: float | None, *, clock_offsets: bool = True) -> int:
         """Run sync/preprocess/associate up to clock time ``now``; returns new hypotheses.
-        ``None`` (offline, before the clock is known) does nothing."""
+        ``None`` (offline, before the clock is known) does nothing. ``clock_offsets``:
+        also the clock offsets' estimate when due, here (seconds of CPU); the service
+        says False and runs ``clock_job`` in a thread instead."""
         if now is None:
             return 0
         if self.clock is None or now > self.clock:
             self.clock = now
         new = 0
         R, t = self.refiner.R, self.refiner.t
-        if self.clocks.due(now) and self._calibrated():
-            self._retime(self.clocks.update(now, R, t))
+        job = self.clock_job(now) if clock_offsets else None
+        if job is not None:
+            self.apply_clock(job, job.run())
         ready = self.sync.pop_ready(now)
         gate = self._gate() if ready else None
         for fs in ready:
@@ -162,6 +165,25 @@ class Pipeline:
                 if len(h.cams) >= self.cfg.associate.min_views_unsettled:
                     self.associated_multi[h.cams] += 1
         return new
+
+    def clock_job(self, now: float | None) -> ClockJob | None:
+        """The clock offsets' estimate when due (``clock.estimate``, every
+        ``clock.interval``, after the first adjustment): a job whose ``run`` may go to
+        another thread while push/advance go on; its result goes to ``apply_clock``."""
+        if not self.clocks.due(now) or not self._calibrated():
+            return None
+        return self.clocks.begin(now, self.refiner.R, self.refiner.t)
+
+    def apply_clock(self, job: ClockJob, result: ClockResult | None) -> list[str]:
+        """Fold a clock job's result in (None: it failed or was cancelled): newly
+        estimated offsets are applied; returns the sensors whose offset changed."""
+        changed = self.clocks.finish(job, result)
+        self._retime(changed)
+        return changed
+
+    def cancel_clock(self) -> None:
+        """Ask the clock job in flight (if any) to end early; ``apply_clock`` still takes it."""
+        self.clocks.cancel()
 
     def _retime(self, sensors: list[str]) -> None:
         """Apply newly estimated clock offsets; archived views timed with an offset that
