@@ -34,6 +34,7 @@ Synchronous, numpy only; the pipeline feeds it messages and hypotheses and calls
 from __future__ import annotations
 
 import copy
+import functools
 import logging
 import math
 from collections import deque
@@ -41,6 +42,7 @@ from dataclasses import dataclass, field
 from typing import Iterable, Mapping
 
 import numpy as np
+import scipy.stats
 
 from proto import KeypointMessage
 
@@ -95,6 +97,14 @@ class SensorClock:
 
 
 # ------------------------------------------------------------------ pure functions
+
+
+@functools.lru_cache(maxsize=256)
+def _sigmas(blocks: int) -> float:
+    """How many jackknife stds from ``blocks`` blocks make the one-sided tail of 3 sigma
+    (0.135 %): Student's t on blocks - 1 degrees of freedom (a jackknife std of few
+    blocks is itself uncertain)."""
+    return float(scipy.stats.t.ppf(1 - 0.00135, max(blocks - 1, 1)))
 
 
 def interpolate_track(stamps: np.ndarray, xy: np.ndarray, ok: np.ndarray, q: np.ndarray,
@@ -803,10 +813,13 @@ class ClockOffsetEstimator:
             self._check_drift(s, o, e, now)
             # an offset within NTP's spread is left alone (min_apply); once applied it is
             # kept (and followed) until it falls below half of that (hysteresis)
+            # "3 std" with the std from few blocks: Student's t on blocks - 1 degrees of
+            # freedom (8 blocks: 4.5 std; 24: 3.4)
+            k = _sigmas(int(self.nblocks[s]))
             floor = cfg.min_apply / 2 if self.applied[s] != 0.0 else cfg.min_apply
-            target = o if abs(o) >= max(floor, 3 * e) else 0.0
+            target = o if abs(o) >= max(floor, k * e) else 0.0
             step = cfg.min_change if self.applied[s] != 0.0 else cfg.min_apply
-            if abs(target - self.applied[s]) > max(step, 2.5 * e):
+            if abs(target - self.applied[s]) > max(step, 2.5 / 3 * k * e):
                 self.applied[s] = target
                 changed.append(n)
         return changed

@@ -202,15 +202,20 @@ def test_state_and_snapshot_carry_applied_offsets(short_run):
     assert q.sync.offset("cam_2") == -0.15 and q.clocks.applied[q.names.index("cam_2")] == -0.15
 
 
-def test_retime_drops_archived_views_timed_otherwise(short_run):
+def test_retime_leaves_archived_views_timed_otherwise_out_until_taken_back(short_run):
     p, _, _ = short_run
     c = p.names.index("cam_8")
-    before = sum(1 for _, views in p.frames for v in views if v[0].cam == c)
+    views = lambda: sum(1 for _, vs in p._timed_frames() for v in vs if v[0].cam == c)  # noqa: E731
+    before, others = views(), sum(len(vs) for _, vs in p._timed_frames())
     assert before > 0
-    p.clocks.applied[c] = p.sync.offset("cam_8") + 0.05
+    old = p.sync.offset("cam_8")
+    p.clocks.applied[c] = old + 0.05
     p._retime(["cam_8"])
-    assert sum(1 for _, views in p.frames for v in views if v[0].cam == c) == 0
-    assert sum(len(views) for _, views in p.frames) > 0  # the other cameras' views stay
+    assert views() == 0  # timed 50 ms off: not for the batch
+    assert sum(len(vs) for _, vs in p._timed_frames()) == others - before  # the other cameras' views stay
+    p.clocks.applied[c] = old  # taken back: they are timed right again
+    p._retime(["cam_8"])
+    assert views() == before
 
 
 def test_estimation_off_applies_nothing():
@@ -226,6 +231,7 @@ def _estimator_with(raw_ms: list[float], std_ms: float) -> ClockOffsetEstimator:
     est = ClockOffsetEstimator(EngineConfig().clock, names, {n: intr for n in names}, 0.6)
     est.raw[:] = np.array(raw_ms) / 1000
     est.std[:] = std_ms / 1000
+    est.nblocks[:] = 24
     return est
 
 
@@ -251,6 +257,11 @@ def test_offsets_within_ntp_spread_are_not_applied():
     assert est._apply(40.0) == ["s5"] and est.applied[5] == pytest.approx(0.009)
     est.raw[5] = 0.006  # ... until below half of min_apply
     assert est._apply(50.0) == ["s5"] and est.applied[5] == 0.0
+    # 3 std from 8 blocks of data is not enough: that std is itself uncertain (Student's t)
+    est.raw[5], est.std[5], est.nblocks[5] = 0.018, 0.004, 8  # 17 ms from the median: 4.25 std
+    assert est._apply(60.0) == []
+    est.nblocks[5] = 30
+    assert est._apply(70.0) == ["s5"]
 
 
 def test_clock_job_runs_in_a_thread_on_a_snapshot():
