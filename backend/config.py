@@ -162,9 +162,9 @@ class BootstrapConfig(_Section):
 class ClockConfig(_Section):
     """Sensor clock offsets estimated from the data (backend/clock_offsets.py, docs/clock_offsets.md)."""
 
-    estimate: bool = Field(True, description="estimate each sensor's clock offset from its keypoints and apply confident ones "
-                           "beyond NTP's spread (docs/clock_offsets.md; costs seconds of CPU per interval, in a thread "
-                           "of the service)")
+    estimate: bool = Field(False, description="(off by default: not at its 5 ms bar on every seed, and seconds of CPU per "
+                           "interval, see docs/clock_offsets.md) estimate each sensor's clock offset from its keypoints and "
+                           "apply confident ones beyond NTP's spread (the service runs the estimate in a thread)")
     max_offset: float = Field(0.25, gt=0, le=2.0, description="s: largest offset searched (relative to the synchronised clock)")
     interval: float = Field(10.0, gt=0, description="s of data time between estimates")
     block: float = Field(5.0, gt=0, description="s of data per block: the unit of the jackknife (longer than the detector's correlated noise)")
