@@ -14,7 +14,8 @@
 
 The clock is the caller's: offline it is the recording's data time (the newest stamp),
 live it is the wall clock. ``run_offline`` drives it synchronously; the service drives
-``advance`` on its event loop and ``optimize.solve`` in a worker process.
+``advance`` on its event loop, ``optimize.solve`` in a worker process and the clock
+offsets' estimate (``clock_job``) in a thread.
 """
 
 from __future__ import annotations
