@@ -174,7 +174,9 @@ class BootstrapConfig(_Section):
 class ClockConfig(_Section):
     """Sensor clock offsets estimated from the data (backend/clock_offsets.py, docs/clock_offsets.md)."""
 
-    estimate: bool = Field(False, description="(experimental, see docs/clock_offsets.md) estimate each sensor's clock offset from its keypoints and apply confident ones")
+    estimate: bool = Field(False, description="(off by default: not at its 5 ms bar on every seed, and seconds of CPU per "
+                           "interval, see docs/clock_offsets.md) estimate each sensor's clock offset from its keypoints and "
+                           "apply confident ones beyond NTP's spread (the service runs the estimate in a thread)")
     max_offset: float = Field(0.25, gt=0, le=2.0, description="s: largest offset searched (relative to the synchronised clock)")
     interval: float = Field(10.0, gt=0, description="s of data time between estimates")
     block: float = Field(5.0, gt=0, description="s of data per block: the unit of the jackknife (longer than the detector's correlated noise)")
@@ -188,7 +190,13 @@ class ClockConfig(_Section):
     min_scale_px: float = Field(0.5, gt=0, description="px: floor of the robust residual scale (median distance) of a sensor's fit")
     max_scale_px: float = Field(12.0, gt=0, description="px: no estimate while a sensor's fit is worse than this (the poses have not settled)")
     max_std: float = Field(0.01, gt=0, description="s: an offset is applied once its std is below this ...")
-    min_apply: float = Field(0.003, ge=0, description="s: ... and it is larger than this (and 3 std); a change smaller than this (or 2 std) is not applied")
+    min_apply: float = Field(0.015, ge=0, description="s: ... and it is larger than this (and 3 std): below this NTP does the "
+                             "job (a working NTP keeps a LAN's clocks within a few ms; 15 ms of mistiming moves a walking "
+                             "person by 2 cm, below the 3D noise of the detections), and applying an offset drops the "
+                             "sensor's archived views timed with the old one; an applied offset is taken back when the "
+                             "estimate falls below half of this")
+    min_change: float = Field(0.003, ge=0, description="s: an applied offset is changed when the estimate moved by more than "
+                              "this and 2.5 std")
     drift_warning: float = Field(0.01, gt=0, description="s: warn when a sensor's estimate moves by more than this")
     retime_tolerance: float = Field(0.005, ge=0, description="s: when a new offset is applied, archived views timed with one "
                                     "further off are dropped from the final batch")

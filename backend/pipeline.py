@@ -14,7 +14,8 @@
 
 The clock is the caller's: offline it is the recording's data time (the newest stamp),
 live it is the wall clock. ``run_offline`` drives it synchronously; the service drives
-``advance`` on its event loop and ``optimize.solve`` in a worker process.
+``advance`` on its event loop, ``optimize.solve`` in a worker process and the clock
+offsets' estimate (``clock_job``) in a thread.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from proto import KeypointMessage
 
 from .associate import Associator
 from .cameras import CameraSet
-from .clock_offsets import ClockOffsetEstimator
+from .clock_offsets import ClockJob, ClockOffsetEstimator, ClockResult
 from .config import EngineConfig
 from .monitor import Alarm, Monitor, innovation
 from .optimize import Problem, Solution, solve
@@ -137,17 +138,20 @@ class Pipeline:
             reason = self.push(m)
         return reason
 
-    def advance(self, now: float | None) -> int:
+    def advance(self, now: float | None, *, clock_offsets: bool = True) -> int:
         """Run sync/preprocess/associate up to clock time ``now``; returns new hypotheses.
-        ``None`` (offline, before the clock is known) does nothing."""
+        ``None`` (offline, before the clock is known) does nothing. ``clock_offsets``:
+        also the clock offsets' estimate when due, here (seconds of CPU); the service
+        says False and runs ``clock_job`` in a thread instead."""
         if now is None:
             return 0
         if self.clock is None or now > self.clock:
             self.clock = now
         new = 0
         R, t = self.refiner.R, self.refiner.t
-        if self.clocks.due(now) and self._calibrated():
-            self._retime(self.clocks.update(now, R, t))
+        job = self.clock_job(now) if clock_offsets else None
+        if job is not None:
+            self.apply_clock(job, job.run())
         ready = self.sync.pop_ready(now)
         gate = self._gate() if ready else None
         for fs in ready:
@@ -170,30 +174,61 @@ class Pipeline:
                     self.associated_multi[h.cams] += 1
         return new
 
+    def clock_job(self, now: float | None) -> ClockJob | None:
+        """The clock offsets' estimate when due (``clock.estimate``, every
+        ``clock.interval``, after the first adjustment): a job whose ``run`` may go to
+        another thread while push/advance go on; its result goes to ``apply_clock``."""
+        if not self.clocks.due(now) or not self._calibrated():
+            return None
+        return self.clocks.begin(now, self.refiner.R, self.refiner.t)
+
+    def apply_clock(self, job: ClockJob, result: ClockResult | None) -> list[str]:
+        """Fold a clock job's result in (None: it failed or was cancelled): newly
+        estimated offsets are applied; returns the sensors whose offset changed."""
+        changed = self.clocks.finish(job, result)
+        self._retime(changed)
+        return changed
+
+    def cancel_clock(self) -> None:
+        """Ask the clock job in flight (if any) to end early; ``apply_clock`` still takes it."""
+        self.clocks.cancel()
+
     def _retime(self, sensors: list[str]) -> None:
-        """Apply newly estimated clock offsets; archived views timed with an offset that
-        differs by more than ``clock.retime_tolerance`` are dropped (the final batch
-        must not use them)."""
-        tol = self.cfg.clock.retime_tolerance
+        """Apply newly estimated clock offsets. Archived views stay as they are;
+        ``_timed_frames`` leaves out those timed with an offset that differs from the
+        sensor's current one by more than ``clock.retime_tolerance`` (an offset taken
+        back brings its earlier views back)."""
         start = self.sync.next_time if self.sync.next_time is not None else -np.inf
         for name in sensors:
             c = self.names.index(name)
             new = float(self.clocks.applied[c])
             self.sync.set_offset(name, new)
-            hist = self._offset_history[c]
-            hist.append((start, new))
+            self._offset_history[c].append((start, new))
 
-            def used(T: float) -> float:
-                v = 0.0
-                for t0, o in hist[:-1]:
-                    if t0 <= T:
-                        v = o
-                return v
-
-            frames = [(T, tuple(v for v in views if v[0].cam != c or abs(used(T) - new) <= tol))
-                      for T, views in self.frames]
-            self.frames.clear()
-            self.frames.extend(frames)
+    def _timed_frames(self, frames: Iterable[tuple[float, tuple]] | None = None) -> list[tuple[float, tuple]]:
+        """The archived frames (or ``frames``) without the views timed with an offset
+        more than ``clock.retime_tolerance`` from their sensor's current one (the
+        batch adjustments must not use them)."""
+        frames = list(self.frames if frames is None else frames)
+        tol = self.cfg.clock.retime_tolerance
+        stale = {}
+        for c, hist in enumerate(self._offset_history):
+            if hist:  # (start, offset) from which frameset time on each offset was used; 0 before the first
+                starts = np.array([-np.inf] + [h[0] for h in hist])
+                bad = np.abs(np.array([0.0] + [h[1] for h in hist]) - hist[-1][1]) > tol
+                if bad.any():
+                    stale[c] = (starts, bad)
+        if not stale:
+            return frames
+        out = []
+        for T, views in frames:
+            keep = []
+            for v in views:
+                st = stale.get(v[0].cam)
+                if st is None or not st[1][np.searchsorted(st[0], T, side="right") - 1]:
+                    keep.append(v)
+            out.append((T, tuple(keep)))
+        return out
 
     def _calibrated(self) -> bool:
         """The first adjustment is done: the poses are good enough to time the sensors
@@ -233,7 +268,7 @@ class Pipeline:
         if lost:
             self.cycle += 1
             horizon = self.frames[-1][0] - 180.0 if self.frames else 0.0
-            p = self._relocalize_problem(lost, [f for f in self.frames if f[0] >= horizon])
+            p = self._relocalize_problem(lost, self._timed_frames(f for f in self.frames if f[0] >= horizon))
         else:
             if self.last_cycle_time is not None and now - self.last_cycle_time < cfg.select.interval:
                 return None
@@ -320,7 +355,8 @@ class Pipeline:
         self.cycle += 1
         opt = self.cfg.optimize.model_copy(update={"max_iterations": max(self.cfg.optimize.max_iterations, 100)})
         return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.prior_R.copy(),
-                       prior_t=rf.prior_t.copy(), prior_cov=rf.P0.copy(), focal=self.focal, config=opt, frames=tuple(self.frames),
+                       prior_t=rf.prior_t.copy(), prior_cov=rf.P0.copy(), focal=self.focal, config=opt,
+                       frames=tuple(self._timed_frames()),
                        associate=self.cfg.associate,
                        # the batch re-associates ungated: a camera the filter got wrong must
                        # keep its views to be put right; the solve's outlier rounds drop bad ones
@@ -414,7 +450,7 @@ class Pipeline:
         if len(lost) and self.frames and self._inflight is None:
             # one more try with the final estimate of the others, before the batch needs them
             self.cycle += 1
-            p = self._relocalize_problem(lost, self.frames)
+            p = self._relocalize_problem(lost, self._timed_frames())
             self._inflight = p
             self.apply(p, solve(p))
         if self.cfg.refine.final_batch and self.frames:

@@ -318,10 +318,12 @@ class ActiveSession:
     solver_fault: dict[str, Any] | None = None
     last_accepted: int | None = None  # the last cycle folded into the estimate
     idle: asyncio.Event = field(default_factory=asyncio.Event)  # no cycle in flight
+    clock_idle: asyncio.Event = field(default_factory=asyncio.Event)  # no clock offset estimate in flight
     done: asyncio.Event = field(default_factory=asyncio.Event)  # stopped or failed, persisted
 
     def __post_init__(self) -> None:
         self.idle.set()
+        self.clock_idle.set()
 
     @functools.cached_property
     def names(self) -> frozenset[str]:
@@ -431,6 +433,7 @@ class Service:
                 tg.create_task(self._ingest_loop(), name="ingest")
                 tg.create_task(self._frontend_loop(), name="frontend")
                 tg.create_task(self._optimizer_loop(), name="optimizer")
+                tg.create_task(self._clock_loop(), name="clock-offsets")
                 tg.create_task(self._query_loop(), name="queries")
                 tg.create_task(self._status_loop(), name="status")
                 tg.create_task(self._lag_loop(), name="lag")
@@ -502,6 +505,8 @@ class Service:
                 await s.done.wait()
             else:
                 await s.idle.wait()  # the cycle in flight ends and is applied
+                s.pipeline.cancel_clock()
+                await s.clock_idle.wait()
                 if s.record.state.active:
                     self._persist(s, snapshot=True, note="service stopped; resumes at the next start")
         assert self.handoff is not None
@@ -659,7 +664,7 @@ class Service:
             while True:
                 try:
                     with self.work.measure("advance"):
-                        s.pipeline.advance(t)
+                        s.pipeline.advance(t, clock_offsets=False)  # _clock_loop runs that
                 except Exception as e:
                     log.exception("pipeline.advance failed")
                     self._fail(s, f"the front end failed: {type(e).__name__}: {e}")
@@ -672,6 +677,33 @@ class Service:
             self._frameset_delay(s, now)
             self._wake.set()
             self._check_duration(s, now)
+
+    async def _clock_loop(self) -> None:
+        """Sensor clock offsets (``clock.estimate``, docs/clock_offsets.md): the estimate
+        takes seconds of numpy, so it runs in a thread; taking its job and folding its
+        result in are cheap and run here, on the loop. A thread, not the solver process:
+        the job reads minutes of tracks and keeps caches in its records, too much to ship
+        every few seconds; and numpy code gives the GIL back every few ms (a gtsam solve
+        does not)."""
+        while not self._closing:
+            await asyncio.sleep(self.settings.tick)
+            s = self.active
+            if s is None or s.finishing or self._closing or not s.record.state.active:
+                continue
+            with self.work.measure("clock_job"):
+                job = s.pipeline.clock_job(self.clock.now())
+            if job is None:
+                continue
+            s.clock_idle.clear()
+            try:
+                result = await asyncio.to_thread(job.run)
+            except Exception:
+                log.exception("the clock offset estimate failed")
+                result = None
+            finally:
+                s.clock_idle.set()
+            with self.work.measure("apply_clock"):
+                s.pipeline.apply_clock(job, result)
 
     def _frameset_delay(self, s: ActiveSession, now: float) -> None:
         """Clock time from a frameset's instant to its emission: with sensors stamping at
@@ -1063,6 +1095,8 @@ class Service:
         rec = s.record
         try:
             await s.idle.wait()
+            s.pipeline.cancel_clock()  # the final batch estimates once more, with all data
+            await s.clock_idle.wait()  # the pipeline goes to the solver process: nothing may run on it
             before = s.pipeline.cycle
             t0 = time.monotonic()
             try:
