@@ -8,7 +8,7 @@ commands. Subcommands of other areas register themselves from their own modules.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 

@@ -52,7 +52,6 @@ def serve(
     Settings come from --config, EXTRCAL_* environment variables and these flags (highest).
     Sessions are started over HTTP (POST /sessions); see /docs for the API."""
     import asyncio
-    import logging
 
     from .service import serve as run
 

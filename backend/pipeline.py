@@ -309,7 +309,7 @@ class Pipeline:
         return replace(p, associate=a.model_copy(update={"min_views": a.min_views_unsettled}), kind="first")
 
     def _relocalize_problem(self, lost, frames) -> Problem:
-        """Prior = the initial estimate and its uncertainty: where a lost camera can be
+        """Prior = the start and its uncertainty: where a lost camera can be
         (the filter may have dragged it anywhere)."""
         rf = self.refiner
         return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.prior_R.copy(),
@@ -349,9 +349,9 @@ class Pipeline:
 
     def _batch_problem(self, max_hypotheses: int, spacing: float) -> Problem:
         """Every archived frame, re-associated in the solve with the current estimate;
-        prior = the initial estimate with its covariance, so the result is the honest
-        posterior of all the data."""
-        rf, rc = self.refiner, self.cfg.refine
+        prior = the start (the initial estimate, or the data's shape aligned onto it) with
+        its covariance, so the result is the honest posterior of all the data."""
+        rf = self.refiner
         self.cycle += 1
         opt = self.cfg.optimize.model_copy(update={"max_iterations": max(self.cfg.optimize.max_iterations, 100)})
         return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.prior_R.copy(),
