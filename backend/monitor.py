@@ -363,12 +363,6 @@ class Monitor:
             if not watched[c]:
                 self._reset(k)
             else:
-                joined = watched & ~recalibrating & ~k.trust if k.trust is not None else None
-                if joined is not None and len(k.bins) < cfg.min_reference_bins and (
-                        joined[:c].any() or joined[c + 1:].any()):
-                    # another camera became trusted before this one's reference was
-                    # complete: start over with it (later ones are left out)
-                    self._reset(k)
                 if k.anchor is None:
                     k.anchor = (R[c].copy(), t[c].copy())
                     k.trust = watched & ~recalibrating

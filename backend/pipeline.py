@@ -378,8 +378,15 @@ class Pipeline:
         (their uncertainty re-opened), take the poses of those calibrated again."""
         m, rf = self.cfg.monitor, self.refiner
         C = len(self.names)
+        converged = np.array([rf.converged(c) for c in range(C)])
+        # The watch begins once most of the calibrated cameras have converged: a camera
+        # watched earlier would have its points triangulated from the few converged then
+        # (the cameras joining later are left out of them: they would change its points).
+        calibrated = rf.cycles > 0
+        if not self.watched.any() and converged.sum() < max(3, m.start_fraction * calibrated.sum()):
+            converged[:] = False
         # watched from their convergence until the monitor finds them moved
-        self.watched |= np.array([rf.converged(c) for c in range(C)]) & ~self.monitor.recalibrating()
+        self.watched |= converged & ~self.monitor.recalibrating()
         found, poses = self.monitor.evaluate(float(self.clock or 0.0), self.watched, rf.R, rf.t)
         names = []
         for alarm in found:
