@@ -122,7 +122,7 @@ class RefineConfig(_Section):
 
 
 class MonitorConfig(_Section):
-    """Cameras that move after they converged (backend/monitor.py, docs/monitor.md)."""
+    """Cameras that move after they converged (backend/monitor.py; experimental, off by default: docs/monitor.md)."""
 
     enabled: bool = Field(False, description="watch converged cameras, flag those the data say moved and calibrate them again")
     start_fraction: float = Field(0.6, ge=0, le=1, description="share of the calibrated cameras that must have converged "
