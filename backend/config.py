@@ -122,17 +122,31 @@ class RefineConfig(_Section):
 
 
 class MonitorConfig(_Section):
-    """Cameras that move after they converged (backend/monitor.py; experimental, see docs/monitor.md)."""
+    """Cameras that move after they converged (backend/monitor.py; experimental, off by default: docs/monitor.md)."""
 
-    enabled: bool = Field(False, description="watch converged cameras and re-open those the data say moved (experimental: "
-                          "flags 2° bumps within seconds, not 3 cm ones, and also cameras the filter let wrong data drag)")
-    window: int = Field(4, ge=1, description="cycles whose innovations (data-only pose deviations) are averaged")
-    model_std_translation: float = Field(0.02, ge=0, description="m: error of a converged pose that more data do not remove "
-                                         "(lens model, the estimate a little off its optimum): a floor of the test's covariance")
-    model_std_rotation: float = Field(0.2, ge=0, description="deg")
-    chi2: float = Field(40.0, gt=0, description="significance of the mean innovation (6 dof; 40 ≈ p 1e-6)")
+    enabled: bool = Field(False, description="watch converged cameras, flag those the data say moved and calibrate them again")
+    start_fraction: float = Field(0.6, ge=0, le=1, description="share of the calibrated cameras that must have converged "
+                                  "before the watch begins (1: the session converged)")
+    bin_seconds: float = Field(5.0, gt=0, description="s of data per resection of a watched camera (one sample of the change test)")
+    min_points: int = Field(100, ge=12, description="joints a bin needs to count")
+    window_seconds: float = Field(60.0, gt=0, description="s: a change is looked for this far back")
+    min_change_bins: int = Field(2, ge=1, description="bins after a change before it is flagged")
+    reference_seconds: float = Field(180.0, gt=0, description="s of the camera's own bins before a change it is compared with")
+    min_reference_bins: int = Field(12, ge=3, description="bins a camera needs before the change test runs")
+    bin_std_translation: float = Field(0.05, ge=0, description="m: most error of one bin's resection that its information does "
+                                       "not show (where the people were, the others' own errors); the share added to each bin's "
+                                       "covariance is measured on the camera's own bins")
+    bin_std_rotation: float = Field(0.5, ge=0, description="deg")
+    model_std_translation: float = Field(0.002, ge=0, description="m: drift of a camera's data-only pose that more data do not "
+                                         "remove (the others' estimates wander): a floor of the test's covariance")
+    model_std_rotation: float = Field(0.02, ge=0, description="deg")
+    chi2: float = Field(40.0, gt=0, description="significance of a change (6 dof; 40 ≈ p 1e-6)")
     min_translation: float = Field(0.015, ge=0, description="m: ... and its size, translation ...")
     min_rotation: float = Field(0.3, ge=0, description="deg ... or rotation, that flag a converged camera as moved")
+    recalibrate_seconds: float = Field(60.0, gt=0, description="s of data since the change a flagged camera is calibrated "
+                                       "again from (one resection over all of it every bin, the others fixed)")
+    process_noise: float = Field(0.0, ge=0, description="the filter's process noise of a watched camera, as a fraction of "
+                                 "refine.process_noise: a calibrated camera does not drift, the monitor catches moves")
     reopen_std_translation: float = Field(0.10, gt=0, description="m: the flagged camera's uncertainty from then on")
     reopen_std_rotation: float = Field(5.0, gt=0, description="deg")
 

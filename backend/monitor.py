@@ -1,110 +1,555 @@
-"""Watching a calibrated camera network for cameras that moved (bumped, re-mounted).
+"""Watching a calibrated camera network for cameras that moved (bumped, re-mounted), and
+calibrating a moved camera again.
 
-Once a camera has converged, each cycle's data agree with the filter's prediction of it
-up to their uncertainty. A camera that is moved no longer does: the data alone put it
-somewhere else, cycle after cycle, while its confident prior holds the estimate back.
-That disagreement is the Kalman filter's innovation: from the cycle's prior (predicted
-pose and covariance) and posterior (solution and marginal covariance) the data-only
-pose deviation is d = Λ_data⁻¹ Λ_post δ with Λ_data = Λ_post − Λ_prior, δ the posterior's
-offset from the prior, and its covariance S = Λ_data⁻¹ + P_prior. The monitor averages
-each watched camera's innovations over its last ``window`` cycles and flags the camera
-when the mean is both significant (χ² with 6 degrees of freedom, against the averaged
-covariance plus a floor for the model's own errors, ``model_std_*``) and large (beyond ``min_translation`` or ``min_rotation``: covariances from
-a robust solve are not exact, so significance alone would flag millimetres). The
-pipeline then re-opens the camera's uncertainty and the cycles calibrate it again while
-the other cameras, still certain, hold the frame.
+The evidence is each camera's reprojection of the persons the *other* cameras see: the
+joints of every hypothesis are triangulated from the other trusted (watched, not moved)
+cameras only, points inconsistent with those views left out, and the camera's own
+keypoints are compared with their projection (``correspondences``). At every
+``bin_seconds`` of data (a common grid: the cameras are tested together) each watched
+camera's correspondences of the bin become its pose as the data alone put it, a robust
+resection with the others held fixed (``resect``), with its information; the pose is
+carried into the frame the others had when the watch began (the estimate drifting as a
+whole is no camera moving). A moved camera shows as a step in this sequence. The test
+(``change_test``) is the generalised likelihood ratio test for a step at an unknown time:
+for every split in the last ``window_seconds``, the robust mean of the bins after it
+against the mean of the camera's own bins before it, χ² with 6 dof against their
+covariances. Each bin's covariance is its information's inverse plus the error it does
+not show (where the people were, the others' own errors), measured on the camera's own
+older bins (``bin_floor``): comparing the camera with its own past, not with the filter's
+estimate, a camera whose estimate is a little off, or whose view is biased, does not look
+moved; only a change does. A change must also be large (``min_translation`` /
+``min_rotation``); of the cameras that fail at one evaluation only the most significant
+is flagged (a moved camera biases the points the others are tested against, so they may
+fail too), once its next test confirms it.
+
+A flagged camera is calibrated again from the data since the change: at every bin, one
+resection over all its correspondences since then with the others fixed, until
+``recalibrate_seconds`` of data are in (``Recalibration``); the others' bins since the
+change are dropped (their points were triangulated with the moved camera). The pipeline
+applies the poses, and watches the camera again once its cycles find it converged.
 """
 
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 
+from .associate import Hypothesis
 from .config import MonitorConfig
-from .geometry import pose_local
+from .geometry import pose_local, pose_retract, umeyama
+
+
+_MAX_PENDING = 5000  # hypotheses held for the next evaluation (none runs while no cycle does)
 
 
 @dataclass(frozen=True)
 class Alarm:
-    """A camera found moved: data time, camera index, the mean innovation's χ² and its
-    size (m, deg) when flagged."""
+    """A camera found moved: data time of the alarm, camera index, the test's χ², the
+    change's size (m, deg) and the data time from which the camera is thought moved."""
 
     time: float
     cam: int
     chi2: float
     translation: float
     rotation: float
+    since: float = float("nan")
 
 
-def innovation(prior_R: np.ndarray, prior_t: np.ndarray, prior_cov: np.ndarray, R: np.ndarray, t: np.ndarray,
-               cov: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(d (6,), S (6, 6)): the data-only deviation of one camera's pose from the cycle's
-    prior (tangent, rotation rad then translation m) and its covariance; None when the
-    cycle's data say nothing measurable about the camera."""
-    if not (np.all(np.isfinite(cov)) and np.all(np.isfinite(prior_cov))):
+@dataclass(frozen=True)
+class Correspondences:
+    """One camera's joints at one instant against points the others triangulated.
+
+    X: (N, 3) world points; xy: (N, 2) the camera's undistorted normalised keypoints;
+    sigma: (N,) their normalised std; view: (N,) int id of the person view (hypothesis)."""
+
+    time: float
+    X: np.ndarray
+    xy: np.ndarray
+    sigma: np.ndarray
+    view: np.ndarray
+
+    def __post_init__(self) -> None:
+        N = len(self.X)
+        assert self.X.shape == (N, 3) and self.xy.shape == (N, 2) and self.sigma.shape == (N,)
+        assert self.view.shape == (N,)
+
+
+@dataclass(frozen=True)
+class Resection:
+    """A camera pose from correspondences with the others fixed: R (3, 3), t (3,), info
+    (6, 6) its information (tangent: rotation rad, translation m; from the Gauss-Newton
+    normal equations, Huber-weighted), points and views used, rms_px after the fit."""
+
+    R: np.ndarray
+    t: np.ndarray
+    info: np.ndarray
+    points: int
+    views: int
+    rms_px: float
+
+
+@dataclass(frozen=True)
+class Recalibration:
+    """A moved camera calibrated again from ``seconds`` of data since its move, the
+    others fixed: R (3, 3), t (3,), cov (6, 6) (the resection's, plus the error of its
+    bins that more of them average out), ``final`` when its recalibration ends here."""
+
+    cam: int
+    R: np.ndarray
+    t: np.ndarray
+    cov: np.ndarray
+    seconds: float
+    points: int
+    final: bool
+
+
+def _project(R: np.ndarray, t: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) normalised projections and (N, 2, 6) their Jacobian w.r.t. the pose's right
+    perturbation (rotation, translation in the camera frame; ``pose_retract``)."""
+    Xc = (X - t) @ R  # R^T (X - t), row-wise
+    z = Xc[:, 2]
+    uv = Xc[:, :2] / z[:, None]
+    dproj = np.zeros((len(X), 2, 3))
+    dproj[:, 0, 0] = 1 / z
+    dproj[:, 1, 1] = 1 / z
+    dproj[:, :, 2] = -uv / z[:, None]
+    # Xc' = exp(-ω) (Xc - v): dXc/dω = hat(Xc), dXc/dv = -I
+    dXc = np.concatenate([hat_batch(Xc), np.broadcast_to(-np.eye(3), (len(X), 3, 3))], axis=2)
+    return uv, dproj @ dXc
+
+
+def hat_batch(v: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) skew matrices of (N, 3) vectors."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
+
+
+def resect(R: np.ndarray, t: np.ndarray, data: Sequence[Correspondences], focal: float, *, outlier_px: float,
+           huber: float = 2.0, iterations: int = 8) -> Resection | None:
+    """The camera's pose from ``data`` starting at R, t: Gauss-Newton with a Huber
+    weight (``huber`` sigmas); then person views whose median residual is far above the
+    rest (beyond ``outlier_px`` and 4x the median view; wrong associations) are dropped
+    and the fit repeated. None when too little is left for a pose."""
+    if not data:
         return None
-    try:
-        L_post = np.linalg.inv(0.5 * (cov + cov.T))
-        L_prior = np.linalg.inv(0.5 * (prior_cov + prior_cov.T))
-    except np.linalg.LinAlgError:
+    X = np.concatenate([d.X for d in data])
+    xy = np.concatenate([d.xy for d in data])
+    sig = np.concatenate([d.sigma for d in data])
+    view = np.concatenate([d.view for d in data])
+    keep = np.ones(len(X), bool)
+    for round_ in range(2):
+        fit = _gauss_newton(R, t, X[keep], xy[keep], sig[keep], huber, iterations)
+        if fit is None:
+            return None
+        R1, t1, info, res = fit
+        if round_ == 1:
+            break
+        _, inv = np.unique(view[keep], return_inverse=True)
+        res_px = res * focal
+        med = np.array([np.median(res_px[inv == k]) for k in range(inv.max() + 1)])
+        bad = med > max(outlier_px, 4.0 * float(np.median(med)))
+        if not bad.any():
+            break
+        idx = np.flatnonzero(keep)
+        keep[idx[bad[inv]]] = False
+        R, t = R1, t1
+    n = int(keep.sum())
+    return Resection(R1, t1, info, n, int(len(np.unique(view[keep]))), float(np.sqrt(np.mean((res * focal) ** 2))))
+
+
+def _gauss_newton(R, t, X, xy, sig, huber, iterations):
+    if len(X) < 12:
         return None
-    L_data = 0.5 * ((L_post - L_prior) + (L_post - L_prior).T)
-    w, V = np.linalg.eigh(L_data)
-    if w.min() <= 1e-9 * max(w.max(), 1e-300):
-        return None  # some direction unobserved in this cycle
-    data_cov = (V / w) @ V.T
-    d = data_cov @ L_post @ pose_local(prior_R, prior_t, R, t)
-    return d, data_cov + prior_cov
+    for _ in range(iterations):
+        uv, J = _project(R, t, X)
+        if not np.all(np.isfinite(uv)):
+            return None
+        r = (uv - xy) / sig[:, None]  # (N, 2) in sigmas
+        e = np.linalg.norm(r, axis=1)
+        w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
+        sw = np.sqrt(w)
+        A = (J * (sw / sig)[:, None, None]).reshape(-1, 6)
+        H = A.T @ A
+        g = A.T @ (r * sw[:, None]).reshape(-1)
+        try:
+            dx = -np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            return None
+        R, t = pose_retract(R, t, dx)
+        if np.linalg.norm(dx) < 1e-7:
+            break
+    uv, J = _project(R, t, X)
+    r = (uv - xy) / sig[:, None]
+    e = np.linalg.norm(r, axis=1)
+    w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
+    A = (J * (np.sqrt(w) / sig)[:, None, None]).reshape(-1, 6)
+    H = A.T @ A
+    if not np.all(np.isfinite(H)) or np.linalg.cond(H) > 1e12:
+        return None
+    return R, t, H, np.linalg.norm(uv - xy, axis=1)
+
+
+def correspondences(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, trusted: np.ndarray,
+                    focal: np.ndarray, min_angle_deg: float, max_px: float) -> dict[int, list[Correspondences]]:
+    """Per camera, its joints in ``hyps`` against the points the other trusted cameras
+    triangulate (trusted (C,) bool, or (C, C) bool: row c, the cameras camera c's points
+    may come from; at least two of them in the hypothesis). Left out:
+    points whose rays meet at less than ``min_angle_deg`` (their depth is unknown) and
+    points that reproject further than ``max_px`` from a view they were triangulated from
+    (a view of another person, a wrong detection: the point is not the person's joint)."""
+    out: dict[int, list[Correspondences]] = {}
+    C = len(R)
+    trust = np.broadcast_to(trusted, (C, C)) & ~np.eye(C, dtype=bool)
+    rows_cams, rows_xy, rows_own, rows_meta = [], [], [], []
+    for k, h in enumerate(hyps):
+        V = len(h.cams)
+        for v in range(V):
+            ok = trust[h.cams[v]][h.cams]
+            if ok.sum() < 2:
+                continue
+            xy = h.xy.copy()  # (V, 17, 2)
+            xy[~ok] = np.nan
+            rows_cams.append(np.repeat(h.cams[None], 17, axis=0))
+            rows_xy.append(xy.transpose(1, 0, 2))  # (17, V, 2)
+            rows_own.append((h.xy[v], h.sigma[v]))
+            rows_meta.append((int(h.cams[v]), h.time, k))
+    if not rows_meta:
+        return out
+    Vmax = max(r.shape[1] for r in rows_cams)
+    n = len(rows_meta)
+    cams = np.zeros((n, 17, Vmax), np.int64)
+    xy = np.full((n, 17, Vmax, 2), np.nan)
+    for i, (c, x) in enumerate(zip(rows_cams, rows_xy)):
+        cams[i, :, :c.shape[1]] = c
+        xy[i, :, :x.shape[1]] = x
+    seen = np.all(np.isfinite(xy), axis=3)  # (n, 17, V)
+    Xw, rays = _midpoints(R, t, cams, xy, seen)
+    # the widest angle between two of a point's rays
+    cos = np.einsum("njvk,njwk->njvw", rays, rays)
+    both = seen[:, :, :, None] & seen[:, :, None, :]
+    min_cos = np.where(both, cos, 1.0).min(axis=(2, 3))
+    good = np.all(np.isfinite(Xw), axis=2) & (min_cos <= np.cos(np.radians(min_angle_deg)))
+    Rt = np.transpose(R[cams], (0, 1, 2, 4, 3))  # (n, 17, V, 3, 3) cam_R_world
+    Xc = np.einsum("njvab,njvb->njva", Rt, Xw[:, :, None, :] - t[cams])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        px = np.linalg.norm(Xc[..., :2] / Xc[..., 2:3] - xy, axis=3) * focal[cams]
+    good &= np.where(seen, px, 0.0).max(axis=2) <= max_px
+    for i, (c, time, k) in enumerate(rows_meta):
+        own_xy, own_sig = rows_own[i]
+        m = good[i] & np.all(np.isfinite(own_xy), axis=1) & np.isfinite(own_sig)
+        if m.sum() < 4:
+            continue
+        out.setdefault(c, []).append(Correspondences(time, Xw[i, m], own_xy[m], own_sig[m],
+                                                     np.full(int(m.sum()), k, np.int64)))
+    return out
+
+
+def _midpoints(R: np.ndarray, t: np.ndarray, cams: np.ndarray, xy: np.ndarray, seen: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Points nearest to their rays (cams (..., V), xy (..., V, 2), seen (..., V)):
+    (..., 3) points (NaN with < 2 rays or behind a camera) and (..., V, 3) unit rays.
+    A 3x3 solve per point: many times faster than the DLT's SVD, and as good for
+    telling a joint's position to a few pixels (the outliers are checked after)."""
+    x = np.where(seen[..., None], xy, 0.0)
+    d = np.einsum("...vab,...vb->...va", R[cams], np.concatenate([x, np.ones(x.shape[:-1] + (1,))], axis=-1))
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    proj = np.eye(3) - d[..., :, None] * d[..., None, :]  # (..., V, 3, 3)
+    proj = proj * seen[..., None, None]
+    A = proj.sum(-3)
+    b = np.einsum("...vab,...vb->...a", proj, t[cams])
+    ok = seen.sum(-1) >= 2
+    A[~ok] = np.eye(3)
+    with np.errstate(invalid="ignore"):
+        X = np.linalg.solve(A, b[..., None])[..., 0]
+    depth = np.einsum("...va,...va->...v", d, X[..., None, :] - t[cams])
+    ok &= np.all(~seen | (depth > 0.05), axis=-1)
+    X[~ok] = np.nan
+    return X, d
+
+
+@dataclass
+class _Camera:
+    """The monitor's record of one camera."""
+
+    data: deque = field(default_factory=deque)  # Correspondences, oldest first
+    bin_start: float | None = None
+    # closed bins: (start, end, z (6,) the resection's tangent offset from the anchor,
+    # in the frame of the others, info (6, 6) its information)
+    bins: list = field(default_factory=list)
+    anchor: tuple[np.ndarray, np.ndarray] | None = None  # the camera's estimate when its watch began
+    # the cameras its points come from: those trusted when its watch began (one joining
+    # later would change the points, and look like this camera moving)
+    trust: np.ndarray | None = None
+    since: float | None = None  # being calibrated again with the data from this time on
+    failed: bool = False  # its last test found a change
 
 
 class Monitor:
-    def __init__(self, cfg: MonitorConfig, cameras: int):
+    """Per camera: correspondences (``add``), bins of resections and the change test for
+    watched cameras, recalibration of flagged ones (``evaluate``)."""
+
+    def __init__(self, cfg: MonitorConfig, focal: np.ndarray, *, outlier_px: float = 15.0,
+                 min_angle_deg: float = 2.0):
         self.cfg = cfg
-        self.window: list[deque[tuple[np.ndarray, np.ndarray]]] = [deque(maxlen=cfg.window) for _ in range(cameras)]
+        self.focal = focal
+        self.outlier_px = outlier_px
+        self.min_angle = min_angle_deg
+        self.cams = [_Camera() for _ in range(len(focal))]
         self.alarms: list[Alarm] = []
+        self.pending: list[Hypothesis] = []  # hypotheses not yet turned into correspondences
         r = np.radians(cfg.model_std_rotation)
         self.floor = np.diag([r * r] * 3 + [cfg.model_std_translation ** 2] * 3)
+        r = np.radians(cfg.bin_std_rotation)
+        self.bin_floor = np.diag([r * r] * 3 + [cfg.bin_std_translation ** 2] * 3)
 
-    def observe(self, time: float, watched: np.ndarray, innovations: list[tuple[np.ndarray, np.ndarray] | None]
-                ) -> list[Alarm]:
-        """One cycle: watched (C,) bool cameras to test (converged ones); innovations[c]
-        from ``innovation`` (None = the camera was not measured). Returns new alarms."""
+    def recalibrating(self) -> np.ndarray:
+        """(C,) bool cameras being calibrated again after an alarm."""
+        return np.array([k.since is not None for k in self.cams])
+
+    def add(self, hyps: Sequence[Hypothesis]) -> None:
+        """New hypotheses, turned into correspondences at the next ``evaluate`` (many at
+        once: the triangulation is vectorised)."""
+        if self.cfg.enabled:
+            self.pending.extend(hyps)
+            del self.pending[:-_MAX_PENDING]
+
+    def _correspond(self, R: np.ndarray, t: np.ndarray, watched: np.ndarray) -> None:
+        hyps, self.pending = self.pending, []
+        trusted = watched & ~self.recalibrating()
+        if not hyps or trusted.sum() < 2:
+            return
+        trust = np.zeros((len(R), len(R)), bool)
+        for c, k in enumerate(self.cams):
+            if k.since is not None:  # being calibrated again: against every trusted camera
+                trust[c] = trusted
+            elif watched[c]:
+                trust[c] = trusted if k.trust is None else trusted & k.trust
+        for c, items in correspondences(hyps, R, t, trust, self.focal, self.min_angle, self.outlier_px).items():
+            self.cams[c].data.extend(items)
+
+    def evaluate(self, now: float, watched: np.ndarray, R: np.ndarray, t: np.ndarray
+                 ) -> tuple[list[Alarm], list[Recalibration]]:
+        """Close the bins due at data time ``now``, test the watched (C,) bool cameras,
+        recalibrate the flagged ones. Returns (new alarms, new poses of cameras being
+        calibrated again); the one marked ``final`` ends a camera's recalibration."""
         cfg = self.cfg
-        C = len(self.window)
-        assert watched.shape == (C,) and len(innovations) == C
         if not cfg.enabled:
-            return []
-        out = []
-        for c in range(C):
-            win = self.window[c]
+            return [], []
+        # each camera's joints against what the others it can trust triangulate
+        self._correspond(R, t, watched)
+        recalibrating = self.recalibrating()
+        results: list[Recalibration] = []
+        candidates: list[tuple[float, bool, Alarm]] = []
+        keep_from = now - (cfg.window_seconds + 2 * cfg.bin_seconds)
+        for c, k in enumerate(self.cams):
+            if k.since is not None:
+                if k.bin_start is None or now - k.bin_start >= cfg.bin_seconds:
+                    k.bin_start = now
+                    r = resect(R[c], t[c], [d for d in k.data if d.time >= k.since], float(self.focal[c]),
+                               outlier_px=self.outlier_px)
+                    seconds = now - k.since
+                    final = seconds >= cfg.recalibrate_seconds
+                    if r is not None:
+                        cov = np.linalg.inv(r.info) + self.bin_floor * cfg.bin_seconds / max(seconds, cfg.bin_seconds)
+                        results.append(Recalibration(c, r.R, r.t, cov, seconds, r.points, final))
+                    if final:
+                        self._reset(k)
+                continue
             if not watched[c]:
-                win.clear()
-                continue
-            if innovations[c] is None:
-                continue
-            win.append(innovations[c])
-            if len(win) < cfg.window:
-                continue
-            # The mean, not a median: right after a move the camera's views soon fail the
-            # association gate, so a move may show in one or two cycles only (measured: a
-            # median over 4 cycles missed a 2° bump the mean flagged in 1.2 s). The price:
-            # one cycle of wrong associations that drags a camera's data a metre off is
-            # flagged too (and re-calibrated, which does no harm).
-            d = np.mean([x[0] for x in win], axis=0)
-            # the data's noise averages over the window, the model's errors (lens, the
-            # estimate a little off its optimum) do not: they are a floor
-            S = np.mean([x[1] for x in win], axis=0) / len(win) + self.floor
-            try:
-                chi2 = float(d @ np.linalg.solve(S, d))
-            except np.linalg.LinAlgError:
-                continue
-            rot = float(np.degrees(np.linalg.norm(d[:3])))
-            trans = float(np.linalg.norm(d[3:]))
-            if chi2 > cfg.chi2 and (trans > cfg.min_translation or rot > cfg.min_rotation):
-                a = Alarm(time, c, chi2, trans, rot)
-                out.append(a)
-                self.alarms.append(a)
-                win.clear()
-        return out
+                self._reset(k)
+            else:
+                if k.anchor is None:
+                    k.anchor = (R[c].copy(), t[c].copy())
+                    k.trust = watched & ~recalibrating
+                    k.trust[c] = False
+                if k.bin_start is None:
+                    k.bin_start = now
+                    k.data.clear()  # what came before the camera was watched is not its reference
+                elif np.floor(now / cfg.bin_seconds) > np.floor(k.bin_start / cfg.bin_seconds):
+                    # bins end on a common grid: the cameras are tested together
+                    self._close_bin(c, k, now, R, t)
+                    a = self._test(c, k, now)
+                    if a is not None:
+                        candidates.append((a.chi2, k.failed, a))
+                    k.failed = a is not None
+            while k.data and k.data[0].time < keep_from:
+                k.data.popleft()
+        alarms = []
+        # Of the cameras that fail, the most significant is flagged (a moved camera biases
+        # the points the others are tested against, so they may fail too), once its next
+        # test confirms it: right after a move the moved camera may not have enough bins
+        # after it to be tested while a camera it biased already has.
+        top = max(candidates, key=lambda x: x[0]) if candidates else None
+        if top is not None and top[1]:
+            a = top[2]
+            alarms.append(a)
+            self.alarms.append(a)
+            k = self.cams[a.cam]
+            # calibrated again from the end of the first bin after the change: the move
+            # happened in that bin, and its older data would drag the camera back
+            since = a.since + cfg.bin_seconds
+            data = [d for d in k.data if d.time >= since]
+            self._reset(k)
+            k.since = since
+            k.data.extend(data)
+            # the others' evidence since the change was triangulated with the moved camera
+            for c, o in enumerate(self.cams):
+                if c != a.cam and o.since is None:
+                    o.bins = [b for b in o.bins if b[1] <= a.since]
+                    o.failed = False
+                    while o.data and o.data[-1].time >= a.since:
+                        o.data.pop()
+        return alarms, results
+
+    def _reset(self, k: _Camera) -> None:
+        k.bins.clear()
+        k.bin_start = None
+        k.anchor = None
+        k.trust = None
+        k.since = None
+        k.failed = False
+        k.data.clear()
+
+    def _in_anchor_frame(self, c: int, R: np.ndarray, t: np.ndarray, Rs: np.ndarray, ts: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+        """Camera c's pose R, t found against the others' current estimates Rs, ts (C, ...),
+        carried into the frame the others had when their watch began (a similarity fit of
+        their centres): the estimate drifting as a whole (its gauge) is no camera moving,
+        nor is the filter pulling the moved camera along with its data."""
+        trust = self.cams[c].trust
+        others = [d for d, o in enumerate(self.cams)
+                  if d != c and o.anchor is not None and o.since is None and (trust is None or trust[d])]
+        if len(others) < 3:
+            return R, t
+        src = ts[others]
+        dst = np.array([self.cams[d].anchor[1] for d in others])
+        s, Rg, tg = umeyama(src, dst, with_scale=True)
+        return Rg @ R, s * Rg @ t + tg
+
+    def _close_bin(self, c: int, k: _Camera, now: float, Rs: np.ndarray, ts: np.ndarray) -> None:
+        start, k.bin_start = k.bin_start, now
+        data = [d for d in k.data if start <= d.time < now]
+        if sum(len(d.X) for d in data) < self.cfg.min_points:
+            return  # too little seen: the bin says nothing (its data still count for a recalibration)
+        r = resect(Rs[c], ts[c], data, float(self.focal[c]), outlier_px=self.outlier_px)
+        if r is None:
+            return
+        k.bins.append((start, now, pose_local(*k.anchor, *self._in_anchor_frame(c, r.R, r.t, Rs, ts)), r.info))
+        horizon = now - self.cfg.reference_seconds - self.cfg.window_seconds
+        while k.bins and k.bins[0][1] < horizon:
+            k.bins.pop(0)
+
+    def _test(self, c: int, k: _Camera, now: float) -> Alarm | None:
+        """The change test over the camera's bins."""
+        if len(k.bins) < self.cfg.min_reference_bins + self.cfg.min_change_bins:
+            return None
+        z = np.array([b[2] for b in k.bins])
+        W = np.array([b[3] for b in k.bins])
+        found = change_test(z, W, np.array([b[0] for b in k.bins]), now, self.cfg, self.floor)
+        if found is None:
+            return None
+        chi2, trans, rot, since = found
+        return Alarm(now, c, chi2, trans, rot, since)
+
+
+def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg: MonitorConfig, floor: np.ndarray
+                ) -> tuple[float, float, float, float] | None:
+    """The generalised likelihood ratio test for a step in a camera's data-only poses z
+    (n, 6) (tangent at a fixed pose) with informations W (n, 6, 6), of bins starting at
+    ``start`` (n,) data time: for every split of the last ``window_seconds`` leaving at
+    least ``min_change_bins`` after it and ``min_reference_bins`` before, the robust mean
+    after vs before, χ² against their covariances plus ``floor`` (6, 6). Each bin's
+    covariance is its information's inverse plus the error it does not show
+    (``bin_floor``, measured on the bins before the window). Returns the most
+    significant split that passes ``chi2`` and the size thresholds as (χ², m, deg, data
+    time of the change), or None."""
+    n = len(z)
+    first = next((j for j in range(n) if now - start[j] <= cfg.window_seconds), n)
+    first = max(first, cfg.min_reference_bins)
+    if first > n - cfg.min_change_bins:
+        return None
+    C = np.linalg.inv(W)
+    F = bin_floor(z[:first], C[:first], cfg)
+    W = np.linalg.inv(C + F)
+    _, _, kappa, _ = _mean(z[:first], W[:first])
+    best = None
+    for j in range(first, n - cfg.min_change_bins + 1):
+        zr, Sr, _, _ = _mean(z[:j], W[:j], kappa)
+        zn, Sn, _, kept = _mean(z[j:], W[j:], kappa)
+        if kept < cfg.min_change_bins:
+            continue  # bins after the split that disagree among themselves are no step
+        d = zn - zr
+        S = kappa * (Sr + Sn) + floor
+        try:
+            chi2 = float(d @ np.linalg.solve(S, d))
+        except np.linalg.LinAlgError:
+            continue
+        rot = float(np.degrees(np.linalg.norm(d[:3])))
+        trans = float(np.linalg.norm(d[3:]))
+        if chi2 > cfg.chi2 and (trans > cfg.min_translation or rot > cfg.min_rotation):
+            if best is None or chi2 > best[0]:
+                best = (chi2, trans, rot, float(start[j]))
+    return best
+
+
+def bin_floor(z: np.ndarray, C: np.ndarray, cfg: MonitorConfig) -> np.ndarray:
+    """(6, 6) the error of one bin that its covariance C (n, 6, 6) does not show (where
+    the people were and what the others' own errors made of that), measured on the
+    camera's bins z (n, 6): α² diag(``bin_std_*``²) with the least α in [0, 1] for
+    which the bins' χ² around their robust mean have the χ² distribution's upper quartile
+    (not the median: the bins' errors have heavy tails)
+    (α = 1 when even that is not enough; the overdispersion of ``_mean`` takes the rest).
+    Without it one bin that claims too much outweighs several; a fixed value would be
+    wrong for a network calibrated better or worse than the one it was measured on."""
+    rb = np.radians(cfg.bin_std_rotation)
+    F0 = np.diag([rb * rb] * 3 + [cfg.bin_std_translation ** 2] * 3)
+
+    def median_chi(a: float) -> float:
+        W = np.linalg.inv(C + a * a * F0)
+        m, _, _, _ = _mean(z, W, 1.0)
+        r = z - m
+        return float(np.quantile(np.einsum("ni,nij,nj->n", r, W, r), 0.75))
+
+    if median_chi(0.0) <= _CHI2_6_Q75:
+        return 0.0 * F0
+    if median_chi(1.0) >= _CHI2_6_Q75:
+        return F0
+    lo, hi = 0.0, 1.0
+    for _ in range(12):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if median_chi(mid) > _CHI2_6_Q75 else (lo, mid)
+    return hi * hi * F0
+
+
+_CHI2_6_MEDIAN = 5.348  # median of the χ² distribution with 6 dof
+_CHI2_6_Q75 = 7.841  # its upper quartile
+
+
+def _mean(z: np.ndarray, W: np.ndarray, kappa: float | None = None, *, huber: float = 3.5, reject: float = 10.0
+          ) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """Robust information-weighted mean of poses z (n, 6) with informations W (n, 6, 6):
+    (mean, its covariance, overdispersion, bins kept). The overdispersion, unless given, is the bins'
+    median χ² around the mean over the χ² distribution's median (at least 1: what the
+    solver's information overstates). A bin further than ``huber`` (Mahalanobis, scaled by
+    the overdispersion) from the mean is down-weighted: one bin of wrong associations
+    must not make a change; one beyond ``reject`` is left out."""
+    k = 1.0 if kappa is None else kappa
+    m = np.median(z, axis=0)  # the start: a mean from a far-off bin would down-weight the good ones
+    for _ in range(5):
+        r = z - m
+        chi = np.einsum("ni,nij,nj->n", r, W, r)
+        if kappa is None and len(z) >= 3:
+            k = max(float(np.median(chi)) / _CHI2_6_MEDIAN, 1.0)
+        dist = np.sqrt(chi / k)
+        w = np.where(dist <= huber, 1.0, huber / np.maximum(dist, 1e-12)) * (dist <= reject)
+        if not w.any():
+            return m, np.full((6, 6), np.inf), k, 0
+        Wsum = np.einsum("n,nij->ij", w, W)
+        cov = np.linalg.inv(Wsum)
+        m = cov @ np.einsum("n,nij,nj->i", w, W, z)
+    return m, cov, k, int(np.count_nonzero(w))

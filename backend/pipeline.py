@@ -32,7 +32,7 @@ from .associate import Associator
 from .cameras import CameraSet
 from .clock_offsets import ClockJob, ClockOffsetEstimator, ClockResult
 from .config import EngineConfig
-from .monitor import Alarm, Monitor, innovation
+from .monitor import Alarm, Monitor
 from .optimize import Problem, Solution, solve
 from .preprocess import Detection, Preprocessor
 from .refine import Refiner
@@ -66,7 +66,8 @@ class Pipeline:
         self.queue = HypothesisQueue(self.cfg.select)
         self.refiner = Refiner(self.cfg.refine, R0, t0, None if start is None else start[2],
                                None if start is None else start[:2])
-        self.monitor = Monitor(self.cfg.monitor, C)
+        self.monitor = Monitor(self.cfg.monitor, self.focal, outlier_px=self.cfg.optimize.outlier_px,
+                               min_angle_deg=self.cfg.optimize.min_triangulation_angle)
         self.watched = np.zeros(C, dtype=bool)
         self.clocks = ClockOffsetEstimator(self.cfg.clock, self.names, cameras.intrinsics,
                                            self.cfg.preprocess.min_confidence)
@@ -161,6 +162,7 @@ class Pipeline:
             self.frames.append((fs.time, tuple(tuple(v) for v in dets)))
             hyps = self.associate(fs.time, dets, R, t, gate)
             self.queue.extend(hyps)
+            self.monitor.add(hyps)
             if self.cfg.clock.estimate:
                 self.clocks.add(hyps)
             new += len(hyps)
@@ -393,16 +395,7 @@ class Pipeline:
             else:
                 self.observations += solution.obs_per_camera
             if problem.kind == "cycle" and self.cfg.monitor.enabled:
-                m = self.cfg.monitor
-                # watched from their convergence until the monitor finds them moved
-                self.watched |= np.array([self.refiner.converged(c) for c in range(len(self.names))])
-                inn = [innovation(problem.prior_R[c], problem.prior_t[c], problem.prior_cov[c], solution.R[c],
-                                  solution.t[c], solution.cov[c]) if solution.active[c] else None
-                       for c in range(len(self.names))]
-                for alarm in self.monitor.observe(float(self.clock or 0.0), self.watched, inn):
-                    self.refiner.reopen(alarm.cam, m.reopen_std_translation, m.reopen_std_rotation)
-                    self.watched[alarm.cam] = False
-                    alarms.append(self.names[alarm.cam])
+                alarms = self._monitor()
         else:
             self.cycles_rejected += 1
         finite = solution.residual_px[np.isfinite(solution.residual_px)]
@@ -426,6 +419,31 @@ class Pipeline:
         )
         self.last_report = report
         return report
+
+    def _monitor(self) -> list[str]:
+        """The monitor's turn after a cycle: watch the converged cameras, flag moved ones
+        (their uncertainty re-opened), take the poses of those calibrated again."""
+        m, rf = self.cfg.monitor, self.refiner
+        C = len(self.names)
+        converged = np.array([rf.converged(c) for c in range(C)])
+        # The watch begins once most of the calibrated cameras have converged: a camera
+        # watched earlier would have its points triangulated from the few converged then
+        # (the cameras joining later are left out of them: they would change its points).
+        calibrated = rf.cycles > 0
+        if not self.watched.any() and converged.sum() < max(3, m.start_fraction * calibrated.sum()):
+            converged[:] = False
+        # watched from their convergence until the monitor finds them moved
+        self.watched |= converged & ~self.monitor.recalibrating()
+        found, poses = self.monitor.evaluate(float(self.clock or 0.0), self.watched, rf.R, rf.t)
+        names = []
+        for alarm in found:
+            rf.reopen(alarm.cam, m.reopen_std_translation, m.reopen_std_rotation)
+            self.watched[alarm.cam] = False
+            names.append(self.names[alarm.cam])
+        for r in poses:
+            rf.recalibrated(r.cam, r.R, r.t, r.cov)
+        rf.q_scale = np.where(self.watched, m.process_noise, 1.0)
+        return names
 
     def step(self, now: float) -> CycleReport | None:
         """Front end up to ``now`` and, when due, one cycle solved in this thread."""
@@ -526,7 +544,7 @@ class Pipeline:
             "history": [[[t.tolist(), R.tolist()] for t, R in h] for h in rf.history],
             "cycle": self.cycle,
             "first_passes": self.first_passes,
-            "moved": [[a.time, a.cam, a.chi2, a.translation, a.rotation] for a in self.monitor.alarms],
+            "moved": [[a.time, a.cam, a.chi2, a.translation, a.rotation, a.since] for a in self.monitor.alarms],
             "watched": self.watched.tolist(),
             "batched": rf.batched.tolist(),
             "observations": self.observations.tolist(),

@@ -76,6 +76,7 @@ class Refiner:
         # what is reported: the filter's covariance, or a solve's shape covariance (gauge removed)
         self.S = self.P.copy()
         self.Q = _diag(cfg.filter_std_rotation, cfg.filter_std_translation) * cfg.process_noise**2
+        self.q_scale = np.ones(C)  # per camera: a factor of Q (the monitor lowers it for watched cameras)
         self.cycles = np.zeros(C, dtype=np.int64)
         self.batched = np.zeros(C, dtype=bool)  # the last update was a batch over all data
         # pose after each of the last cycles a camera took part in: (t (3,), R (3, 3))
@@ -83,7 +84,7 @@ class Refiner:
 
     def predicted_covariance(self) -> np.ndarray:
         """(C, 6, 6) prior covariance for the next cycle's graph."""
-        return self.P + self.Q[None]
+        return self.P + self.q_scale[:, None, None] * self.Q[None]
 
     def update(self, active: np.ndarray, R_new: np.ndarray, t_new: np.ndarray, cov: np.ndarray,
                *, posterior: bool = False, cov_shape: np.ndarray | None = None, final: bool | None = None) -> UpdateResult:
@@ -138,6 +139,12 @@ class Refiner:
         and it counts as uncalibrated until cycles have calibrated it again."""
         self._restart(c, _diag(std_rotation, std_translation))
         self.batched[c] = False
+
+    def recalibrated(self, c: int, R: np.ndarray, t: np.ndarray, P: np.ndarray) -> None:
+        """Camera c calibrated again (after it moved) with the others held: new pose and
+        covariance; the cycles must show it converged again."""
+        self.R[c], self.t[c] = R, t
+        self._restart(c, _sym_pd(P))
 
     def _restart(self, c: int, P: np.ndarray) -> None:
         """Camera c starts over from its current pose with covariance P: no history, no cycles."""

@@ -13,6 +13,7 @@ from backend.config import EngineConfig
 from backend.evaluate import evaluate
 from backend.optimize import solve
 from backend.perturb import perturb_extrinsics
+from backend.monitor import Alarm
 from backend.pipeline import Pipeline, run_offline
 from edge_clients.sim import Scene, SimConfig, Simulator
 from proto import KeypointMessage
@@ -272,3 +273,24 @@ def test_first_adjustment_from_a_rough_start_pulls_no_camera_off(lab20_rough, fi
     else:  # what the first adjustment is for: the early cycle leaves some camera worse than it started
         assert [p.kind for p in probs] == ["cycle"] and reports[0].hypotheses < 60
         assert after.orientation.max > before.orientation.max or after.shape_position.max > 0.5, after.summary()
+
+
+def test_the_monitor_watches_converged_cameras_without_process_noise(lab):
+    """Wiring of the monitor: the watch begins once most calibrated cameras converged; a
+    watched camera gets no process noise (the monitor, not the noise, catches a move);
+    in 30 quiet seconds nothing is flagged, and an alarm survives a snapshot."""
+    cams, _, msgs = lab
+    # convergence made easy: 30 s of data must get the watch going
+    easy = {"converged_cycles": 3, "converged_translation": 1.0, "converged_rotation": 30.0,
+            "converged_std_translation": 1.0, "converged_std_rotation": 30.0}
+    cfg = EngineConfig().merged({"monitor": {"enabled": True}, "refine": easy})
+    p = run_offline(cams, cfg, msgs, seed=0, finish=False)
+    converged = np.array([p.refiner.converged(c) for c in range(len(p.names))])
+    calibrated = p.refiner.cycles > 0
+    assert converged.sum() >= cfg.monitor.start_fraction * calibrated.sum()
+    assert p.watched.any() and not (p.watched & ~converged).any()
+    np.testing.assert_array_equal(p.refiner.q_scale, np.where(p.watched, 0.0, 1.0))
+    assert p.monitor.alarms == [] and all(c.moved_at is None for c in p.state().cameras)
+    p.monitor.alarms.append(Alarm(12.5, 2, 50.0, 0.03, 0.1, 7.5))
+    q = Pipeline.restore(cams, cfg, json.loads(json.dumps(p.snapshot())))
+    assert q.monitor.alarms == p.monitor.alarms and q.state().cameras[2].moved_at == 12.5
