@@ -65,6 +65,7 @@ MAX_CONSECUTIVE_FAILURES = 10  # failed solves in a row before a session is mark
 SOLVER_NICE = 5  # the solver process's niceness above the service's (see _worker_init)
 SWITCH_INTERVAL = 0.001  # s: how soon a thread waiting for the GIL gets it (the HTTP thread)
 LINK_CHECK = 1.0  # s between checks of the Zenoh session's links
+STATUS_FRESH = 0.5  # s: a snapshot younger than this is served as it is (_status_loop refreshes it)
 STATUS_WAIT = 0.03  # s the HTTP thread waits for a fresh status before it serves the snapshot
 INGEST_BATCH = 32  # messages taken per turn of the ingest task before it yields (~5 ms)
 ADVANCE_SLICE = 0.25  # s of data time per advance() call when catching up
@@ -935,11 +936,16 @@ class Service:
     # ------------------------------------------------------------ periodic
 
     async def _status_loop(self) -> None:
+        last_brief = 0.0
         while not self._closing:
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._stop.wait(), 1.0)
+                await asyncio.wait_for(self._stop.wait(), STATUS_FRESH / 2)
             if self._closing:
                 return
+            self.status()  # the snapshot /status serves (STATUS_FRESH)
+            if time.monotonic() - last_brief < 1.0:
+                continue
+            last_brief = time.monotonic()
             s = self.active
             if s is not None and s.record.state == SessionState.waiting_for_data:
                 reason = _waiting_reason(s.pipeline.counters(), s.inputs.config, self.sensors, s.inputs.cameras.names)
@@ -948,7 +954,6 @@ class Service:
                     self._save_record(s)
             if self.events.subscribers:
                 self.events.publish("status", self.status_brief())
-            self.status()  # the snapshot /status serves while the loop is too busy to answer
 
     async def _link_loop(self, zs: Any) -> None:
         """Are we still linked to the routers / peers we connect to? A restarted router or
@@ -1436,6 +1441,8 @@ class Service:
         if loop is None or asyncio.get_running_loop() is loop:
             return self.status()
         snap = self._status_snapshot
+        if snap is not None and time.time() - snap["as_of"] < STATUS_FRESH:
+            return snap  # fresh enough: waiting for the loop (its GIL) is what makes /status slow
         if snap is not None and self.lag and self.lag[-1] > STATUS_WAIT:
             return snap  # the loop is busy now: asking it would only add to its work
 

@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import json
+
 from fastapi import APIRouter, Request, Response
 
 from ..deps import ReadAuth, ServiceDep
@@ -19,5 +21,5 @@ async def status(service: ServiceDep, request: Request) -> Response:
     # under overload the same snapshot is served many times: serialise it once
     cached = getattr(request.app.state, "status_json", None)
     if cached is None or cached[0] is not d:
-        cached = request.app.state.status_json = (d, Status.model_validate(d).model_dump_json().encode())
+        cached = request.app.state.status_json = (d, json.dumps(d, separators=(",", ":")).encode())
     return Response(cached[1], media_type="application/json")
