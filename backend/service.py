@@ -372,6 +372,7 @@ class Service:
         self.http_address: tuple[str, int] | None = None
         self.handoff: HandOff | None = None
         self._status_snapshot: dict[str, Any] | None = None  # published by status(), read by any thread
+        self._status_pub: dict[str, Any] | None = None
         # Zenoh links of this session (routers, peers), checked every LINK_CHECK s; the wall
         # time they all went, while endpoints to connect to are configured
         self.links: dict[str, Any] = {"routers": None, "peers": None, "lost_since": None, "losses": 0}
@@ -395,6 +396,7 @@ class Service:
     @active.setter
     def active(self, s: ActiveSession | None) -> None:
         self._active = s
+        self._changed()
         if self.handoff is not None:  # sensors outside the session are refused on Zenoh's threads
             self.handoff.accept(None if s is None else s.names)
 
@@ -868,7 +870,13 @@ class Service:
     # ------------------------------------------------------------ persistence and publication
 
     def _save_record(self, s: ActiveSession) -> None:
+        self._changed()
         self.writer.submit(self.store.save_record, _copy_record(s.record))
+
+    def _changed(self) -> None:
+        """A session started, stopped or changed state: the published status is out of date
+        (an operator's GET /status right after POST /sessions must show it)."""
+        self._status_pub = None
 
     def _persist(self, s: ActiveSession, *, snapshot: bool, note: str | None = None) -> None:
         rec = s.record
@@ -1430,6 +1438,7 @@ class Service:
         with self.work.measure("status"):
             d = self._status()
         self._status_snapshot = d  # a new dict every time, never changed after: safe to share
+        self._status_pub = d  # ... and the one served as it is while fresh (None after a change)
         return d
 
     async def status_view(self) -> dict[str, Any]:
@@ -1440,9 +1449,10 @@ class Service:
         loop = self._loop
         if loop is None or asyncio.get_running_loop() is loop:
             return self.status()
+        pub = self._status_pub
+        if pub is not None and time.time() - pub["as_of"] < STATUS_FRESH:
+            return pub  # fresh enough: waiting for the loop (its GIL) is what makes /status slow
         snap = self._status_snapshot
-        if snap is not None and time.time() - snap["as_of"] < STATUS_FRESH:
-            return snap  # fresh enough: waiting for the loop (its GIL) is what makes /status slow
         if snap is not None and self.lag and self.lag[-1] > STATUS_WAIT:
             return snap  # the loop is busy now: asking it would only add to its work
 
