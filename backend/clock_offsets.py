@@ -49,7 +49,7 @@ from proto import KeypointMessage
 from .associate import Hypothesis
 from .cameras import Intrinsics, undistort
 from .config import ClockConfig
-from .geometry import so3_exp, triangulate_batch
+from .geometry import project_normalised, so3_exp, triangulate_batch
 
 log = logging.getLogger(__name__)
 
@@ -159,26 +159,16 @@ def fit_pose(X: np.ndarray, x: np.ndarray, R: np.ndarray, t: np.ndarray, width: 
     the result (inf behind the camera)."""
     assert X.shape[1:] == (3,) and x.shape == (len(X), 2)
     for _ in range(iters + 1):
-        Xc = (X - t) @ R  # cam_R_world (X - t)
-        z = Xc[:, 2]
-        front = z > 0.05
-        zs = np.where(front, z, 1.0)
-        u = Xc[:, :2] / zs[:, None]
+        front = ((X - t) @ R)[:, 2] > 0.05  # cam_R_world (X - t): in front of the camera
+        u = np.zeros((len(X), 2))
+        J = np.zeros((len(X), 2, 6))  # behind the camera: weight 0, no Jacobian
+        u[front], J[front] = project_normalised(R, t, X[front])
         r = x - u
         d = np.where(front, np.linalg.norm(r, axis=1), np.inf)
         if _ == iters:
             return R, t, d
         w = np.where(front, 1.0 / (1.0 + (np.where(front, d, 0.0) / width) ** 2), 0.0)
-        # u(Xc'), Xc' = Xc - v + [Xc]x w (R' = R exp([w]), t' = t + R v)
-        du = np.zeros((len(X), 2, 3))
-        du[:, 0, 0] = du[:, 1, 1] = 1.0 / zs
-        du[:, 0, 2] = -u[:, 0] / zs
-        du[:, 1, 2] = -u[:, 1] / zs
-        hx = np.zeros((len(X), 3, 3))
-        hx[:, 0, 1], hx[:, 0, 2] = -Xc[:, 2], Xc[:, 1]
-        hx[:, 1, 0], hx[:, 1, 2] = Xc[:, 2], -Xc[:, 0]
-        hx[:, 2, 0], hx[:, 2, 1] = -Xc[:, 1], Xc[:, 0]
-        Jm = np.concatenate([du @ hx, -du], axis=2).reshape(-1, 6)  # (2N, 6)
+        Jm = J.reshape(-1, 6)  # (2N, 6); the step below is R' = R exp([w]), t' = t + R v
         Jw = Jm * np.repeat(w, 2)[:, None]
         H = Jw.T @ Jm
         g = Jw.T @ r.reshape(-1)

@@ -135,6 +135,31 @@ def pose_local(Ra, ta, Rb, tb) -> np.ndarray:
     return se3_log(R, t)
 
 
+def project_normalised(R: np.ndarray, t: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) normalised projections of world points X (N, 3) (in front of the camera) by
+    the pose R (3, 3), t (3,) (world_R_cam, optical centre), and (N, 2, 6) their Jacobian
+    w.r.t. the pose's right perturbation (rotation, translation in the camera frame;
+    ``pose_retract``)."""
+    Xc = (X - t) @ R  # R^T (X - t), row-wise
+    z = Xc[:, 2]
+    uv = Xc[:, :2] / z[:, None]
+    dproj = np.zeros((len(X), 2, 3))
+    dproj[:, 0, 0] = 1 / z
+    dproj[:, 1, 1] = 1 / z
+    dproj[:, :, 2] = -uv / z[:, None]
+    # Xc' = exp(-ω) (Xc - v): dXc/dω = hat(Xc), dXc/dv = -I
+    dXc = np.concatenate([hat_batch(Xc), np.broadcast_to(-np.eye(3), (len(X), 3, 3))], axis=2)
+    return uv, dproj @ dXc
+
+
+def hat_batch(v: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) skew matrices of (N, 3) vectors."""
+    out = np.zeros((len(v), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
+
+
 def umeyama(src: np.ndarray, dst: np.ndarray, *, with_scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
     """Least-squares (s, R, t) with dst ≈ s·R·src + t.
 

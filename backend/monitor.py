@@ -39,7 +39,7 @@ import numpy as np
 
 from .associate import Hypothesis
 from .config import MonitorConfig
-from .geometry import pose_local, pose_retract, umeyama
+from .geometry import pose_local, pose_retract, project_normalised, umeyama
 
 
 _MAX_PENDING = 5000  # hypotheses held for the next evaluation (none runs while no cycle does)
@@ -106,29 +106,6 @@ class Recalibration:
     final: bool
 
 
-def _project(R: np.ndarray, t: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 2) normalised projections and (N, 2, 6) their Jacobian w.r.t. the pose's right
-    perturbation (rotation, translation in the camera frame; ``pose_retract``)."""
-    Xc = (X - t) @ R  # R^T (X - t), row-wise
-    z = Xc[:, 2]
-    uv = Xc[:, :2] / z[:, None]
-    dproj = np.zeros((len(X), 2, 3))
-    dproj[:, 0, 0] = 1 / z
-    dproj[:, 1, 1] = 1 / z
-    dproj[:, :, 2] = -uv / z[:, None]
-    # Xc' = exp(-ω) (Xc - v): dXc/dω = hat(Xc), dXc/dv = -I
-    dXc = np.concatenate([hat_batch(Xc), np.broadcast_to(-np.eye(3), (len(X), 3, 3))], axis=2)
-    return uv, dproj @ dXc
-
-
-def hat_batch(v: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) skew matrices of (N, 3) vectors."""
-    out = np.zeros((len(v), 3, 3))
-    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    return out
-
-
 def resect(R: np.ndarray, t: np.ndarray, data: Sequence[Correspondences], focal: float, *, outlier_px: float,
            huber: float = 2.0, iterations: int = 8) -> Resection | None:
     """The camera's pose from ``data`` starting at R, t: Gauss-Newton with a Huber
@@ -166,7 +143,7 @@ def _gauss_newton(R, t, X, xy, sig, huber, iterations):
     if len(X) < 12:
         return None
     for _ in range(iterations):
-        uv, J = _project(R, t, X)
+        uv, J = project_normalised(R, t, X)
         if not np.all(np.isfinite(uv)):
             return None
         r = (uv - xy) / sig[:, None]  # (N, 2) in sigmas
@@ -183,7 +160,7 @@ def _gauss_newton(R, t, X, xy, sig, huber, iterations):
         R, t = pose_retract(R, t, dx)
         if np.linalg.norm(dx) < 1e-7:
             break
-    uv, J = _project(R, t, X)
+    uv, J = project_normalised(R, t, X)
     r = (uv - xy) / sig[:, None]
     e = np.linalg.norm(r, axis=1)
     w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))

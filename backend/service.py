@@ -66,6 +66,7 @@ SOLVER_NICE = 5  # the solver process's niceness above the service's (see _worke
 SWITCH_INTERVAL = 0.001  # s: how soon a thread waiting for the GIL gets it (the HTTP thread)
 LINK_CHECK = 1.0  # s between checks of the Zenoh session's links
 STATUS_FRESH = 0.5  # s: a snapshot younger than this is served as it is (_status_loop refreshes it)
+STATUS_ASKED = 5.0  # s after a /status request during which the snapshot is kept fresh
 STATUS_WAIT = 0.03  # s the HTTP thread waits for a fresh status before it serves the snapshot
 INGEST_BATCH = 32  # messages taken per turn of the ingest task before it yields (~5 ms)
 ADVANCE_SLICE = 0.25  # s of data time per advance() call when catching up
@@ -373,6 +374,7 @@ class Service:
         self.handoff: HandOff | None = None
         self._status_snapshot: dict[str, Any] | None = None  # published by status(), read by any thread
         self._status_pub: dict[str, Any] | None = None
+        self._status_asked = -math.inf  # monotonic time of the last /status from the HTTP thread
         # Zenoh links of this session (routers, peers), checked every LINK_CHECK s; the wall
         # time they all went, while endpoints to connect to are configured
         self.links: dict[str, Any] = {"routers": None, "peers": None, "lost_since": None, "losses": 0}
@@ -950,10 +952,14 @@ class Service:
                 await asyncio.wait_for(self._stop.wait(), STATUS_FRESH / 2)
             if self._closing:
                 return
-            self.status()  # the snapshot /status serves (STATUS_FRESH)
-            if time.monotonic() - last_brief < 1.0:
+            now = time.monotonic()
+            # the snapshot /status serves: every STATUS_FRESH / 2 while someone asks for it
+            # (~16 ms of the loop's time each under overload), else once a second
+            if now - self._status_asked < STATUS_ASKED or now - last_brief >= 1.0:
+                self.status()
+            if now - last_brief < 1.0:
                 continue
-            last_brief = time.monotonic()
+            last_brief = now
             s = self.active
             if s is not None and s.record.state == SessionState.waiting_for_data:
                 reason = _waiting_reason(s.pipeline.counters(), s.inputs.config, self.sensors, s.inputs.cameras.names)
@@ -1449,6 +1455,7 @@ class Service:
         loop = self._loop
         if loop is None or asyncio.get_running_loop() is loop:
             return self.status()
+        self._status_asked = time.monotonic()
         pub = self._status_pub
         if pub is not None and time.time() - pub["as_of"] < STATUS_FRESH:
             return pub  # fresh enough: waiting for the loop (its GIL) is what makes /status slow

@@ -9,8 +9,8 @@ import pytest
 
 from backend.associate import Hypothesis
 from backend.config import MonitorConfig
-from backend.geometry import pose_local, pose_retract, rotation_angle_deg, so3_exp
-from backend.monitor import Correspondences, Monitor, _project, correspondences, resect
+from backend.geometry import pose_local, pose_retract, project_normalised as _project, rotation_angle_deg, so3_exp
+from backend.monitor import Correspondences, Monitor, correspondences, resect
 
 F = 425.0  # px
 SWAP = 0.05  # share of frames with a view given to the wrong person
