@@ -46,7 +46,7 @@ import numpy as np
 from proto import KeypointMessage
 
 from .associate import Hypothesis, torso_centre
-from .cameras import CameraSet, Extrinsics, Intrinsics, Pose
+from .cameras import CameraSet, Extrinsics, Intrinsics, Pose, natural_key
 from .config import BootstrapConfig, EngineConfig
 from .geometry import hat, rotation_angle_deg, so3_exp, triangulate_batch
 from .people import ANKLE_HEIGHT, ScaleEstimate, Segments, measure_scale, segments
@@ -816,3 +816,16 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     stages["people"] = _time.perf_counter() - t0
     return BootstrapResult(tuple(names), R, t, located, std_t, std_r, scale, note, len(good), tried, len(frames),
                            float(data_seconds), _time.perf_counter() - t_start, stages)
+
+
+def bootstrap_messages(intrinsics: Mapping[str, Intrinsics], config: EngineConfig, messages: Iterable[KeypointMessage],
+                       *, heights: Sequence[float] = (), seed: int = 0, progress: Progress | None = None
+                       ) -> BootstrapResult:
+    """``bootstrap`` on the first ``bootstrap.max_seconds`` of ``messages`` (all of them
+    when 0), for the cameras of ``intrinsics`` in their natural order. Raises
+    BootstrapError as ``bootstrap``."""
+    names = tuple(sorted(intrinsics, key=natural_key))
+    frames = collect_frames(names, intrinsics, config, messages, max_seconds=config.bootstrap.max_seconds,
+                            progress=progress)
+    focal = np.array([0.5 * (intrinsics[n].fx + intrinsics[n].fy) for n in names])
+    return bootstrap(frames, names, focal, config, heights=heights, seed=seed, progress=progress)

@@ -43,8 +43,6 @@ def calibrate(
     import json
     import time
 
-    import numpy as np
-
     from rich.console import Console
 
     from proto import ReadStats, RecordingError, read_recording
@@ -76,7 +74,7 @@ def calibrate(
         raise fail(f"recording {recording} does not exist")
     boot = None
     if initial is None or distrust_initial:
-        from .bootstrap import BootstrapError, bootstrap, camera_set, collect_frames, handover
+        from .bootstrap import BootstrapError, bootstrap_messages, camera_set, handover
         from .cameras import natural_key
 
         names = tuple(sorted(intr, key=natural_key))
@@ -86,11 +84,8 @@ def calibrate(
                           else "no initial estimate: bootstrapping from the whole recording", highlight=False)
         say = (lambda m: None) if quiet else (lambda m: console.print(f"bootstrap: {m}", highlight=False))
         try:
-            frames = collect_frames(names, intr, cfg, read_recording(recording, skip_bad=skip_bad),
-                                    max_seconds=cfg.bootstrap.max_seconds, progress=say)
-            focal = [0.5 * (intr[n].fx + intr[n].fy) for n in names]
-            boot = bootstrap(frames, names, np.array(focal), cfg, heights=heights, seed=seed,
-                             progress=say)
+            boot = bootstrap_messages(intr, cfg, read_recording(recording, skip_bad=skip_bad), heights=heights,
+                                      seed=seed, progress=say)
         except RecordingError as e:
             raise fail(f"{e} (use --skip-bad to skip malformed records)")
         except BootstrapError as e:
@@ -187,7 +182,7 @@ def calibrate(
             hist_f.close()
     state = p.state()
     wall = time.perf_counter() - t_start
-    started = set(rec.to_dict()["from_bootstrap"]) if rec is not None else set()
+    started = {n for n, u in zip(rec.names, rec.from_bootstrap) if u} if rec is not None else set()
     not_calibrated = [c.name for c in state.cameras if c.cycles == 0 and c.name not in started]
     only_bootstrap = [c.name for c in state.cameras if c.cycles == 0 and c.name in started]
     extr = state.extrinsics({n: cams.extrinsics[n].resolution for n in cams.names})

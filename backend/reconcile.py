@@ -35,8 +35,8 @@ import numpy as np
 
 from proto import KeypointMessage
 
-from .bootstrap import BootstrapError, BootstrapResult, Progress, bootstrap, collect_frames
-from .cameras import CameraSet, Intrinsics, natural_key
+from .bootstrap import BootstrapError, BootstrapResult, Progress, bootstrap_messages
+from .cameras import CameraSet, Intrinsics
 from .config import EngineConfig
 from .geometry import rotation_angle_deg, trimmed_similarity
 from .refine import initial_covariance
@@ -217,12 +217,8 @@ def bootstrap_start(cameras: CameraSet, intrinsics: Mapping[str, Intrinsics], co
     reconciliation with ``cameras``' initial estimate. Returns (reconciled or None,
     bootstrap or None, a note saying what happened); a bootstrap the data do not allow is
     not an error here: the initial estimate is then used as it is."""
-    names = tuple(sorted(intrinsics, key=natural_key))
     try:
-        frames = collect_frames(names, intrinsics, config, messages, max_seconds=config.bootstrap.max_seconds,
-                                progress=progress)
-        focal = np.array([0.5 * (intrinsics[n].fx + intrinsics[n].fy) for n in names])
-        boot = bootstrap(frames, names, focal, config, seed=seed, progress=progress)
+        boot = bootstrap_messages(intrinsics, config, messages, seed=seed, progress=progress)
     except BootstrapError as e:
         return None, None, f"bootstrap not possible ({e}): the initial estimate is used as it is"
     return reconcile_cameras(boot, cameras, config)

@@ -220,7 +220,7 @@ def bootstrap_cached(recording: str, intrinsics, cfg, seed: int, cache: Path):
     """The bootstrap (``backend.bootstrap``) of a recording's first ``bootstrap.max_seconds``,
     cached next to the recording, keyed by the bootstrap's sources and config: it depends
     on the recording only, not on the start, and takes minutes. None when it fails."""
-    from backend.bootstrap import BootstrapError, BootstrapResult, bootstrap, collect_frames
+    from backend.bootstrap import BootstrapError, BootstrapResult, bootstrap_messages
     from backend.cameras import natural_key
     from proto import read_recording
 
@@ -237,10 +237,8 @@ def bootstrap_cached(recording: str, intrinsics, cfg, seed: int, cache: Path):
         return BootstrapResult(names, z["R"], z["t"], z["located"], z["std_t"], z["std_r"], None, "cached",
                                int(z["pairs"]), int(z["pairs_tried"]), int(z["frames"]), float(z["data_seconds"]),
                                float(z["seconds"]))
-    frames = collect_frames(names, intrinsics, cfg, read_recording(recording), max_seconds=cfg.bootstrap.max_seconds)
-    focal = np.array([0.5 * (intrinsics[n].fx + intrinsics[n].fy) for n in names])
     try:
-        b = bootstrap(frames, names, focal, cfg, seed=seed)
+        b = bootstrap_messages(intrinsics, cfg, read_recording(recording), seed=seed)
     except BootstrapError:
         b = None
     tmp = path.with_name(f".{os.getpid()}.{path.name}")
