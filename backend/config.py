@@ -206,9 +206,9 @@ class ClockConfig(_Section):
     max_std: float = Field(0.01, gt=0, description="s: an offset is applied once its std is below this ...")
     min_apply: float = Field(0.015, ge=0, description="s: ... and it is larger than this (and 3 std): below this NTP does the "
                              "job (a working NTP keeps a LAN's clocks within a few ms; 15 ms of mistiming moves a walking "
-                             "person by 2 cm, below the 3D noise of the detections), and applying an offset drops the "
-                             "sensor's archived views timed with the old one; an applied offset is taken back when the "
-                             "estimate falls below half of this")
+                             "person by 2 cm, below the 3D noise of the detections), and once an offset is applied the "
+                             "sensor's archived views timed with another are left out of the batch adjustments; an "
+                             "applied offset is taken back when the estimate falls below half of this")
     min_change: float = Field(0.003, ge=0, description="s: an applied offset is changed when the estimate moved by more than "
                               "this and 2.5 std")
     drift_warning: float = Field(0.01, gt=0, description="s: warn when a sensor's estimate moves by more than this")
