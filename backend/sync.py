@@ -92,6 +92,27 @@ class _Entry:
         return _Entry(msg, msg.keypoints(), boxes, cov)
 
 
+class _Recent:
+    """The last ``n`` (seq, stamp) of one sensor, for the duplicate check in O(1): a deque's
+    ``in`` compares all of them, for every message."""
+
+    def __init__(self, n: int):
+        self._order: deque = deque()
+        self._set: set = set()
+        self._n = n
+
+    def __contains__(self, x: object) -> bool:
+        return x in self._set
+
+    def add(self, x: tuple) -> None:
+        if x in self._set:
+            return
+        if len(self._order) >= self._n:
+            self._set.discard(self._order.popleft())
+        self._order.append(x)
+        self._set.add(x)
+
+
 def _match(a: np.ndarray, b: np.ndarray, max_dist: float) -> list[tuple[int, int]]:
     """Greedy matching of persons a (P, 17, 3) and b (Q, 17, 3) by mean joint distance."""
     if len(a) == 0 or len(b) == 0:
@@ -172,7 +193,7 @@ class Synchronizer:
         self._stamps: dict[str, list[float]] = {s: [] for s in self.sensors}
         self._msgs: dict[str, list[_Entry]] = {s: [] for s in self.sensors}
         self._pairs: dict[tuple[str, float, float], list[tuple[int, int]]] = {}
-        self._last_seq: dict[str, deque] = {s: deque(maxlen=64) for s in self.sensors}
+        self._last_seq: dict[str, _Recent] = {s: _Recent(64) for s in self.sensors}
         self.next_time: float | None = None
         self.rejected: Counter = Counter()
         self.framesets = 0
@@ -213,7 +234,7 @@ class Synchronizer:
             return self._reject("late")
         if raw in self._last_seq[s]:
             return self._reject("duplicate")
-        self._last_seq[s].append(raw)
+        self._last_seq[s].add(raw)
         stamps, msgs = self._stamps[s], self._msgs[s]
         i = bisect.bisect_right(stamps, msg.stamp)
         if i > 0 and stamps[i - 1] == msg.stamp:

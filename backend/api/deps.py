@@ -14,7 +14,10 @@ from .errors import Unauthorized
 _bearer = HTTPBearer(auto_error=False, description="the service's token (settings `token`)")
 
 
-def get_service(request: Request) -> Service:
+# async, though nothing here awaits: FastAPI runs a plain ``def`` dependency in its thread
+# pool, two thread hand-offs per request, each waiting for the GIL behind a saturated
+# service loop (bench/overload.py: /status p99).
+async def get_service(request: Request) -> Service:
     return request.app.state.service
 
 
@@ -28,11 +31,11 @@ def _check(request: Request, cred: HTTPAuthorizationCredentials | None) -> None:
         raise Unauthorized("wrong token")
 
 
-def require_token(request: Request, cred: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
+async def require_token(request: Request, cred: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
     _check(request, cred)
 
 
-def require_read(request: Request, cred: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
+async def require_read(request: Request, cred: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
     if request.app.state.settings.protect_reads:
         _check(request, cred)
 

@@ -119,7 +119,9 @@ def test_live_session_converges_stops_and_has_a_result(tmp_path, lab_dir):
         assert all(x["accepted"] > 0 and x["latency"] is not None for x in sensors.values())
         assert status["framesets"]["accepted"] > 0 and status["cycles"]["wall_seconds"]["mean"] > 0
         assert status["queues"]["ingest"]["dropped"] == 0
-        assert status["loop_lag"]["max"] < 1.0  # nothing blocks the loop for long (tight bound: tests/backend)
+        # the loop's lag is reported; no wall-time bound here (CI machines may be loaded: the
+        # solve-off-the-loop bound is tests/backend/test_service_lag.py, figures in bench/)
+        assert status["loop_lag"]["max"] is not None and status["loop_lag"]["max"] >= 0
 
         # stopped with a final result that beats the initial estimate
         assert stopped["state"] == "stopped" and stopped["stopped_by"] == "request"
