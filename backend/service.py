@@ -135,50 +135,13 @@ class EventBus:
 # ------------------------------------------------------------------ loop work
 
 
-class Pacer:
-    """Keeps the service loop from holding the GIL back to back when it is saturated.
-
-    The loop shares the process's GIL with the HTTP thread (/status) and Zenoh's callbacks.
-    Saturated (10x the expected message rate), it would hold the GIL for seconds on end, and
-    every hand-over to the HTTP thread would cost a switch interval (5 ms): /status p99
-    above 100 ms. So the loop owes a rest for the synchronous work it does (``WorkTimes``
-    books it here) and pays it at its yield points (``rest``): blocked in its selector,
-    the other threads run at once. ``duty`` is the share of wall time the loop may be
-    busy; below it nothing is paid. Meanwhile the hand-off keeps queueing and, when full,
-    drops the oldest messages and counts it: under overload the loop takes less data,
-    never answers late."""
-
-    MAX_REST = 0.05  # s in one go: the loop's own timers (ticks, status) stay on time
-
-    def __init__(self, duty: float):
-        assert 0 < duty <= 1
-        self.duty = duty
-        self._owed = 0.0
-        self.rested = 0.0  # s in all, for /status
-
-    def book(self, busy: float) -> None:
-        if self.duty < 1:
-            self._owed += busy * (1 - self.duty) / self.duty
-
-    async def rest(self) -> None:
-        pause, self._owed = min(self._owed, self.MAX_REST), max(0.0, self._owed - self.MAX_REST)
-        if pause < 0.001:  # not worth a selector round trip; carried to the next rest
-            self._owed += pause
-            await asyncio.sleep(0)
-            return
-        self.rested += pause
-        await asyncio.sleep(pause)
-
-
 class WorkTimes:
     """How long the synchronous steps on the loop take (advance, push, apply...): the
     first place to look when the loop lags. Wall time, and the loop thread's CPU time:
-    when they differ, the loop waited for the CPU or for the GIL (other threads).
-    Every step's wall time is booked with the ``pacer``."""
+    when they differ, the loop waited for the CPU or for the GIL (other threads)."""
 
-    def __init__(self, pacer: Pacer | None = None) -> None:
+    def __init__(self) -> None:
         self._d: dict[str, list[float]] = {}  # name → [count, wall total, wall max, cpu total]
-        self.pacer = pacer
 
     @contextlib.contextmanager
     def measure(self, name: str):
@@ -192,8 +155,6 @@ class WorkTimes:
             x[1] += dt
             x[2] = max(x[2], dt)
             x[3] += dc
-            if self.pacer is not None:
-                self.pacer.book(dt)
 
     def to_dict(self) -> dict[str, dict[str, float]]:
         return {k: {"count": v[0], "mean": v[1] / v[0], "max": v[2], "cpu_mean": v[3] / v[0]}
@@ -405,8 +366,7 @@ class Service:
         self._framesets_seen = 0
         self.lag: deque[float] = deque(maxlen=1000)  # loop lag samples, s
         self.lag_max = 0.0
-        self.pacer = Pacer(settings.loop_duty)
-        self.work = WorkTimes(self.pacer)
+        self.work = WorkTimes()
         self._starting = False
         self.started_wall = time.time()
         self.started = asyncio.Event()
@@ -623,7 +583,7 @@ class Service:
                 for a in batch:
                     self._ingest_one(a.key, a.payload, a.wall)
                 self._fold_refused()
-            await self.pacer.rest()
+            await asyncio.sleep(0)
 
     def _fold_refused(self) -> None:
         """Count what the Zenoh threads refused by key (sensors outside the session)."""
@@ -717,7 +677,7 @@ class Service:
                 advanced_to = t
                 if t >= now or self._closing or s is not self.active:
                     break
-                await self.pacer.rest()
+                await asyncio.sleep(0)
                 t = min(now, t + ADVANCE_SLICE)
             self._frameset_delay(s, now)
             self._wake.set()
@@ -1565,8 +1525,7 @@ class Service:
                 "solver_faults": self.solver_faults, "solver_fault": None if s is None else s.solver_fault,
             },
             "frameset_delay": stats(self.frameset_delay),
-            "loop_lag": {"max": self.lag_max, "p99": lag[int(0.99 * (len(lag) - 1))] if lag else None,
-                         "rested": self.pacer.rested},
+            "loop_lag": {"max": self.lag_max, "p99": lag[int(0.99 * (len(lag) - 1))] if lag else None},
             "loop_work": self.work.to_dict(),
             "storage": {"state_dir": str(self.settings.state_dir), "error": self.writer.error,
                         "errors": self.writer.errors},

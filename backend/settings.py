@@ -114,12 +114,6 @@ class ServiceSettings(BaseSettings):
     ingest_queue: int = Field(20000, ge=10, description="messages waiting for the loop; the oldest are dropped beyond")
     snapshot_interval: float = Field(0.0, ge=0, description="s of wall time between pipeline snapshots (0: after every cycle)")
     tick: float = Field(0.02, gt=0, le=1, description="s between front-end advances on the loop")
-    loop_duty: float = Field(
-        0.75, gt=0, le=1,
-        description="share of wall time the service loop may spend on synchronous work (ingest, front end) "
-        "before it rests: under overload the rest keeps /status and Zenoh's callbacks answered "
-        "and the ingest queue drops the oldest messages instead (counted); 1 = never rest",
-    )
     solver_start: Literal["spawn", "forkserver"] = Field("spawn", description="how the solver process starts")
 
     @field_validator("site")

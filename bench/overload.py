@@ -138,8 +138,6 @@ def main() -> int:
     ap.add_argument("--sensors", type=int, default=100, help="sensors in all (the first 20 are the session's)")
     ap.add_argument("--publishers", type=int, default=4, help="publisher processes (one for the session's cameras)")
     ap.add_argument("--persons", type=int, default=2)
-    ap.add_argument("--loop-duty", type=float, default=None,
-                    help="the service's loop_duty (default: its own default)")
     ap.add_argument("--sim-seconds", type=float, default=60.0, help="data seconds simulated (replayed in a loop)")
     ap.add_argument("--profile", type=Path, default=None,
                     help="run the service under cProfile (its main thread: the event loop) and write the stats here")
@@ -167,8 +165,6 @@ def main() -> int:
         hport, zport = free_port(), free_port()
         endpoint = f"tcp/127.0.0.1:{zport}"
         env = {k: v for k, v in os.environ.items() if not k.startswith("EXTRCAL_")}
-        if a.loop_duty is not None:
-            env["EXTRCAL_LOOP_DUTY"] = str(a.loop_duty)
         out = open(work / "serve.log", "w")
         prof = ["-m", "cProfile", "-o", str(a.profile.resolve())] if a.profile else []
         server = subprocess.Popen([sys.executable, *prof, "-m", "backend.cli", "serve", "--http", f"127.0.0.1:{hport}",
@@ -319,7 +315,6 @@ def main() -> int:
     print(f"age of the /status served (now - as_of) p50 / p99 / max: {fmt(pct(age, 50), 1000)} / "
           f"{fmt(pct(age, 99), 1000)} / {fmt(max(age) if age else None, 1000)} ms")
     print(f"event loop lag p99 / max: {fmt(st['loop_lag']['p99'], 1000)} / {fmt(st['loop_lag']['max'], 1000)} ms; "
-          f"rested (loop_duty): {st['loop_lag'].get('rested', 0.0):.1f} s; "
           "work on the loop (count, mean / max ms, CPU share of the wall): " + "; ".join(
               f"{k} {v['count']}, {v['mean'] * 1000:.2f} / {v['max'] * 1000:.1f}, {v['cpu_mean'] / v['mean']:.0%}"
               for k, v in st["loop_work"].items() if v["mean"] > 0))

@@ -176,8 +176,7 @@ class Status(BaseModel):
     queues: dict[str, Any] = Field(description="ingest hand-off (length, capacity, dropped), hypotheses, writer")
     cycles: dict[str, Any] = Field(description="count and times (s) from problem to applied, and of the solve")
     frameset_delay: dict[str, float] | None = Field(description="s from a frameset's instant to its emission on the service clock (last, mean, p95, max)")
-    loop_lag: dict[str, float | None] = Field(description="s the event loop woke up late (max since start, p99 recent), "
-                                                  "and s it rested in all to stay under loop_duty (overload)")
+    loop_lag: dict[str, float | None] = Field(description="s the event loop woke up late (max since start, p99 recent)")
     loop_work: dict[str, dict[str, float]] = Field(description="s the synchronous steps on the loop take (count, mean, max)")
     storage: dict[str, Any]
     session: dict[str, Any] | None
