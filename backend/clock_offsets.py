@@ -82,6 +82,8 @@ class SensorClock:
     applied: s the synchroniser subtracts from its stamps now.
     blocks: blocks of data (``clock.block`` s each) the estimate rests on.
     drift_warnings: how often its estimate moved by more than ``clock.drift_warning``.
+    note: why the last update left the estimate as it was (None: it was updated), e.g.
+        "too few samples": what an operator needs when a sensor stays without one.
     """
 
     sensor: str
@@ -90,10 +92,11 @@ class SensorClock:
     applied: float
     blocks: int
     drift_warnings: int
+    note: str | None = None
 
     def to_dict(self) -> dict:
         return {"offset": self.offset, "std": self.std, "applied": self.applied, "blocks": self.blocks,
-                "drift_warnings": self.drift_warnings}
+                "drift_warnings": self.drift_warnings, "note": self.note}
 
 
 # ------------------------------------------------------------------ pure functions
@@ -447,8 +450,9 @@ class _Record:
 class ClockResult:
     """What a ``ClockJob`` found: per sensor (S,) the estimate on the synchronised clock
     (s, NaN = none), its std (s), the residual scale (px), the blocks it rests on, where
-    the next fine grid is centred (s, NaN = search the whole range) and the pose fitted
-    with the offset ((R (3, 3), t (3,)) or None)."""
+    the next fine grid is centred (s, NaN = search the whole range), the pose fitted
+    with the offset ((R (3, 3), t (3,)) or None), and why a sensor's estimate was not
+    updated (None: it was)."""
 
     raw: np.ndarray
     std: np.ndarray
@@ -456,6 +460,7 @@ class ClockResult:
     nblocks: np.ndarray
     center: np.ndarray
     pose: tuple
+    note: tuple[str | None, ...]
 
 
 @dataclass
@@ -517,6 +522,7 @@ class ClockOffsetEstimator:
         self.anchor = np.full(S, np.nan)  # estimate at the last drift check point
         self.anchor_std = np.full(S, np.nan)
         self.drift_warnings = np.zeros(S, np.int64)
+        self.note: list[str | None] = ["no update yet"] * S
         self._job: ClockJob | None = None  # the update in flight (``begin`` .. ``finish``)
 
     @property
@@ -596,7 +602,7 @@ class ClockOffsetEstimator:
         for k in ("raw", "offset", "std", "scale", "nblocks", "center", "applied", "anchor", "anchor_std",
                   "drift_warnings"):
             setattr(work, k, getattr(self, k).copy())
-        work.pose = list(self.pose)
+        work.pose, work.note = list(self.pose), list(self.note)
         work._job = None
         job = ClockJob(now, flush, R.copy(), t.copy(), list(self.records), work)
         self._job = job
@@ -613,6 +619,7 @@ class ClockOffsetEstimator:
             return []
         self.raw, self.std, self.scale = result.raw.copy(), result.std.copy(), result.scale.copy()
         self.nblocks, self.center, self.pose = result.nblocks.copy(), result.center.copy(), list(result.pose)
+        self.note = list(result.note)
         for live, done in zip(self.tracks, job.work.tracks):  # keep the arrays the job built
             for a, b in zip(live.tracks, done.tracks):
                 if a._arrays is None and b._arrays is not None and len(a.stamps) == len(b.stamps):
@@ -641,7 +648,8 @@ class ClockOffsetEstimator:
                     if job.cancelled:
                         return None
                     self._estimate_sensor(s, recs, again[0], R, t)
-        return ClockResult(self.raw, self.std, self.scale, self.nblocks, self.center, tuple(self.pose))
+        return ClockResult(self.raw, self.std, self.scale, self.nblocks, self.center, tuple(self.pose),
+                           tuple(self.note))
 
     def _trusted(self, recs: list[_Record]) -> tuple[list[np.ndarray], np.ndarray]:
         """Per record (V,) bool: views timed right as far as the current estimates know
@@ -751,6 +759,20 @@ class ClockOffsetEstimator:
 
     def _estimate_sensor(self, s: int, recs: list[_Record], trusted: list[np.ndarray], R: np.ndarray,
                          t: np.ndarray) -> None:
+        self.note[s] = self._estimate_sensor_why(s, recs, trusted, R, t)
+
+    def _unfit(self, res: tuple | None) -> str | None:
+        """Why a profile cannot be used, or None."""
+        if res is None:
+            return "too few joints seen by it and two other cameras"
+        if res[1] < self.cfg.min_blocks:
+            return f"data in {res[1]} blocks of {self.cfg.block:g} s (needs {self.cfg.min_blocks})"
+        if res[2] > self.cfg.max_scale_px:
+            return f"its residuals are {res[2]:.1f} px (at most {self.cfg.max_scale_px:g}): its pose is too far off"
+        return None
+
+    def _estimate_sensor_why(self, s: int, recs: list[_Record], trusted: list[np.ndarray], R: np.ndarray,
+                             t: np.ndarray) -> str | None:
         cfg = self.cfg
         f = float(self.focal[s])
         fine = np.arange(-cfg.fine_half, cfg.fine_half + 1e-9, cfg.fine_step)
@@ -758,23 +780,23 @@ class ClockOffsetEstimator:
         if not np.isfinite(center):  # search the whole range on a subsample
             smp = self._samples(s, recs, trusted, R, t, keep=_COARSE_SAMPLES)
             if smp is None:
-                return
+                return "no samples: no person seen by it and two other cameras timed right"
             grid = np.arange(-cfg.max_offset, cfg.max_offset + 1e-9, cfg.coarse_step)
             res = profile(smp, grid, *self._start(s, R, t), cfg.track_gap, cfg.block, f, cfg.min_scale_px)
-            if res is None or res[1] < cfg.min_blocks or res[2] > cfg.max_scale_px:
-                return
+            if (why := self._unfit(res)) is not None:
+                return "coarse search: " + why
             k = int(np.argmin(res[0].sum(0)))
             if k == 0 or k == len(grid) - 1:
-                return
+                return f"coarse search: the best offset is at the edge of ±{cfg.max_offset * 1000:.0f} ms"
             center = float(grid[k])
         smp = self._samples(s, recs, trusted, R, t)
         if smp is None:
-            return
+            return "no samples: no person seen by it and two other cameras timed right"
         for _ in range(3):  # the fine grid follows its minimum when it lies near its edge
             res = profile(smp, center + fine, *self._start(s, R, t), cfg.track_gap, cfg.block, f, cfg.min_scale_px,
                           anneal=self.pose[s] is None)
-            if res is None or res[1] < cfg.min_blocks or res[2] > cfg.max_scale_px:
-                return
+            if (why := self._unfit(res)) is not None:
+                return "fine search: " + why
             total = res[0].sum(0)
             k = int(np.argmin(total))
             if 2 <= k < len(fine) - 2:
@@ -782,14 +804,15 @@ class ClockOffsetEstimator:
             center = float(center + fine[k])
         else:
             self.center[s] = np.nan  # it keeps running away: search again next time
-            return
+            return "fine search: the minimum keeps moving to the grid's edge (searched again next time)"
         r = jackknife_minimum(res[0], center + fine)
         if r is None:
-            return
+            return "no clear minimum (jackknife)"
         self.raw[s], self.std[s] = r
         self.scale[s], self.nblocks[s] = res[2], res[1]
         self.pose[s] = res[4]
         self.center[s] = round(r[0] / cfg.fine_step) * cfg.fine_step if r[1] < cfg.fine_half / 2 else np.nan
+        return None
 
     def _apply(self, now: float) -> list[str]:
         cfg = self.cfg
@@ -837,7 +860,7 @@ class ClockOffsetEstimator:
             o, s = self.offset[c], self.std[c]
             est = bool(np.isfinite(o))
             out.append(SensorClock(n, float(o) if est else None, float(s) if est else None, float(self.applied[c]),
-                                   int(self.nblocks[c]), int(self.drift_warnings[c])))
+                                   int(self.nblocks[c]), int(self.drift_warnings[c]), self.note[c]))
         return tuple(out)
 
     def set_applied(self, applied: Mapping[str, float]) -> None:

@@ -67,8 +67,8 @@ def table(name: str, est: dict, true: dict[str, float], offsets: dict[str, float
     med = float(np.median(list(true.values())))
     print(f"Clock offsets ({name}), 20-camera lab, 2 persons, {a.duration:g} s, seed {a.seed}, start {a.start} "
           "(ms, relative to the median sensor)")
-    print("| sensor | true | estimated | std | error | applied |")
-    print("|---|---|---|---|---|---|")
+    print("| sensor | true | estimated | std | error | applied | note |")
+    print("|---|---|---|---|---|---|---|")
     errs, other = [], []
     for n in sorted(true, key=lambda s: int(s.split("_")[-1]) if s.split("_")[-1].isdigit() else s):
         c = est.get(n, {})
@@ -81,7 +81,7 @@ def table(name: str, est: dict, true: dict[str, float], offsets: dict[str, float
         std = "n/a" if c.get("std") is None else f"{1000 * c['std']:.1f}"
         star = " *" if n in offsets else ""
         print(f"| {n}{star} | {tr:+.1f} | {fmt(None if o is None else 1000 * o)} | {std} | {fmt(e)} | "
-              f"{fmt(1000 * c.get('applied', 0.0))} |")
+              f"{fmt(1000 * c.get('applied', 0.0))} | {c.get('note') or ''} |")
     if offsets:
         print(f"offset sensors (*) estimated: {len(errs)}/{len(offsets)}, max error "
               f"{max(errs) if errs else float('nan'):.1f} ms")

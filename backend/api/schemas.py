@@ -155,9 +155,10 @@ class SensorOut(BaseModel):
     rate: float = Field(description="messages per second, recent")
     latency: dict[str, float] | None = Field(description="arrival − stamp, s (median, p95, max over the recent window)")
     clock_offset: float | None = Field(description="min(arrival − stamp) over the window: the sensor clock's lag behind ours plus the fastest transport delay")
-    time_offset: dict[str, float | int | None] | None = Field(None, description="the running session's estimate of this "
-                                                             "sensor's clock offset from the data (clock.estimate): offset and std s "
-                                                             "relative to the median sensor, applied s, blocks, drift_warnings")
+    time_offset: dict[str, float | int | str | None] | None = Field(
+        None, description="the running session's estimate of this sensor's clock offset from the data "
+        "(clock.estimate): offset and std s relative to the median sensor, applied s, blocks, drift_warnings, "
+        "note (why its last update left the estimate as it was, null when it was updated)")
     warnings: list[str] = Field(default_factory=list, description="a clock set apart from the other sensors' by more than "
                                 "the frameset std limit, or messages arriving later than framesets wait")
 

@@ -192,6 +192,11 @@ def test_state_and_snapshot_carry_applied_offsets(short_run):
     p, _, _ = short_run
     d = p.state().to_dict()
     assert set(d["clocks"]) == set(p.names)
+    # a sensor without an estimate says why (this scene: too little data in the last update)
+    clocks = p.state().clocks
+    for c in clocks:
+        assert c.offset is not None or c.note, c.sensor
+        assert d["clocks"][c.sensor]["note"] == c.note
     for n, c in d["clocks"].items():
         assert c["applied"] == pytest.approx(p.sync.offset(n))
     # an applied offset survives a restart: the data stay timed as before
@@ -316,3 +321,14 @@ def test_clock_job_runs_in_a_thread_on_a_snapshot():
     before = p.clocks.raw.copy()
     assert job.run() is None and p.apply_clock(job, None) == []
     np.testing.assert_array_equal(p.clocks.raw, before)
+
+
+def test_a_sensor_without_data_says_why_it_has_no_offset():
+    intr = load_intrinsics(LAB / "intrinsics.yaml")["cam_0"]
+    names = ("a", "b", "c")
+    est = ClockOffsetEstimator(EngineConfig().clock, names, {n: intr for n in names}, 0.6)
+    assert [c.note for c in est.clocks()] == ["no update yet"] * 3
+    R, t = np.repeat(np.eye(3)[None], 3, axis=0), np.zeros((3, 3))
+    est.update(100.0, R, t, flush=True)
+    for c in est.clocks():
+        assert c.offset is None and c.note is not None and "no samples" in c.note
