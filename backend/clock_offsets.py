@@ -635,7 +635,9 @@ class ClockOffsetEstimator:
         """The heavy part, on the job's copies (``self`` is ``job.work``)."""
         self._attach_tracks(job.records, job.now, job.flush)
         recs = [r for r in job.records if r.tracks is not None]
-        if recs:
+        if not recs:
+            self.note = ["no samples: no person seen by three cameras in the window yet"] * len(self.names)
+        else:
             R, t, S = job.R, job.t, len(self.names)
             trusted = self._trusted(recs)
             for s in range(S):
