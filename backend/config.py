@@ -183,6 +183,12 @@ class BootstrapConfig(_Section):
                               "estimate's RMS distance from it exceeds this many of its stated std (refine.initial_std_*)")
     refuse_sigma: float = Field(6.0, gt=0, description="a bootstrap pose further from the initial estimate than this many "
                                 "of its stated std (refine.initial_std_*) is not used: one of the two is grossly wrong")
+    live_first: float = Field(60.0, gt=0, description="live service (backend/live_bootstrap.py): s of data before the "
+                              "first bootstrap attempt of a session without an initial estimate")
+    live_interval: float = Field(30.0, gt=0, description="s of data between attempts (until one is accepted)")
+    live_min_placed: float = Field(0.9, ge=0, le=1, description="an attempt before max_seconds of data is accepted when it "
+                                   "placed this share of the cameras that saw people in min_pair_frames framesets; "
+                                   "from max_seconds on any result that places cameras is")
 
 
 class ClockConfig(_Section):
