@@ -1,0 +1,259 @@
+"""A live session without an initial estimate (backend/live_bootstrap.py): the phase logic
+(when an attempt runs, which results are accepted, what the session says), the hand-over
+to the online pipeline on a short simulation, and the service's side (start, stop and
+restart while collecting). The whole flow through Zenoh: tests/integration/test_live_bootstrap.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from backend.bootstrap import BootstrapResult
+from backend.cameras import CameraSet, Extrinsics, dump_intrinsics, parse_extrinsics
+from backend.config import EngineConfig
+from backend.live_bootstrap import BootstrapJob, Collector, Handover, LiveOptions, Outcome, remap, result_comment
+from backend.preprocess import Detection
+from backend.session import SessionInputs
+
+NAMES = ("cam_0", "cam_1", "cam_2", "cam_3")
+CFG = EngineConfig().merged({"bootstrap": {"live_first": 60.0, "live_interval": 30.0, "max_seconds": 120.0,
+                                           "min_pair_frames": 10}})
+
+
+def _intrinsics_yaml(names=NAMES) -> str:
+    return "".join(f"{n}:\n  intrinsics: [600.0, 600.0, 424.0, 240.0]\n  distortion_coeffs: [0, 0, 0, 0, 0]\n"
+                   f"  resolution: [848, 480]\n" for n in names)
+
+
+def _collector(cfg: EngineConfig = CFG) -> Collector:
+    inputs = SessionInputs.parse(_intrinsics_yaml(), None, None, cfg)
+    return Collector(inputs.cameras, cfg, LiveOptions((1.8,)), initial=False)
+
+
+def _feed(col: Collector, until: float, cams=(0, 1, 2), rate: float = 5.0) -> None:
+    """Framesets in which ``cams`` each see one person, from the last one on to ``until``
+    s (as ``advance`` archives them; the phase logic only counts them)."""
+    T = col.frames[-1][0] + 1 / rate if col.frames else 0.0
+    while T <= until + 1e-9:
+        views = tuple((Detection(c, np.zeros((17, 2)), np.ones(17), 600.0),) for c in cams)
+        col.frames.append((T, views))
+        col.first_time = 0.0
+        for c in cams:
+            col.seen[c] += 1
+        for i, a in enumerate(cams):
+            for b in cams[i + 1:]:
+                col.pairs[(a, b)] += 1
+        T += 1 / rate
+
+
+def _result(located, data_seconds: float = 60.0) -> BootstrapResult:
+    C = len(NAMES)
+    located = np.asarray(located, bool)
+    t = np.c_[np.arange(C, dtype=float), np.zeros(C), np.full(C, 2.5)]
+    return BootstrapResult(NAMES, np.repeat(np.eye(3)[None], C, 0), t, located, np.full(C, 0.01), np.full(C, 0.1),
+                           None, "floor frame: a test", 3, 6, 300, data_seconds, 1.0)
+
+
+# ------------------------------------------------------------------ phases
+
+
+def test_attempts_start_at_live_first_one_at_a_time():
+    col = _collector()
+    assert col.job() is None and col.reason().startswith("bootstrapping: no frameset yet")
+    _feed(col, 45.0)
+    assert col.job() is None
+    assert col.reason() == "bootstrapping: 45 s of 120 s collected, 3 pairs; next attempt at 60 s"
+    _feed(col, 60.0)
+    job = col.job()
+    assert job is not None and job.attempt == 1 and job.data_seconds == pytest.approx(60.0) and not job.final
+    assert len(job.frames) == len(col.frames) and job.heights == (1.8,)
+    assert col.job() is None  # one in flight
+    assert "bootstrap attempt 1 running on 60 s of data" in col.reason()
+    assert col.progress()["phase"] == "bootstrapping"
+    _feed(col, 70.0)  # collecting goes on meanwhile; the job's frames stay as they were
+    assert len(job.frames) < len(col.frames)
+
+
+def test_a_failed_attempt_is_retried_with_more_data_and_the_deadline_accepts_any_result():
+    col = _collector()
+    _feed(col, 60.0)
+    job = col.job()
+    assert col.conclude(job, Outcome(None, "no camera pair saw one person", 2.0)) is None
+    assert col.next_attempt == pytest.approx(90.0)
+    assert "(attempt 1: no camera pair saw one person)" in col.reason()
+    _feed(col, 100.0)  # the next attempt takes all the data there is
+    job = col.job()
+    assert job.attempt == 2 and job.data_seconds == pytest.approx(100.0)
+    # 3 cameras saw people; 0.9 of them must be placed before the deadline: all 3
+    assert col.needed(job) == 3
+    assert col.conclude(job, Outcome(_result([1, 1, 0, 0]), None, 5.0)) is None
+    att = col.attempts[-1]
+    assert not att["accepted"] and att["placed"] == 2 and att["needed"] == 3 and "2 of 4" in att["error"]
+    assert col.next_attempt == pytest.approx(120.0)  # not 130: the deadline comes first
+    _feed(col, 121.0)
+    job = col.job()
+    assert job.final
+    res = _result([1, 1, 0, 0])
+    assert col.conclude(job, Outcome(res, None, 5.0)) is res and col.accepted is res
+    assert col.job() is None and "handing over" in col.reason()
+    assert [a["accepted"] for a in col.progress()["attempts"]] == [False, False, True]
+
+
+def test_an_early_attempt_that_places_the_cameras_that_saw_people_is_accepted():
+    col = _collector()
+    _feed(col, 61.0)  # cam_3 saw nobody: it does not hold the session back
+    job = col.job()
+    assert col.needed(job) == 3
+    res = _result([1, 1, 1, 0])
+    assert col.conclude(job, Outcome(res, None, 5.0)) is res
+
+
+def test_live_options_and_the_result_header():
+    o = LiveOptions((1.96, 1.70), True)
+    assert LiveOptions.from_dict(o.to_dict()) == o and LiveOptions.from_dict(None) == LiveOptions()
+    rec = {"phase": "done", "frame": "floor frame: z up", "not_placed": ["cam_3"],
+           "result": {"data_seconds": 90.0, "scale": {"factor": 1.01, "rel_std": 0.014, "method": "known height",
+                                                      "persons": 2, "heights": [1.96, 1.7]}}}
+    text = result_comment(rec)
+    assert "bootstrapped live from 90 s of data; floor frame: z up" in text
+    assert "metric scale from people: scale 1.0100 ± 1.4 % from the known height" in text
+    assert "not placed by the bootstrap (not calibrated): cam_3" in text
+    assert result_comment({"phase": "collecting"}) == "" and result_comment(None) == ""
+
+
+def test_remap_drops_cameras_not_placed():
+    d = {c: (Detection(c, np.zeros((17, 2)), np.ones(17), 600.0),) for c in range(4)}
+    frames = [(0.0, (d[0], d[2], d[3])), (0.1, (d[0], d[1]))]
+    out = remap(frames, {0: 0, 2: 1, 3: 2})
+    assert len(out) == 1 and [v[0].cam for v in out[0][1]] == [0, 1, 2]
+    assert remap(frames, {0: 0, 1: 1, 2: 2, 3: 3}) == frames
+
+
+# ------------------------------------------------------------------ hand-over, on a short simulation
+
+WEST = ("cam_11", "cam_12", "cam_14", "cam_15", "cam_16")
+
+
+@pytest.fixture(scope="module")
+def collected(lab_dir):
+    from edge_clients.sim import Scene, SimConfig, Simulator
+
+    full = Scene.load(lab_dir)
+    intr = {n: full.intrinsics[n] for n in WEST}
+    scene = Scene.from_cameras(intr, {n: full.poses[n] for n in WEST}, lab_dir / "room.yaml")
+    msgs = [m for _, m in Simulator(scene, SimConfig(persons=1, duration=30.0, seed=3)).messages()]
+    cfg = EngineConfig()
+    inputs = SessionInputs.parse(dump_intrinsics(intr), None, None, cfg)
+    return full, inputs, cfg, msgs
+
+
+def _run(col, msgs):
+    for k, m in enumerate(msgs):
+        col.push(m, m.stamp)
+        if k % 20 == 0:
+            col.advance(m.stamp)
+
+
+def test_handover_builds_the_pipeline_of_the_placed_cameras_and_goes_on_without_a_gap(collected):
+    full, inputs, cfg, msgs = collected
+    col = Collector(inputs.cameras, cfg, LiveOptions(), initial=False)
+    half = len(msgs) // 2
+    _run(col, msgs[:half])
+    assert len(col.frames) > 20 and col.state().cameras == () and col.next_problem(1e12) is None
+    job = BootstrapJob(1, tuple(col.frames), col.names, col.focal, cfg, (), 0, col.data_seconds, col.seen.copy(), True)
+    C = len(WEST)
+    located = np.array([n != "cam_14" for n in WEST])  # the truth, cam_14 not placed
+    res = BootstrapResult(tuple(WEST), np.array([full.poses[n].R for n in WEST]),
+                          np.array([full.poses[n].t for n in WEST]), located, np.full(C, 0.01), np.full(C, 0.1),
+                          None, "floor frame: the truth", 6, 10, len(col.frames), col.data_seconds, 1.0)
+    h = Handover.build(job, res, inputs.cameras, cfg, False)
+    p = h.pipeline
+    assert p.names == ("cam_11", "cam_12", "cam_15", "cam_16") and h.meta["not_placed"] == ["cam_14"]
+    assert h.hypotheses > 0 and len(p.queue) > 0 and len(p.frames) > 0
+    assert all(v[0].cam < 4 for _, views in p.frames for v in views)
+    assert parse_extrinsics(h.initial_yaml).keys() == set(p.names)
+    assert cfg.bootstrap.handover_std_translation <= h.config.refine.initial_std_translation
+    # the collector went on meanwhile; the pipeline takes over from where it is
+    _run(col, msgs[half:half + 200])
+    col.advance(msgs[half + 199].stamp)
+    n_before = len(p.frames)
+    h.catch_up(col)
+    assert len(p.frames) > n_before and p.sync.next_time == col.sync.next_time
+    assert p.counters().messages == col.messages and p.counters().framesets == col.sync.framesets
+    for k, m in enumerate(msgs[half + 200:]):
+        p.push(m, m.stamp)
+        if k % 20 == 0:
+            p.advance(m.stamp)
+    times = [T for T, _ in p.frames]
+    assert times == sorted(times) and len(set(times)) == len(times)  # nothing twice, in order
+    assert times[-1] > msgs[half + 300].stamp - 1.0
+
+
+def test_handover_with_a_distrusted_initial_estimate_reconciles(collected):
+    full, inputs, cfg, msgs = collected
+    from backend.perturb import perturb_extrinsics
+
+    ref = {n: Extrinsics(full.poses[n], inputs.cameras.extrinsics[n].resolution) for n in WEST}
+    cams = CameraSet.combine(inputs.cameras.intrinsics, perturb_extrinsics(ref, 0.75, 20.0, seed=1))
+    col = Collector(cams, cfg, LiveOptions((), True), initial=True)
+    _run(col, msgs[: len(msgs) // 2])
+    job = BootstrapJob(1, tuple(col.frames), col.names, col.focal, cfg, (), 0, col.data_seconds, col.seen.copy(), True)
+    C = len(WEST)
+    res = BootstrapResult(tuple(WEST), np.array([full.poses[n].R for n in WEST]),
+                          np.array([full.poses[n].t for n in WEST]) * 0.5, np.ones(C, bool), np.full(C, 0.01),
+                          np.full(C, 0.1), None, "floor frame: the truth at half scale", 6, 10, len(col.frames),
+                          col.data_seconds, 1.0)
+    h = Handover.build(job, res, cams, cfg, True)
+    assert h.initial_yaml is None and h.pipeline.names == cams.names
+    assert h.meta["reconciled"]["used"] and "starting from the data's shape" in h.meta["note"]
+    # the pipeline starts from the truth's shape in the initial estimate's frame and scale
+    from backend.cameras import Pose
+    from backend.evaluate import evaluate
+
+    start = {n: full.poses[n] for n in cams.names}
+    est = {n: Pose(h.pipeline.refiner.R[c], h.pipeline.refiner.t[c]) for c, n in enumerate(cams.names)}
+    assert evaluate(est, start).shape_position.max < 1e-6
+
+
+# ------------------------------------------------------------------ the service's side
+
+
+def _settings(state_dir):
+    from backend.service import free_port
+    from backend.settings import ServiceSettings
+
+    return ServiceSettings.load(None, http={"host": "127.0.0.1", "port": 0},
+                                zenoh={"listen": (f"tcp/127.0.0.1:{free_port()}",)}, state_dir=state_dir,
+                                site="livebootunit", clock="data")
+
+
+def test_a_session_without_initial_estimate_starts_collecting_resumes_and_stops(tmp_path, lab_dir):
+    import httpx
+
+    from backend.service import ServiceThread
+
+    body = {"intrinsics_yaml": (lab_dir / "intrinsics.yaml").read_text(), "person_height": [1.85],
+            "config": {"bootstrap": {"max_seconds": 90}}}
+    with ServiceThread(_settings(tmp_path)) as st, httpx.Client(base_url=st.url, timeout=30) as c:
+        r = c.post("/sessions", json=body)
+        assert r.status_code == 201, r.text
+        s = r.json()
+        assert s["state"] == "waiting_for_data" and s["cameras"] == []
+        b = s["bootstrap"]
+        assert b["phase"] == "collecting" and b["target_seconds"] == 90 and b["next_attempt"] == 60
+        assert b["options"] == {"person_height": [1.85], "distrust_initial": False}
+        sid = s["id"]
+        assert not (tmp_path / "sessions" / sid / "initial.yaml").exists()
+    # a restart while collecting: the session resumes collecting (the frames were not kept)
+    with ServiceThread(_settings(tmp_path)) as st, httpx.Client(base_url=st.url, timeout=30) as c:
+        s = c.get(f"/sessions/{sid}").json()
+        assert s["live"] and s["resumed"] == 1 and "collecting again" in s["reason"]
+        assert s["bootstrap"]["phase"] == "collecting" and s["bootstrap"]["options"]["person_height"] == [1.85]
+        stopped = c.post(f"/sessions/{sid}/stop").json()
+        assert stopped["state"] == "stopped" and not stopped["final_batch"]["ran"]
+        assert "bootstrapping" in stopped["final_batch"]["error"]
+        assert c.get("/calibrations").json() == []  # no pose: nothing recorded as a calibration
+        # an OpenAPI that documents it
+        spec = c.get("/openapi.json").json()["components"]["schemas"]
+        assert "person_height" in spec["SessionCreate"]["properties"] and "BootstrapInfo" in spec
