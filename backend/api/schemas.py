@@ -28,9 +28,10 @@ class SessionCreate(BaseModel):
     intrinsics_yaml: str | None = Field(None, max_length=MAX_YAML, description="intrinsics.yaml text")
     initial_yaml: str | None = Field(None, max_length=MAX_YAML, description="initial extrinsics.yaml text. Without an "
                                      "initial estimate (neither this, `initial` nor a server default) the session "
-                                     "bootstraps its start from the people (docs/bootstrap.md): it collects "
-                                     "`bootstrap.max_seconds` of data at most, then calibrates from the floor's frame "
-                                     "and the people's scale")
+                                     "bootstraps its start from the people (docs/service.md, docs/bootstrap.md): it "
+                                     "collects data (attempts from `bootstrap.live_first` s on, any result from "
+                                     "`bootstrap.max_seconds` on), then calibrates in the floor's frame at the "
+                                     "people's scale; `bootstrap` in the session shows the phase")
     reference_yaml: str | None = Field(None, max_length=MAX_YAML, description="reference extrinsics to report errors against")
     intrinsics: str | None = Field(None, max_length=200, description="name of a configured intrinsics file")
     initial: str | None = Field(None, max_length=200, description="name of a configured initial estimate")
