@@ -152,6 +152,7 @@ class Handover:
                 start = rec.start(config)
             cams = cameras
             meta["frame"] = "the initial estimate's frame and scale"
+            meta["not_placed"] = []  # they start from the initial estimate: calibrated all the same
         else:
             cams = camera_set(cameras.intrinsics, result)
             config = handover(config, result)

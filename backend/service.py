@@ -239,6 +239,15 @@ class Solver:
         finally:
             self.busy = False
 
+    def kill(self) -> None:
+        """End the worker now, the job in flight with it (its ``run`` raises SolverCrashed):
+        at shutdown, for a job that may take minutes (a live bootstrap) and is worth
+        nothing after it. The pool has no public way to do this."""
+        pool = self._pool
+        for proc in list(getattr(pool, "_processes", {}).values()) if pool is not None else []:
+            with contextlib.suppress(Exception):
+                proc.terminate()
+
     def shutdown(self) -> None:
         """Blocking: from a thread."""
         if self._pool is not None:
@@ -507,6 +516,8 @@ class Service:
         if server is not None:
             server.should_exit = True
         s = self.active
+        if s is not None and isinstance(s.pipeline, Collector) and s.pipeline.running is not None:
+            self.solver.kill()  # a bootstrap attempt in flight: minutes, and a resume collects again anyway
         if s is not None:
             if s.finishing:
                 await s.done.wait()
@@ -741,6 +752,8 @@ class Service:
             try:
                 outcome = await self.solver.run(run_job, job)
             except Exception as e:  # SolverCrashed, a bug: this attempt failed, the next has more data
+                if s is not self.active or s.finishing or self._closing:
+                    continue  # killed by a stop or the shutdown
                 log.exception("bootstrap attempt %d failed", job.attempt)
                 outcome = Outcome(None, f"{type(e).__name__}: {e}", 0.0)
             if s is not self.active or s.finishing or self._closing:
@@ -1214,11 +1227,14 @@ class Service:
             t0 = time.monotonic()
             try:
                 if isinstance(s.pipeline, Collector):  # no pose yet: nothing to adjust
-                    raise RuntimeError("stopped while bootstrapping: no camera has a pose")
-                s.pipeline = await self.solver.run(_finish_pipeline, s.pipeline)
-                batch = s.pipeline.cycle > before
-                rec.final_batch = {"ran": batch, "seconds": time.monotonic() - t0,
-                                   "report": s.pipeline.last_report.to_dict() if batch and s.pipeline.last_report else None}
+                    if s.pipeline.running is not None:
+                        self.solver.kill()  # the attempt in flight is worth nothing now
+                    rec.final_batch = {"ran": False, "error": "stopped while bootstrapping: no camera has a pose"}
+                else:
+                    s.pipeline = await self.solver.run(_finish_pipeline, s.pipeline)
+                    batch = s.pipeline.cycle > before
+                    rec.final_batch = {"ran": batch, "seconds": time.monotonic() - t0, "report":
+                                       s.pipeline.last_report.to_dict() if batch and s.pipeline.last_report else None}
             except Exception as e:
                 log.warning("final batch adjustment of %s failed: %s", rec.id, e)
                 rec.final_batch = {"ran": False, "error": f"{type(e).__name__}: {e}"}

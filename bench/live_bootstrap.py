@@ -5,8 +5,8 @@ The 20-camera lab with its walkers (bench/accuracy.py's cached simulation: 2 per
 ``--speed`` x real time; the service (in this process, its solver in its own) runs
 with the data clock. A session without an initial estimate (``--person-height`` gives
 the walkers' heights; without it the population prior sets the scale) collects,
-bootstraps, hands over and calibrates; it stops by its ``duration`` criterion (the
-recording's length of data) and runs the final batch adjustment.
+bootstraps, hands over and calibrates; once the whole recording was sent and the first
+adjustment after the hand-over ran, it is stopped (the final batch adjustment runs).
 
 Printed per seed: the bootstrap's attempts (data s, wall s, cameras placed), the time to
 the first pose (wall s since the session started, and s of data), the first cycle, and
@@ -14,7 +14,7 @@ the error against the truth after similarity alignment (shape: every camera, mea
 orientation), at the hand-over (the bootstrap's result), before the final batch (the
 online estimate) and at the end.
 
-    nice -n 19 python bench/live_bootstrap.py --seeds 0 --speed 2 --person-height 1.96,1.70
+    nice -n 19 python bench/live_bootstrap.py --seeds 0 --speed 1 --person-height 1.96,1.70
 
 Timings depend on the machine's load (state it with the figures).
 """
@@ -70,7 +70,7 @@ def run(seed: int, args, log) -> dict:
     settings = ServiceSettings.load(None, http={"port": 0}, zenoh={"listen": (endpoint,)}, state_dir=state,
                                     site=site, clock="data", speed=args.speed)
     body: dict = {"name": f"bench seed {seed}", "intrinsics_yaml": (lab / "intrinsics.yaml").read_text(),
-                  "reference_yaml": dump_extrinsics(ref), "stop": {"duration": args.duration}}
+                  "reference_yaml": dump_extrinsics(ref)}
     if args.person_height:
         body["person_height"] = [float(x) for x in args.person_height.split(",")]
     ctx = multiprocessing.get_context("spawn")
@@ -88,6 +88,7 @@ def run(seed: int, args, log) -> dict:
         first_cycle = None
         handover = None
         last_live = None
+        replay_wall = None
         while True:
             s = c.get(f"/sessions/{sid}").json()
             b = s.get("bootstrap") or {}
@@ -101,6 +102,13 @@ def run(seed: int, args, log) -> dict:
                 last_live = s["accuracy"]
             if not s["live"] or s["state"] in ("stopped", "failed"):
                 break
+            # the whole recording was sent and the first adjustment over it ran: stop (final batch)
+            if not proc.is_alive() and handover is not None and s["cycles"] >= 2:
+                out["replay_wall"] = replay_wall
+                s = c.post(f"/sessions/{sid}/stop").json()
+                break
+            if replay_wall is None and not proc.is_alive():
+                replay_wall = time.time() - t0
             time.sleep(0.5)
         stop.set()
         proc.join(20)
@@ -128,9 +136,9 @@ def run(seed: int, args, log) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
-    ap.add_argument("--speed", type=float, default=2.0, help="replay speed (data s per wall s)")
+    ap.add_argument("--speed", type=float, default=1.0, help="replay speed (data s per wall s)")
     ap.add_argument("--persons", type=int, default=2)
-    ap.add_argument("--duration", type=float, default=180.0)
+    ap.add_argument("--duration", type=float, default=180.0, help="s of the simulated recording")
     ap.add_argument("--person-height", default=None, help="known heights for the session, e.g. 1.96,1.70")
     ap.add_argument("--cache", default="/tmp/extrcal-accuracy-cache")
     ap.add_argument("--json", type=Path)
