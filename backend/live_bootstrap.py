@@ -130,11 +130,13 @@ class Handover:
 
     @staticmethod
     def build(job: BootstrapJob, result: BootstrapResult, cameras: CameraSet, config: EngineConfig,
-              initial: bool, *, seed: int = 0) -> "Handover":
+              initial: bool, *, seed: int = 0, frames: Sequence[Frame] | None = None) -> "Handover":
         """The pipeline from ``result`` (synchronous, seconds of numpy: run it in a thread).
         ``cameras``/``initial``: the session's camera set and whether its poses are an
         initial estimate (then reconciled with the bootstrap: frame and scale kept, as
-        ``extrcal calibrate`` with ``bootstrap.with_initial``), else placeholders."""
+        ``extrcal calibrate`` with ``bootstrap.with_initial``), else placeholders.
+        ``frames``: what the pipeline takes (default the job's; live: everything collected
+        until now, the attempt may have run for minutes)."""
         from .pipeline import Pipeline
         from .reconcile import reconcile_cameras
 
@@ -163,9 +165,9 @@ class Handover:
                             f"{result.data_seconds:.0f} s of data")
         index = {job.names.index(n): k for k, n in enumerate(cams.names)}
         p = Pipeline(cams, config, seed=seed, start=start)
-        frames = remap(job.frames, index)
-        new = p.take_frames(frames)
-        taken = job.frames[-1][0] if job.frames else -math.inf
+        frames = job.frames if frames is None else frames
+        new = p.take_frames(remap(frames, index))
+        taken = frames[-1][0] if frames else -math.inf
         return Handover(p, cams, initial_yaml, config, taken, new, meta, index)
 
     def catch_up(self, collector: "Collector") -> int:

@@ -768,7 +768,7 @@ class Service:
             self._bootstrap_progress(s)
             try:
                 h = await asyncio.to_thread(Handover.build, job, result, s.inputs.cameras, s.inputs.config,
-                                            col.initial, seed=s.record.seed)
+                                            col.initial, seed=s.record.seed, frames=tuple(col.frames))
             except Exception as e:  # the result does not make a pipeline: not a reason to stop the service
                 log.exception("handing the bootstrap over failed")
                 self._fail(s, f"handing the bootstrap over to the online pipeline failed: {type(e).__name__}: {e}")

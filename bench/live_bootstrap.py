@@ -116,6 +116,9 @@ def run(seed: int, args, log) -> dict:
             proc.kill()
         out["wall"] = time.time() - t0
         text = c.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text
+        status = c.get("/status").json()
+        out["loop_lag_max"] = status["loop_lag"]["max"]
+        out["loop_work"] = {k: v for k, v in status["loop_work"].items() if k.startswith("bootstrap")}
         hist = c.get(f"/sessions/{sid}/history").json()
     out.update(state=s["state"], reason=s["reason"], bootstrap={k: (s.get("bootstrap") or {}).get(k) for k in (
         "attempts", "placed", "not_placed", "scale", "frame", "pose_data_seconds")}, handover=handover,
@@ -164,7 +167,8 @@ def main() -> None:
               f"{g(f, 'shape_position_mean', '.4f')} / {g(f, 'shape_position_max', '.4f')} | "
               f"{g(f, 'orientation_mean', '.3f')} | {g(f, 'scale', '.4f')} | {f.get('within', '-')}/{f.get('cameras', '-')} |")
         print(f"  state {r['state']}: {r['reason']}; not placed: {r['bootstrap']['not_placed']}; scale "
-              f"{json.dumps(r['bootstrap']['scale'])}")
+              f"{json.dumps(r['bootstrap']['scale'])}; event loop lag max {r['loop_lag_max']:.3f} s; "
+              f"loop work {json.dumps(r['loop_work'])}")
     if args.json:
         args.json.write_text(json.dumps(runs, indent=1, default=str))
 
