@@ -257,3 +257,21 @@ def test_a_session_without_initial_estimate_starts_collecting_resumes_and_stops(
         # an OpenAPI that documents it
         spec = c.get("/openapi.json").json()["components"]["schemas"]
         assert "person_height" in spec["SessionCreate"]["properties"] and "BootstrapInfo" in spec
+
+
+def test_distrust_initial_bootstraps_a_session_with_an_initial_estimate(tmp_path, lab_dir):
+    import httpx
+
+    from backend.service import ServiceThread
+
+    body = {"intrinsics_yaml": (lab_dir / "intrinsics.yaml").read_text(),
+            "initial_yaml": (lab_dir / "reference.yaml").read_text()}
+    with ServiceThread(_settings(tmp_path)) as st, httpx.Client(base_url=st.url, timeout=30) as c:
+        s = c.post("/sessions", json=body).json()  # the default: starts from the initial estimate at once
+        assert s["bootstrap"] is None and len(s["cameras"]) == 20
+        c.post(f"/sessions/{s['id']}/stop")
+        s = c.post("/sessions", json={**body, "distrust_initial": True, "person_height": [1.8]}).json()
+        assert s["bootstrap"]["phase"] == "collecting" and s["bootstrap"]["options"]["distrust_initial"]
+        assert s["cameras"] == [] and s["reason"]
+        assert (tmp_path / "sessions" / s["id"] / "initial.yaml").is_file()
+        assert c.post(f"/sessions/{s['id']}/stop").json()["state"] == "stopped"
