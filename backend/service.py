@@ -471,6 +471,9 @@ class Service:
                 for sig in (signal.SIGTERM, signal.SIGINT):
                     loop.remove_signal_handler(sig)
             await asyncio.to_thread(self._close_zenoh, zs, declared)
+            s = self.active
+            if s is not None and isinstance(s.pipeline, Collector) and s.pipeline.running is not None:
+                self.solver.kill()  # also when a task failed: do not wait minutes for a bootstrap attempt
             await asyncio.to_thread(self.solver.shutdown)
 
     def _declare(self, zs: Any) -> list[Any]:
@@ -736,47 +739,55 @@ class Service:
         GTSAM, which holds the GIL for seconds: in a thread it would stall the loop, like a
         cycle's solve) on a frozen copy of the frames while collecting goes on; an accepted
         result is handed over, the pipeline built in a thread, and swapped in here."""
-        from .live_bootstrap import Handover, Outcome, run_job
-
         while not self._closing:
             await asyncio.sleep(self.settings.tick)
             s = self.active
             if s is None or s.finishing or self._closing or not isinstance(s.pipeline, Collector):
                 continue
-            col = s.pipeline
-            job = col.job()
-            if job is None:
-                continue
-            self._bootstrap_progress(s)
-            log.info("session %s: bootstrap attempt %d on %.0f s of data", s.record.id, job.attempt, job.data_seconds)
             try:
-                outcome = await self.solver.run(run_job, job)
-            except Exception as e:  # SolverCrashed, a bug: this attempt failed, the next has more data
-                if s is not self.active or s.finishing or self._closing:
-                    continue  # killed by a stop or the shutdown
-                log.exception("bootstrap attempt %d failed", job.attempt)
-                outcome = Outcome(None, f"{type(e).__name__}: {e}", 0.0)
+                await self._bootstrap_turn(s, s.pipeline)
+            except Exception as e:  # a bug here ends the session, never the service
+                log.exception("the live bootstrap failed")
+                if s is self.active and not s.finishing:
+                    self._fail(s, f"the live bootstrap failed: {type(e).__name__}: {e}")
+
+    async def _bootstrap_turn(self, s: ActiveSession, col: Collector) -> None:
+        """One attempt when due: run it, judge it, hand an accepted one over."""
+        from .live_bootstrap import Handover, Outcome, run_job
+
+        job = col.job()
+        if job is None:
+            return
+        self._bootstrap_progress(s)
+        log.info("session %s: bootstrap attempt %d on %.0f s of data", s.record.id, job.attempt, job.data_seconds)
+        try:
+            outcome = await self.solver.run(run_job, job)
+        except Exception as e:  # SolverCrashed, a bug: this attempt failed, the next has more data
             if s is not self.active or s.finishing or self._closing:
-                continue
-            with self.work.measure("bootstrap_conclude"):
-                result = col.conclude(job, outcome)
-            if result is None:
-                log.info("session %s: bootstrap attempt %d not accepted: %s", s.record.id, job.attempt,
-                         col.attempts[-1].get("error"))
-                self._bootstrap_progress(s)
-                continue
+                return  # killed by a stop or the shutdown
+            log.exception("bootstrap attempt %d failed", job.attempt)
+            outcome = Outcome(None, f"{type(e).__name__}: {e}", 0.0)
+        if s is not self.active or s.finishing or self._closing:
+            return
+        with self.work.measure("bootstrap_conclude"):
+            result = col.conclude(job, outcome)
+        if result is None:
+            log.info("session %s: bootstrap attempt %d not accepted: %s", s.record.id, job.attempt,
+                     col.attempts[-1].get("error"))
             self._bootstrap_progress(s)
-            try:
-                h = await asyncio.to_thread(Handover.build, job, result, s.inputs.cameras, s.inputs.config,
-                                            col.initial, seed=s.record.seed, frames=tuple(col.frames))
-            except Exception as e:  # the result does not make a pipeline: not a reason to stop the service
-                log.exception("handing the bootstrap over failed")
-                self._fail(s, f"handing the bootstrap over to the online pipeline failed: {type(e).__name__}: {e}")
-                continue
-            if s is not self.active or s.finishing or self._closing:
-                continue
-            with self.work.measure("bootstrap_handover"):
-                self._hand_over(s, col, h)
+            return
+        self._bootstrap_progress(s)
+        try:
+            h = await asyncio.to_thread(Handover.build, job, result, s.inputs.cameras, s.inputs.config,
+                                        col.initial, seed=s.record.seed, frames=tuple(col.frames))
+        except Exception as e:  # the result does not make a pipeline: not a reason to stop the service
+            log.exception("handing the bootstrap over failed")
+            self._fail(s, f"handing the bootstrap over to the online pipeline failed: {type(e).__name__}: {e}")
+            return
+        if s is not self.active or s.finishing or self._closing:
+            return
+        with self.work.measure("bootstrap_handover"):
+            self._hand_over(s, col, h)
 
     def _bootstrap_progress(self, s: ActiveSession) -> None:
         col = s.pipeline

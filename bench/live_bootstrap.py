@@ -146,6 +146,12 @@ def main() -> None:
     ap.add_argument("--cache", default="/tmp/extrcal-accuracy-cache")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    import logging
+
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s"))
+    logging.getLogger("extrcal").addHandler(handler)
+    logging.getLogger("extrcal").setLevel(logging.INFO)
     print(f"load average at the start: {os.getloadavg()[0]:.1f}", flush=True)
     runs = [run(seed, args, sys.stdout) for seed in args.seeds]
     print("\n| seed | attempts (data s / wall s / placed) | first pose: wall s / data s | first cycle: wall s / "
