@@ -246,7 +246,7 @@ class Solver:
         pool = self._pool
         for proc in list(getattr(pool, "_processes", {}).values()) if pool is not None else []:
             with contextlib.suppress(Exception):
-                proc.terminate()
+                proc.kill()  # SIGKILL: the worker ignores SIGTERM (_worker_init)
 
     def shutdown(self) -> None:
         """Blocking: from a thread."""
@@ -364,6 +364,7 @@ class Service:
         self.writer = Writer()
         self.solver = Solver(settings.solver_start)
         self.solve_fn: Callable | None = None  # optimize.solve; a picklable stand-in for fault tests
+        self.bootstrap_fn: Callable | None = None  # live_bootstrap.run_job; a picklable stand-in for tests
         self.solver_faults = 0  # cycles whose solve raised, crashed the worker or failed numerically
         self._active: ActiveSession | None = None
         self.ignored = Counter()  # decoded but not for any session, by reason
@@ -761,7 +762,7 @@ class Service:
         self._bootstrap_progress(s)
         log.info("session %s: bootstrap attempt %d on %.0f s of data", s.record.id, job.attempt, job.data_seconds)
         try:
-            outcome = await self.solver.run(run_job, job)
+            outcome = await self.solver.run(self.bootstrap_fn or run_job, job)
         except Exception as e:  # SolverCrashed, a bug: this attempt failed, the next has more data
             if s is not self.active or s.finishing or self._closing:
                 return  # killed by a stop or the shutdown

@@ -47,6 +47,19 @@ def publish(path: str, endpoint: str, site: str, speed: float, names: list[str],
         run_replay(pub, path, speed=speed, stop=stop)
 
 
+def _get(c, path: str, **kw):
+    """GET with retries: under heavy load a kept-alive connection can be reset."""
+    import httpx
+
+    for k in range(5):
+        try:
+            return c.get(path, **kw)
+        except httpx.TransportError:
+            if k == 4:
+                raise
+            time.sleep(1.0)
+
+
 def run(seed: int, args, log) -> dict:
     import httpx
 
@@ -90,7 +103,7 @@ def run(seed: int, args, log) -> dict:
         last_live = None
         replay_wall = None
         while True:
-            s = c.get(f"/sessions/{sid}").json()
+            s = _get(c, f"/sessions/{sid}").json()
             b = s.get("bootstrap") or {}
             if handover is None and b.get("phase") == "done":
                 handover = {"wall": b["pose_wall"] - t0, "data": b["pose_data_seconds"]}
@@ -115,11 +128,11 @@ def run(seed: int, args, log) -> dict:
         if proc.is_alive():
             proc.kill()
         out["wall"] = time.time() - t0
-        text = c.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text
-        status = c.get("/status").json()
+        text = _get(c, f"/sessions/{sid}/result", params={"format": "yaml"}).text
+        status = _get(c, "/status").json()
         out["loop_lag_max"] = status["loop_lag"]["max"]
         out["loop_work"] = {k: v for k, v in status["loop_work"].items() if k.startswith("bootstrap")}
-        hist = c.get(f"/sessions/{sid}/history").json()
+        hist = _get(c, f"/sessions/{sid}/history").json()
     out.update(state=s["state"], reason=s["reason"], bootstrap={k: (s.get("bootstrap") or {}).get(k) for k in (
         "attempts", "placed", "not_placed", "scale", "frame", "pose_data_seconds")}, handover=handover,
                first_cycle=first_cycle, final_batch=s.get("final_batch"), cycles=s["cycles"])

@@ -275,3 +275,51 @@ def test_distrust_initial_bootstraps_a_session_with_an_initial_estimate(tmp_path
         assert s["cameras"] == [] and s["reason"]
         assert (tmp_path / "sessions" / s["id"] / "initial.yaml").is_file()
         assert c.post(f"/sessions/{s['id']}/stop").json()["state"] == "stopped"
+
+
+def slow_job(job):
+    """A bootstrap attempt that takes minutes (in the solver process)."""
+    import time
+
+    time.sleep(300)
+
+
+def _due(svc) -> None:
+    """Make the running session's collector due for an attempt (61 s of framesets)."""
+    def put():
+        _feed(svc.service.active.pipeline, 61.0)
+    svc.call(put)
+
+
+def test_a_stop_or_shutdown_during_an_attempt_does_not_wait_for_it(tmp_path, lab_dir):
+    import time
+
+    import httpx
+
+    from backend.service import ServiceThread
+
+    body = {"intrinsics_yaml": _intrinsics_yaml()}
+    st = ServiceThread(_settings(tmp_path)).start()
+    try:
+        st.service.bootstrap_fn = slow_job
+        with httpx.Client(base_url=st.url, timeout=30) as c:
+            sid = c.post("/sessions", json=body).json()["id"]
+            _due(st)
+            deadline = time.monotonic() + 30
+            while c.get(f"/sessions/{sid}").json()["bootstrap"]["phase"] != "bootstrapping":
+                assert time.monotonic() < deadline, "no attempt started"
+                time.sleep(0.1)
+            t0 = time.monotonic()
+            s = c.post(f"/sessions/{sid}/stop").json()
+            assert s["state"] == "stopped" and time.monotonic() - t0 < 10
+            # the solver works for the next session: an attempt in flight at shutdown
+            sid = c.post("/sessions", json=body).json()["id"]
+            _due(st)
+            deadline = time.monotonic() + 60
+            while c.get(f"/sessions/{sid}").json()["bootstrap"]["phase"] != "bootstrapping":
+                assert time.monotonic() < deadline, "no attempt started in the second session"
+                time.sleep(0.1)
+    finally:
+        t0 = time.monotonic()
+        st.stop(timeout=60)
+    assert time.monotonic() - t0 < 30  # not the attempt's 300 s
