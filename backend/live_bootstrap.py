@@ -198,6 +198,26 @@ def remap(frames: Sequence[Frame], index: dict[int, int]) -> list[Frame]:
     return out
 
 
+def compare(a: BootstrapResult, b: BootstrapResult) -> tuple[list[str], np.ndarray, np.ndarray] | None:
+    """Two bootstrap results of the same cameras (each in its own floor frame and scale):
+    ``b`` aligned onto ``a`` by a trimmed similarity of the centres they both placed
+    (``geometry.trimmed_similarity``); per camera (names, translation (N,) m in a's units,
+    rotation (N,) deg). None when fewer than 3 cameras are in both."""
+    from .geometry import rotation_angle_deg, trimmed_similarity
+
+    both = np.flatnonzero(a.located & b.located)
+    if len(both) < 3 or a.names != b.names:
+        return None
+    fit = trimmed_similarity(b.t[both], a.t[both])
+    if fit is None:
+        return None
+    s, Rw, tw, _ = fit
+    tb = s * b.t[both] @ Rw.T + tw
+    dt = np.linalg.norm(tb - a.t[both], axis=1)
+    dr = np.array([rotation_angle_deg(Rw @ b.R[c], a.R[c]) for c in both])
+    return [a.names[c] for c in both], dt, dr
+
+
 def _header(result: BootstrapResult) -> str:
     """What the result's header says of where its frame and scale come from."""
     lines = [f"no initial estimate: bootstrapped live from {result.data_seconds:.0f} s of data; {result.frame}"]
@@ -245,6 +265,7 @@ class Collector:
         self.deadline = b.max_seconds if b.max_seconds > 0 else b.live_first
         self.next_attempt = min(b.live_first, self.deadline)
         self.accepted: BootstrapResult | None = None
+        self.previous: tuple[int, BootstrapResult] | None = None  # the last attempt with a result
 
     # ------------------------------------------------------------ the pipeline's front end
 
@@ -367,6 +388,11 @@ class Collector:
             if not att["accepted"]:
                 att["error"] = f"placed {placed} of {len(job.names)} cameras, {need} needed before " \
                                f"{self.deadline:g} s of data"
+            elif not job.final and b.live_confirm:
+                why = self._unconfirmed(res)
+                if why:
+                    att.update(accepted=False, error=why)
+            self.previous = (job.attempt, res)
         self.attempts.append(att)
         if att["accepted"]:
             self.accepted = res
@@ -375,6 +401,22 @@ class Collector:
         if job.data_seconds < self.deadline:
             nxt = min(nxt, self.deadline)
         self.next_attempt = nxt
+        return None
+
+    def _unconfirmed(self, res: BootstrapResult) -> str | None:
+        """Why an early result is not confirmed by the attempt before it (None: it is)."""
+        b = self.cfg.bootstrap
+        if self.previous is None:
+            return f"placed {int(res.located.sum())} cameras; an early result is taken when the next attempt agrees"
+        k, prev = self.previous
+        cmp = compare(prev, res)
+        if cmp is None:
+            return f"fewer than 3 cameras in common with attempt {k}: to be confirmed by the next attempt"
+        names, dt, dr = cmp
+        bad = [(n, t, r) for n, t, r in zip(names, dt, dr) if t > b.live_confirm_translation or r > b.live_confirm_rotation]
+        if bad:
+            worst = ", ".join(f"{n} ({t:.2f} m / {r:.1f}°)" for n, t, r in sorted(bad, key=lambda x: -x[2])[:3])
+            return f"disagrees with attempt {k} on {len(bad)} camera(s): {worst}"
         return None
 
     def reason(self) -> str:

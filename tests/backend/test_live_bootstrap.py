@@ -47,11 +47,17 @@ def _feed(col: Collector, until: float, cams=(0, 1, 2), rate: float = 5.0) -> No
         T += 1 / rate
 
 
-def _result(located, data_seconds: float = 60.0) -> BootstrapResult:
+def _result(located, data_seconds: float = 60.0, scale: float = 1.0, turned: int | None = None) -> BootstrapResult:
+    """Cameras of a 4 x 4 m room, in a frame of ``scale``; camera ``turned`` 160° off."""
     C = len(NAMES)
     located = np.asarray(located, bool)
-    t = np.c_[np.arange(C, dtype=float), np.zeros(C), np.full(C, 2.5)]
-    return BootstrapResult(NAMES, np.repeat(np.eye(3)[None], C, 0), t, located, np.full(C, 0.01), np.full(C, 0.1),
+    t = scale * np.array([[0.0, 0.0, 2.5], [4.0, 0.0, 2.6], [0.0, 4.0, 2.4], [4.0, 4.0, 2.7]])
+    R = np.repeat(np.eye(3)[None], C, 0)
+    if turned is not None:
+        from backend.geometry import so3_exp
+
+        R[turned] = so3_exp(np.radians([0.0, 0.0, 160.0]))
+    return BootstrapResult(NAMES, R, t, located, np.full(C, 0.01), np.full(C, 0.1),
                            None, "floor frame: a test", 3, 6, 300, data_seconds, 1.0)
 
 
@@ -100,13 +106,41 @@ def test_a_failed_attempt_is_retried_with_more_data_and_the_deadline_accepts_any
     assert [a["accepted"] for a in col.progress()["attempts"]] == [False, False, True]
 
 
-def test_an_early_attempt_that_places_the_cameras_that_saw_people_is_accepted():
+def test_an_early_attempt_is_accepted_when_the_next_one_agrees():
     col = _collector()
     _feed(col, 61.0)  # cam_3 saw nobody: it does not hold the session back
     job = col.job()
     assert col.needed(job) == 3
-    res = _result([1, 1, 1, 0])
+    # enough cameras, but an early result needs a second opinion
+    assert col.conclude(job, Outcome(_result([1, 1, 1, 0]), None, 5.0)) is None
+    assert "the next attempt agrees" in col.attempts[-1]["error"] and col.next_attempt == pytest.approx(91.0)
+    _feed(col, 91.0)
+    res = _result([1, 1, 1, 1], scale=0.98)  # agrees with attempt 1 up to a similarity, one camera more
+    assert col.conclude(col.job(), Outcome(res, None, 5.0)) is res
+    assert [a["accepted"] for a in col.attempts] == [False, True]
+
+
+def test_an_early_attempt_that_disagrees_with_the_one_before_is_not_taken():
+    col = _collector()
+    _feed(col, 61.0)
+    assert col.conclude(col.job(), Outcome(_result([1, 1, 1, 0], turned=1), None, 5.0)) is None
+    _feed(col, 91.0)
+    # cam_1 160° away from the first attempt: one of the two is wrong
+    assert col.conclude(col.job(), Outcome(_result([1, 1, 1, 0], scale=1.02), None, 5.0)) is None
+    assert "disagrees with attempt 1 on 1 camera(s): cam_1 (0.00 m / 160.0°)" in col.attempts[-1]["error"]
+    assert "(attempt 2: disagrees with attempt 1" in col.reason()
+    _feed(col, 120.0)
+    job = col.job()
+    assert job.final  # from max_seconds on any result is taken, unconfirmed
+    res = _result([1, 1, 1, 0], turned=2)
     assert col.conclude(job, Outcome(res, None, 5.0)) is res
+
+
+def test_without_confirmation_the_first_attempt_that_places_enough_is_taken():
+    col = _collector(CFG.merged({"bootstrap": {"live_confirm": False}}))
+    _feed(col, 61.0)
+    res = _result([1, 1, 1, 0])
+    assert col.conclude(col.job(), Outcome(res, None, 5.0)) is res
 
 
 def test_live_options_and_the_result_header():

@@ -113,7 +113,9 @@ def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, la
     print(f"\nwall: handed over {done['bootstrap']['pose_wall'] - st_started:.1f} s after the service started, "
           f"{t_cal - t0:.1f} s to {cal['cycles']} cycles, stopped after {time.monotonic() - t0:.1f} s")
     print(json.dumps({k: boot[k] for k in ("attempts", "placed", "not_placed", "scale", "pose_data_seconds")}))
+    # the first attempt (40 s) is early: taken only when a second agrees; the one at 60 s is taken as it is
     assert boot["attempts"][-1]["accepted"] and boot["attempts"][0]["data_seconds"] >= 40
+    assert len(boot["attempts"]) >= 2 and not boot["attempts"][0]["accepted"]
     assert "floor" in boot["frame"] and boot["scale"]["method"] == "known height"
     assert stopped["state"] == "stopped" and stopped["final_batch"]["ran"]
 
