@@ -1,7 +1,7 @@
 """A live session without an initial estimate (backend/live_bootstrap.py): the phase logic
 (when an attempt runs, which results are accepted, what the session says), the hand-over
 to the online pipeline on a short simulation, and the service's side (start, stop and
-restart while collecting). The whole flow through Zenoh: tests/integration/test_live_bootstrap.py.
+restart while collecting). The whole flow through Zenoh: tests/integration/test_service_bootstrap.py.
 """
 
 from __future__ import annotations
