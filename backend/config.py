@@ -183,6 +183,18 @@ class BootstrapConfig(_Section):
                               "estimate's RMS distance from it exceeds this many of its stated std (refine.initial_std_*)")
     refuse_sigma: float = Field(6.0, gt=0, description="a bootstrap pose further from the initial estimate than this many "
                                 "of its stated std (refine.initial_std_*) is not used: one of the two is grossly wrong")
+    live_first: float = Field(60.0, gt=0, description="live service (backend/live_bootstrap.py): s of data before the "
+                              "first bootstrap attempt of a session without an initial estimate")
+    live_interval: float = Field(30.0, gt=0, description="s of data between attempts (until one is accepted)")
+    live_min_placed: float = Field(0.9, ge=0, le=1, description="an attempt before max_seconds of data is accepted when it "
+                                   "placed this share of the cameras that saw people in min_pair_frames framesets; "
+                                   "from max_seconds on any result that places cameras is")
+    live_confirm: bool = Field(True, description="... and only when the attempt before it agrees: every camera both "
+                               "placed within live_confirm_translation / live_confirm_rotation after a similarity "
+                               "alignment (a camera chained wrongly over a bridge pair, 160° off in the lab at 60 s, "
+                               "is rarely chained the same way with more data)")
+    live_confirm_translation: float = Field(0.25, gt=0, description="m (the bootstrap's own precision is 0.01-0.04 m)")
+    live_confirm_rotation: float = Field(5.0, gt=0, description="deg (its own: 0.1-0.8°)")
 
 
 class ClockConfig(_Section):

@@ -159,22 +159,36 @@ class Pipeline:
             dets = self.preprocess(fs)
             if len(dets) < 2:
                 continue
-            self.frames.append((fs.time, tuple(tuple(v) for v in dets)))
-            hyps = self.associate(fs.time, dets, R, t, gate)
-            self.queue.extend(hyps)
-            self.monitor.add(hyps)
-            if self.cfg.clock.estimate:
-                self.clocks.add(hyps)
-            new += len(hyps)
-            for v in dets:
-                self.detected[v[0].cam] += len(v)
-                self.detected_total[v[0].cam] += len(v)
-            for h in hyps:
-                self.associated[h.cams] += 1
-                self.associated_total[h.cams] += 1
-                if len(h.cams) >= self.cfg.associate.min_views_unsettled:
-                    self.associated_multi[h.cams] += 1
+            new += self._take(fs.time, tuple(tuple(v) for v in dets), R, t, gate)
         return new
+
+    def take_frames(self, frames: Iterable[tuple[float, tuple[tuple[Detection, ...], ...]]]) -> int:
+        """Preprocessed framesets from before this pipeline existed (the live bootstrap
+        collected them; their detections' ``cam`` index this pipeline's cameras), archived,
+        associated and queued as if they had just come out of ``preprocess``; returns the
+        new hypotheses."""
+        R, t = self.refiner.R, self.refiner.t
+        gate = self._gate()
+        return sum(self._take(T, views, R, t, gate) for T, views in frames if len(views) >= 2)
+
+    def _take(self, time: float, views: tuple[tuple[Detection, ...], ...], R: np.ndarray, t: np.ndarray,
+              gate: np.ndarray | None) -> int:
+        """One preprocessed frameset (>= 2 views): archive, associate, queue, count."""
+        self.frames.append((time, views))
+        hyps = self.associate(time, views, R, t, gate)
+        self.queue.extend(hyps)
+        self.monitor.add(hyps)
+        if self.cfg.clock.estimate:
+            self.clocks.add(hyps)
+        for v in views:
+            self.detected[v[0].cam] += len(v)
+            self.detected_total[v[0].cam] += len(v)
+        for h in hyps:
+            self.associated[h.cams] += 1
+            self.associated_total[h.cams] += 1
+            if len(h.cams) >= self.cfg.associate.min_views_unsettled:
+                self.associated_multi[h.cams] += 1
+        return len(hyps)
 
     def clock_job(self, now: float | None) -> ClockJob | None:
         """The clock offsets' estimate when due (``clock.estimate``, every

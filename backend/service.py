@@ -49,6 +49,7 @@ from .cameras import dump_extrinsics, parse_extrinsics, parse_intrinsics
 from .config import ConfigError, EngineConfig
 from .history import CalibrationHistory
 from .ingest import HandOff, SensorTable, ServiceClock
+from .live_bootstrap import Collector, LiveOptions, reason_suffix, result_comment
 from .session import (
     NotAvailable, SessionConflict, SessionInputError, SessionInputs, SessionRecord,
     SessionState, SessionStore, StopCriteria, clean_json, dumps_json, new_session_id,
@@ -238,6 +239,15 @@ class Solver:
         finally:
             self.busy = False
 
+    def kill(self) -> None:
+        """End the worker now, the job in flight with it (its ``run`` raises SolverCrashed):
+        at shutdown, for a job that may take minutes (a live bootstrap) and is worth
+        nothing after it. The pool has no public way to do this."""
+        pool = self._pool
+        for proc in list(getattr(pool, "_processes", {}).values()) if pool is not None else []:
+            with contextlib.suppress(Exception):
+                proc.kill()  # SIGKILL: the worker ignores SIGTERM (_worker_init)
+
     def shutdown(self) -> None:
         """Blocking: from a thread."""
         if self._pool is not None:
@@ -354,6 +364,7 @@ class Service:
         self.writer = Writer()
         self.solver = Solver(settings.solver_start)
         self.solve_fn: Callable | None = None  # optimize.solve; a picklable stand-in for fault tests
+        self.bootstrap_fn: Callable | None = None  # live_bootstrap.run_job; a picklable stand-in for tests
         self.solver_faults = 0  # cycles whose solve raised, crashed the worker or failed numerically
         self._active: ActiveSession | None = None
         self.ignored = Counter()  # decoded but not for any session, by reason
@@ -439,6 +450,7 @@ class Service:
                 tg.create_task(self._frontend_loop(), name="frontend")
                 tg.create_task(self._optimizer_loop(), name="optimizer")
                 tg.create_task(self._clock_loop(), name="clock-offsets")
+                tg.create_task(self._bootstrap_loop(), name="bootstrap")
                 tg.create_task(self._query_loop(), name="queries")
                 tg.create_task(self._status_loop(), name="status")
                 tg.create_task(self._lag_loop(), name="lag")
@@ -460,6 +472,9 @@ class Service:
                 for sig in (signal.SIGTERM, signal.SIGINT):
                     loop.remove_signal_handler(sig)
             await asyncio.to_thread(self._close_zenoh, zs, declared)
+            s = self.active
+            if s is not None and isinstance(s.pipeline, Collector) and s.pipeline.running is not None:
+                self.solver.kill()  # also when a task failed: do not wait minutes for a bootstrap attempt
             await asyncio.to_thread(self.solver.shutdown)
 
     def _declare(self, zs: Any) -> list[Any]:
@@ -505,6 +520,8 @@ class Service:
         if server is not None:
             server.should_exit = True
         s = self.active
+        if s is not None and isinstance(s.pipeline, Collector) and s.pipeline.running is not None:
+            self.solver.kill()  # a bootstrap attempt in flight: minutes, and a resume collects again anyway
         if s is not None:
             if s.finishing:
                 await s.done.wait()
@@ -547,7 +564,12 @@ class Service:
             snap = self.store.load_snapshot(rec.id)
             from .pipeline import Pipeline
 
-            if snap is not None:
+            if rec.bootstrap is not None and rec.bootstrap.get("phase") != "done":
+                # stopped while collecting or bootstrapping: the frames were not kept, collect again
+                pipeline = Collector(inputs.cameras, inputs.config, LiveOptions.from_dict(rec.bootstrap.get("options")),
+                                     initial=inputs.initial_yaml is not None, seed=rec.seed + rec.resumed + 1)
+                rec.bootstrap = {**rec.bootstrap, **pipeline.progress()}
+            elif snap is not None:
                 pipeline = Pipeline.restore(inputs.cameras, inputs.config, snap, seed=rec.seed + rec.resumed + 1)
             else:
                 pipeline = Pipeline(inputs.cameras, inputs.config, seed=rec.seed)
@@ -560,6 +582,8 @@ class Service:
         rec.resumed += 1
         rec.cycles = pipeline.cycle
         rec.reason = f"resumed at cycle {pipeline.cycle} after a restart ({kept} cycles of history kept)"
+        if isinstance(pipeline, Collector):
+            rec.reason = "resumed after a restart while bootstrapping: collecting again (frames are not kept)"
         self.clock = self._new_clock(inputs.config)
         self.active = ActiveSession(rec, inputs, pipeline, pipeline.state())
         self.store.save_record(rec)
@@ -710,6 +734,92 @@ class Service:
             with self.work.measure("apply_clock"):
                 s.pipeline.apply_clock(job, result)
 
+    async def _bootstrap_loop(self) -> None:
+        """Sessions that bootstrap (backend/live_bootstrap.py): the collector says when an
+        attempt is due; ``bootstrap`` runs in the solver process (its bundle adjustment is
+        GTSAM, which holds the GIL for seconds: in a thread it would stall the loop, like a
+        cycle's solve) on a frozen copy of the frames while collecting goes on; an accepted
+        result is handed over, the pipeline built in a thread, and swapped in here."""
+        while not self._closing:
+            await asyncio.sleep(self.settings.tick)
+            s = self.active
+            if s is None or s.finishing or self._closing or not isinstance(s.pipeline, Collector):
+                continue
+            try:
+                await self._bootstrap_turn(s, s.pipeline)
+            except Exception as e:  # a bug here ends the session, never the service
+                log.exception("the live bootstrap failed")
+                if s is self.active and not s.finishing:
+                    self._fail(s, f"the live bootstrap failed: {type(e).__name__}: {e}")
+
+    async def _bootstrap_turn(self, s: ActiveSession, col: Collector) -> None:
+        """One attempt when due: run it, judge it, hand an accepted one over."""
+        from .live_bootstrap import Handover, Outcome, run_job
+
+        job = col.job()
+        if job is None:
+            return
+        self._bootstrap_progress(s)
+        log.info("session %s: bootstrap attempt %d on %.0f s of data", s.record.id, job.attempt, job.data_seconds)
+        try:
+            outcome = await self.solver.run(self.bootstrap_fn or run_job, job)
+        except Exception as e:  # SolverCrashed, a bug: this attempt failed, the next has more data
+            if s is not self.active or s.finishing or self._closing:
+                return  # killed by a stop or the shutdown
+            log.exception("bootstrap attempt %d failed", job.attempt)
+            outcome = Outcome(None, f"{type(e).__name__}: {e}", 0.0)
+        if s is not self.active or s.finishing or self._closing:
+            return
+        with self.work.measure("bootstrap_conclude"):
+            result = col.conclude(job, outcome)
+        if result is None:
+            log.info("session %s: bootstrap attempt %d not accepted: %s", s.record.id, job.attempt,
+                     col.attempts[-1].get("error"))
+            self._bootstrap_progress(s)
+            return
+        self._bootstrap_progress(s)
+        try:
+            h = await asyncio.to_thread(Handover.build, job, result, s.inputs.cameras, s.inputs.config,
+                                        col.initial, seed=s.record.seed, frames=tuple(col.frames))
+        except Exception as e:  # the result does not make a pipeline: not a reason to stop the service
+            log.exception("handing the bootstrap over failed")
+            self._fail(s, f"handing the bootstrap over to the online pipeline failed: {type(e).__name__}: {e}")
+            return
+        if s is not self.active or s.finishing or self._closing:
+            return
+        with self.work.measure("bootstrap_handover"):
+            self._hand_over(s, col, h)
+
+    def _bootstrap_progress(self, s: ActiveSession) -> None:
+        col = s.pipeline
+        assert isinstance(col, Collector)
+        s.record.bootstrap = {**(s.record.bootstrap or {}), **col.progress()}
+        s.record.reason = col.reason()
+        self._save_record(s)
+
+    def _hand_over(self, s: ActiveSession, col: Collector, h: Any) -> None:
+        """Swap the online pipeline in for the collector (on the loop: nothing in between)."""
+        h.catch_up(col)
+        rec = s.record
+        s.pipeline = h.pipeline
+        s.inputs = SessionInputs(s.inputs.intrinsics_yaml, h.initial_yaml or s.inputs.initial_yaml,
+                                 s.inputs.reference_yaml, h.cameras, s.inputs.reference, h.config)
+        s.__dict__.pop("names", None)  # the cached camera names: now the placed cameras
+        if self.handoff is not None:
+            self.handoff.accept(s.names)
+        s.state = s.pipeline.state()
+        s.last_snapshot = time.monotonic()
+        data_time = None if rec.first_data is None or col.clock is None else col.clock - rec.first_data
+        rec.bootstrap = {**(rec.bootstrap or {}), **col.progress(), **h.meta, "phase": "done",
+                         "pose_data_seconds": data_time, "pose_wall": time.time()}
+        rec.reason = f"bootstrapped: {h.meta['note']}; calibrating from it" + reason_suffix(rec.bootstrap)
+        log.info("session %s: %s", rec.id, rec.reason)
+        self.writer.submit(self.store.save_start, rec.id, h.initial_yaml, h.config)
+        self._save_record(s)
+        self.events.publish("session", {"id": rec.id, "state": rec.state.value, "reason": rec.reason,
+                                        "bootstrap": "done"})
+        self._wake.set()
+
     def _frameset_delay(self, s: ActiveSession, now: float) -> None:
         """Clock time from a frameset's instant to its emission: with sensors stamping at
         capture, this is the publish → frameset latency (mostly the sync stage's wait)."""
@@ -809,6 +919,7 @@ class Service:
             else:
                 rec.state = SessionState.calibrating
                 rec.reason = _calibrating_reason(state, report)
+            rec.reason += reason_suffix(rec.bootstrap)
             f = s.solver_fault
             if f is not None and f["failing"]:
                 rec.reason += (f"; the optimizer failed in the last {f['failing']} cycle(s) ({f['error']}): "
@@ -886,7 +997,7 @@ class Service:
             rec.reason = note
         state = s.state
         ext = state.extrinsics(s.resolutions)
-        comment = f"extrcal session {rec.id}, cycle {state.cycle}, {rec.state.value}"
+        comment = _result_comment(rec, state)
         store = self.store
 
         def write_result() -> None:  # in the writer thread: YAML and JSON take their time
@@ -962,7 +1073,12 @@ class Service:
             last_brief = now
             s = self.active
             if s is not None and s.record.state == SessionState.waiting_for_data:
-                reason = _waiting_reason(s.pipeline.counters(), s.inputs.config, self.sensors, s.inputs.cameras.names)
+                if isinstance(s.pipeline, Collector):
+                    reason = s.pipeline.reason()
+                    s.record.bootstrap = {**(s.record.bootstrap or {}), **s.pipeline.progress()}
+                else:
+                    reason = _waiting_reason(s.pipeline.counters(), s.inputs.config, self.sensors,
+                                             s.inputs.cameras.names) + reason_suffix(s.record.bootstrap)
                 if reason != s.record.reason:
                     s.record.reason = reason
                     self._save_record(s)
@@ -1010,7 +1126,16 @@ class Service:
     # ------------------------------------------------------------ sessions (API)
 
     async def start_session(self, *, inputs: SessionInputs, name: str | None, stop: StopCriteria,
-                            overrides: dict[str, Any], sources: dict[str, str], seed: int = 0) -> dict[str, Any]:
+                            overrides: dict[str, Any], sources: dict[str, str], seed: int = 0,
+                            live: LiveOptions | None = None) -> dict[str, Any]:
+        """``live``: the bootstrap's options (backend/live_bootstrap.py). A session without
+        an initial estimate, or told to distrust it, bootstraps its start from the people."""
+        live = live or LiveOptions()
+        boot = inputs.initial_yaml is None or live.distrust_initial
+        if live.heights and not boot:
+            raise SessionInputError("person_height: only a session that bootstraps (no initial estimate, or "
+                                    "distrust_initial) uses it")
+
         def check() -> None:
             if self._closing:
                 raise SessionConflict("the service is shutting down")
@@ -1026,11 +1151,12 @@ class Service:
             from .pipeline import Pipeline
 
             with self.work.measure("new_pipeline"):
-                pipeline = Pipeline(inputs.cameras, inputs.config, seed=seed)
+                pipeline = Collector(inputs.cameras, inputs.config, live, initial=inputs.initial_yaml is not None,
+                                     seed=seed) if boot else Pipeline(inputs.cameras, inputs.config, seed=seed)
             rec = SessionRecord(
                 id=new_session_id(), name=name, state=SessionState.waiting_for_data,
                 reason="no messages from the session's cameras yet", stop=stop, config_overrides=overrides,
-                sources=sources, seed=seed,
+                sources=sources, seed=seed, bootstrap=pipeline.progress() if boot else None,
             )
             try:  # on disk before we answer with its id; fsyncs, so not on the loop
                 await asyncio.to_thread(self.store.create, rec, inputs)
@@ -1074,13 +1200,6 @@ class Service:
                 resolved[what] = None
         if resolved["intrinsics"] is None:
             raise SessionInputError("intrinsics: give intrinsics_yaml (the file's text) or intrinsics (a configured file name)")
-        if resolved["initial"] is None:
-            # the bootstrap needs a minute or two of data before the first pose exists: offline for now
-            raise SessionInputError(
-                "initial: give initial_yaml (the file's text) or initial (a configured file name). Without any "
-                "initial estimate, record a few minutes of people walking (`extrcal record`), run `extrcal calibrate "
-                "RECORDING --intrinsics ...` without --initial (it bootstraps from the people, docs/bootstrap.md), "
-                "and start the session with its result as the initial estimate")
         try:
             cfg = self.base_config.merged(config) if config else self.base_config
         except ConfigError as e:
@@ -1119,10 +1238,15 @@ class Service:
             before = s.pipeline.cycle
             t0 = time.monotonic()
             try:
-                s.pipeline = await self.solver.run(_finish_pipeline, s.pipeline)
-                batch = s.pipeline.cycle > before
-                rec.final_batch = {"ran": batch, "seconds": time.monotonic() - t0,
-                                   "report": s.pipeline.last_report.to_dict() if batch and s.pipeline.last_report else None}
+                if isinstance(s.pipeline, Collector):  # no pose yet: nothing to adjust
+                    if s.pipeline.running is not None:
+                        self.solver.kill()  # the attempt in flight is worth nothing now
+                    rec.final_batch = {"ran": False, "error": "stopped while bootstrapping: no camera has a pose"}
+                else:
+                    s.pipeline = await self.solver.run(_finish_pipeline, s.pipeline)
+                    batch = s.pipeline.cycle > before
+                    rec.final_batch = {"ran": batch, "seconds": time.monotonic() - t0, "report":
+                                       s.pipeline.last_report.to_dict() if batch and s.pipeline.last_report else None}
             except Exception as e:
                 log.warning("final batch adjustment of %s failed: %s", rec.id, e)
                 rec.final_batch = {"ran": False, "error": f"{type(e).__name__}: {e}"}
@@ -1141,7 +1265,8 @@ class Service:
             }.get(rec.stopped_by or "", f"stopped ({rec.stopped_by})")
             rec.ended_wall = time.time()
             self._persist(s, snapshot=True)
-            await self._record_version(s)
+            if s.state.cameras:  # stopped while bootstrapping: no calibration to record
+                await self._record_version(s)
         finally:
             if self.active is s:
                 self.active = None
@@ -1299,7 +1424,7 @@ class Service:
             return (self.calibration_dict(s) if live else self._stored_calibration(sid)), "application/json"
         if live:
             ext = s.state.extrinsics(s.resolutions)
-            text = dump_extrinsics(ext, comment=f"extrcal session {sid}, cycle {s.state.cycle}, {s.record.state.value}")
+            text = dump_extrinsics(ext, comment=_result_comment(s.record, s.state))
             intr_text = s.inputs.intrinsics_yaml
         else:
             text = self.store.result_yaml(sid)
@@ -1327,8 +1452,7 @@ class Service:
         estimate: recorded, not activated). The publication follows the active version."""
         rec, state = s.record, s.state
         doc = self.calibration_dict(s)
-        text = dump_extrinsics(state.extrinsics(s.resolutions),
-                               comment=f"extrcal session {rec.id}, cycle {state.cycle}, {rec.state.value}")
+        text = dump_extrinsics(state.extrinsics(s.resolutions), comment=_result_comment(rec, state))
         activate = state.cycle > 0
         why = f"session {rec.id} {rec.reason} after {state.cycle} cycles" + (
             "" if activate else " (no cycle ran: recorded, not activated)")
@@ -1539,6 +1663,14 @@ class Service:
 
 def _copy_record(rec: SessionRecord) -> SessionRecord:
     return SessionRecord.from_dict(rec.to_dict())
+
+
+def _result_comment(rec: SessionRecord, state: "CalibrationState") -> str:
+    """A result's header: the session and cycle; for a bootstrapped session where its
+    frame and scale come from (backend/live_bootstrap.py)."""
+    head = f"extrcal session {rec.id}, cycle {state.cycle}, {rec.state.value}"
+    extra = result_comment(rec.bootstrap)
+    return f"{head}\n{extra}" if extra else head
 
 
 def _converged_reason(state: "CalibrationState") -> str:

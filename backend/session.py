@@ -44,8 +44,10 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
+import numpy as np
+
 from .cameras import (
-    CameraFileError, CameraSet, Pose, natural_key, parse_extrinsics, parse_intrinsics, write_atomic,
+    CameraFileError, CameraSet, Extrinsics, Pose, natural_key, parse_extrinsics, parse_intrinsics, write_atomic,
 )
 from .config import EngineConfig
 
@@ -123,6 +125,9 @@ class SessionRecord:
     resumed: int = 0  # times it was resumed after a restart
     accuracy: dict[str, Any] | None = None  # latest figures against the reference
     final_batch: dict[str, Any] | None = None  # what the final batch adjustment did
+    # a session that bootstraps its start from the people (backend/live_bootstrap.py): its
+    # options, phase and, once done, the bootstrap's metadata (frame, scale, cameras placed)
+    bootstrap: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -132,6 +137,7 @@ class SessionRecord:
             "ended_wall": self.ended_wall, "first_data": self.first_data, "cycles": self.cycles,
             "converged_cycle": self.converged_cycle, "stopped_by": self.stopped_by,
             "resumed": self.resumed, "accuracy": self.accuracy, "final_batch": self.final_batch,
+            "bootstrap": self.bootstrap,
         }
 
     @staticmethod
@@ -144,6 +150,7 @@ class SessionRecord:
             ended_wall=d.get("ended_wall"), first_data=d.get("first_data"), cycles=int(d.get("cycles", 0)),
             converged_cycle=d.get("converged_cycle"), stopped_by=d.get("stopped_by"),
             resumed=int(d.get("resumed", 0)), accuracy=d.get("accuracy"), final_batch=d.get("final_batch"),
+            bootstrap=d.get("bootstrap"),
         )
 
 
@@ -164,23 +171,28 @@ def new_session_id() -> str:
 
 @dataclass(frozen=True)
 class SessionInputs:
-    """Validated inputs of a session: texts as given and what they parse to."""
+    """Validated inputs of a session: texts as given and what they parse to.
+
+    Without an initial estimate (``initial_yaml`` None: the session bootstraps, see
+    backend/live_bootstrap.py) ``cameras`` holds the intrinsics with placeholder poses
+    (identity, no std) that nothing may use as an estimate."""
 
     intrinsics_yaml: str
-    initial_yaml: str
+    initial_yaml: str | None
     reference_yaml: str | None
     cameras: CameraSet
     reference: dict[str, Pose] | None
     config: EngineConfig
 
     @staticmethod
-    def parse(intrinsics_yaml: str, initial_yaml: str, reference_yaml: str | None, config: EngineConfig,
+    def parse(intrinsics_yaml: str, initial_yaml: str | None, reference_yaml: str | None, config: EngineConfig,
               sources: dict[str, str] | None = None) -> "SessionInputs":
         """Raises SessionInputError naming the file (as given), line and field."""
         src = sources or {}
         try:
             intr = parse_intrinsics(intrinsics_yaml, _label(src, "intrinsics"))
-            init = parse_extrinsics(initial_yaml, _label(src, "initial"))
+            init = parse_extrinsics(initial_yaml, _label(src, "initial")) if initial_yaml is not None else {
+                n: Extrinsics(Pose(np.eye(3), np.zeros(3)), i.resolution) for n, i in intr.items()}
             cams = CameraSet.combine(intr, init, _label(src, "intrinsics"), _label(src, "initial"))
             ref = None
             if reference_yaml is not None:
@@ -229,7 +241,8 @@ class SessionStore:
         d = self.dir(rec.id)
         d.mkdir(parents=True, exist_ok=False)
         write_atomic(d / "intrinsics.yaml", inputs.intrinsics_yaml)
-        write_atomic(d / "initial.yaml", inputs.initial_yaml)
+        if inputs.initial_yaml is not None:
+            write_atomic(d / "initial.yaml", inputs.initial_yaml)
         if inputs.reference_yaml is not None:
             write_atomic(d / "reference.yaml", inputs.reference_yaml)
         write_atomic(d / "config.json", json.dumps(inputs.config.model_dump(mode="json"), indent=1))
@@ -242,6 +255,15 @@ class SessionStore:
         d = self.dir(sid)
         write_atomic(d / "state.json", _dumps(state))
         write_atomic(d / "result.yaml", result_yaml)
+
+    def save_start(self, sid: str, initial_yaml: str | None, config: EngineConfig) -> None:
+        """The start a session's pipeline runs from once it was bootstrapped live: the
+        effective config and (without an initial estimate) the bootstrap's cameras as the
+        initial estimate: what a resume reads."""
+        d = self.dir(sid)
+        write_atomic(d / "config.json", json.dumps(config.model_dump(mode="json"), indent=1))
+        if initial_yaml is not None:
+            write_atomic(d / "initial.yaml", initial_yaml)
 
     def save_snapshot(self, sid: str, snapshot: dict[str, Any]) -> None:
         write_atomic(self.dir(sid) / "snapshot.json", _dumps(snapshot))
@@ -282,9 +304,9 @@ class SessionStore:
             cfg = EngineConfig.from_dict(json.loads((d / "config.json").read_text()), str(d / "config.json"))
         except (OSError, ValueError) as e:
             raise SessionInputError(f"{d / 'config.json'}: {e}") from None
-        ref = d / "reference.yaml"
-        try:
-            texts = [(d / "intrinsics.yaml").read_text(), (d / "initial.yaml").read_text(),
+        ref, init = d / "reference.yaml", d / "initial.yaml"
+        try:  # no initial.yaml: a session bootstrapping without one (written when it is done)
+            texts = [(d / "intrinsics.yaml").read_text(), init.read_text() if init.is_file() else None,
                      ref.read_text() if ref.is_file() else None]
         except OSError as e:
             raise SessionInputError(f"{d}: {e}") from None

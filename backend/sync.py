@@ -216,6 +216,22 @@ class Synchronizer:
             self._msgs[sensor] = [_Entry(replace(e.msg, stamp=e.msg.stamp + shift), e.kp, e.boxes, e.cov)
                                   for e in self._msgs[sensor]]
 
+    def take_over(self, other: "Synchronizer") -> None:
+        """Go on where ``other`` (of the same or more sensors) is: its buffered messages of
+        our sensors, its point in time and its counts; nothing it emitted is emitted again
+        (a live session's pipeline replacing the bootstrap's collector)."""
+        for s in self.sensors:
+            self._stamps[s] = list(other._stamps.get(s, []))
+            self._msgs[s] = list(other._msgs.get(s, []))
+            self._last_seq[s] = deque(other._last_seq.get(s, ()), maxlen=64)
+            if s in other.offsets:
+                self.offsets[s] = other.offsets[s]
+        self.next_time = other.next_time
+        self.latest_stamp = other.latest_stamp
+        self.framesets = other.framesets
+        self.framesets_rejected = Counter(other.framesets_rejected)
+        self.rejected = Counter(other.rejected)
+
     def push(self, msg: KeypointMessage, now: float | None = None) -> str | None:
         """Buffer one message (raw stamp: the sensor's offset is subtracted here);
         returns a rejection reason or None."""

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -26,7 +26,12 @@ class SessionCreate(BaseModel):
 
     name: str | None = Field(None, max_length=200, description="a label for people")
     intrinsics_yaml: str | None = Field(None, max_length=MAX_YAML, description="intrinsics.yaml text")
-    initial_yaml: str | None = Field(None, max_length=MAX_YAML, description="initial extrinsics.yaml text")
+    initial_yaml: str | None = Field(None, max_length=MAX_YAML, description="initial extrinsics.yaml text. Without an "
+                                     "initial estimate (neither this, `initial` nor a server default) the session "
+                                     "bootstraps its start from the people (docs/service.md, docs/bootstrap.md): it "
+                                     "collects data (attempts from `bootstrap.live_first` s on, any result from "
+                                     "`bootstrap.max_seconds` on), then calibrates in the floor's frame at the "
+                                     "people's scale; `bootstrap` in the session shows the phase")
     reference_yaml: str | None = Field(None, max_length=MAX_YAML, description="reference extrinsics to report errors against")
     intrinsics: str | None = Field(None, max_length=200, description="name of a configured intrinsics file")
     initial: str | None = Field(None, max_length=200, description="name of a configured initial estimate")
@@ -34,6 +39,51 @@ class SessionCreate(BaseModel):
     config: dict[str, Any] = Field(default_factory=dict, description="EngineConfig overrides by section, e.g. {\"select\": {\"scope\": 60}}")
     stop: StopCriteria = Field(default_factory=StopCriteria, description="when the session ends by itself")
     seed: int = Field(0, ge=0, le=2**32 - 1, description="seed of the hypothesis selection")
+    person_height: list[Annotated[float, Field(ge=0.5, le=2.8)]] | None = Field(
+        None, min_length=1, max_length=50, description="known height(s) of the walkers in m, e.g. [1.85] or [1.96, "
+        "1.70]: the bootstrap's metric scale from them (else from a population prior of adult height); only for a "
+        "session that bootstraps")
+    distrust_initial: bool = Field(False, description="bootstrap from the people although an initial estimate is "
+                                   "given, then align the data's shape onto it (its frame and scale kept; "
+                                   "`bootstrap.with_initial` decides per camera, as `extrcal calibrate`)")
+
+
+class BootstrapAttempt(BaseModel):
+    attempt: int
+    data_seconds: float = Field(description="s of data it ran on")
+    frames: int = Field(description="framesets it ran on")
+    seconds: float = Field(description="wall s it took")
+    accepted: bool
+    placed: int | None = Field(None, description="cameras it placed")
+    needed: int | None = Field(None, description="cameras it had to place to be accepted")
+    pairs: int | None = Field(None, description="camera pairs in its view graph")
+    error: str | None = Field(None, description="why it was not accepted (too few pairs, too few cameras placed)")
+
+
+class BootstrapInfo(BaseModel):
+    """A session that bootstraps its start from the people (no initial estimate, or
+    `distrust_initial`): its phase and progress, and once done where its frame and scale
+    come from and which cameras it placed."""
+
+    phase: Literal["collecting", "bootstrapping", "done"] = Field(
+        description="collecting framesets; an attempt running; done (handed over to the online pipeline)")
+    data_seconds: float = Field(description="s of data collected")
+    target_seconds: float = Field(description="bootstrap.max_seconds: from here on any attempt that places cameras is taken")
+    next_attempt: float | None = Field(None, description="s of data at which the next attempt runs")
+    framesets: int = Field(description="framesets collected (>= 2 views)")
+    pairs: int = Field(description="camera pairs that saw one person in bootstrap.min_pair_frames framesets")
+    cameras_seen: int = Field(description="cameras that saw people in bootstrap.min_pair_frames framesets")
+    attempts: list[BootstrapAttempt] = Field(default_factory=list)
+    options: dict[str, Any] = Field(default_factory=dict, description="person_height, distrust_initial as asked")
+    placed: list[str] | None = Field(None, description="cameras the bootstrap placed (done)")
+    not_placed: list[str] | None = Field(None, description="cameras it could not place: not calibrated (done)")
+    frame: str | None = Field(None, description="the world frame of the result (done)")
+    scale: dict[str, Any] | None = Field(None, description="metric scale from people: factor, rel_std, method, persons, heights")
+    note: str | None = Field(None, description="what the hand-over did")
+    reconciled: dict[str, Any] | None = Field(None, description="distrust_initial: the initial estimate vs the data's shape")
+    result: dict[str, Any] | None = Field(None, description="the bootstrap's metadata (backend/bootstrap.py)")
+    pose_data_seconds: float | None = Field(None, description="s of data from the first message to the first pose")
+    pose_wall: float | None = Field(None, description="wall time (epoch s) of the hand-over")
 
 
 class CameraOut(BaseModel):
@@ -91,6 +141,7 @@ class SessionDetail(SessionSummary):
     cameras: list[CameraOut]
     counters: dict[str, Any] | None
     last_cycle: dict[str, Any] | None
+    bootstrap: BootstrapInfo | None = Field(None, description="a session that bootstraps: phase, progress, result")
 
 
 class CalibrationCamera(BaseModel):

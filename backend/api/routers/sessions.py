@@ -23,15 +23,19 @@ _ERRORS = {
              summary="start a session", responses={k: _ERRORS[k] for k in (401, 409, 422)})
 async def create(body: SessionCreate, service: ServiceDep, response: Response) -> dict:
     """Start a calibration session; 409 while another one runs. Answers with the new
-    session (its `id`), in state `waiting_for_data`."""
+    session (its `id`), in state `waiting_for_data`. Without an initial estimate (or with
+    `distrust_initial`) it bootstraps first: `bootstrap` in the session shows the phase."""
     inputs, sources = await asyncio.to_thread(
         service.make_inputs,
         texts={"intrinsics": body.intrinsics_yaml, "initial": body.initial_yaml, "reference": body.reference_yaml},
         names={"intrinsics": body.intrinsics, "initial": body.initial, "reference": body.reference},
         config=body.config,
     )
+    from ...live_bootstrap import LiveOptions
+
     d = await service.start_session(inputs=inputs, name=body.name, stop=body.stop, overrides=body.config,
-                              sources=sources, seed=body.seed)
+                                    sources=sources, seed=body.seed,
+                                    live=LiveOptions(tuple(body.person_height or ()), body.distrust_initial))
     response.headers["Location"] = f"/sessions/{d['id']}"
     return d
 

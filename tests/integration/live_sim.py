@@ -1,0 +1,39 @@
+"""Simulated sensors of a part of the lab, in their own process (tests/integration)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def publish_room(endpoint: str, site: str, cams: tuple[str, ...], persons: int, heights: tuple[float, ...],
+                 duration: float, seed: int, speed: float, lab: str, ready, stop) -> None:
+    """``cams`` of the lab as a scene of their own (its room plan: the walkers stay where
+    the cameras look), ``persons`` walkers of ``heights``; messages simulated first, then
+    published through Zenoh paced at ``speed`` x real time. ``ready``/``stop``:
+    multiprocessing events."""
+    import signal
+    import time
+
+    from edge_clients.publisher import SensorPublisher, zenoh_session
+    from edge_clients.sim import Scene, SimConfig, Simulator
+    from proto.transport import ZenohSettings
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    full = Scene.load(Path(lab))
+    scene = Scene.from_cameras({n: full.intrinsics[n] for n in cams}, {n: full.poses[n] for n in cams},
+                               Path(lab) / "room.yaml")
+    sim = Simulator(scene, SimConfig(persons=persons, duration=duration, seed=seed, heights=heights))
+    with zenoh_session(ZenohSettings(mode="peer", connect=(endpoint,))) as zs, \
+            SensorPublisher(zs, site, block=True) as pub:
+        pub.wait_matched(cams, timeout=30.0, stop=stop)
+        ready.set()
+        t0 = s0 = None
+        for _, m in sim.messages():
+            if t0 is None:
+                t0, s0 = time.monotonic(), m.stamp
+            delay = t0 + (m.stamp - s0) / speed - time.monotonic()
+            if delay > 0 and stop.wait(delay):
+                break
+            if stop.is_set():
+                break
+            pub.publish(m)

@@ -1,0 +1,131 @@
+"""A live session without an initial estimate, end to end with real parts: simulated
+sensors (7 cameras of the lab's west room, 2 walkers of known height) publish through
+Zenoh on loopback, faster than real time (the service's data clock follows their
+stamps); the service (real uvicorn) collects, bootstraps in its solver process, hands
+over to the online pipeline and calibrates; an HTTP client follows the phases and stops
+the session.
+
+Bar: every camera within 0.05 m / 0.5° of the truth after similarity alignment, the
+scale from the known heights within 2 % (measured when it was set: 7/7 placed at 40 s of
+data, 0.010-0.014 m / 0.13° shape, scale 1.006; the offline bootstrap's own bars, see
+tests/backend/test_bootstrap.py).
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+import yaml
+
+from backend.cameras import dump_extrinsics, load_extrinsics, parse_extrinsics
+from backend.evaluate import evaluate
+from backend.service import ServiceThread, free_port
+from backend.settings import ServiceSettings
+from live_sim import publish_room
+
+pytestmark = pytest.mark.slow
+
+SPEED = 5.0  # simulated seconds per wall second
+WEST = ("cam_11", "cam_12", "cam_13", "cam_14", "cam_15", "cam_16", "cam_17")
+HEIGHTS = (1.96, 1.70)
+# the first attempt at 40 s of data, the last before accepting anything at 60 s: a short test
+BOOT = {"bootstrap": {"live_first": 40.0, "live_interval": 20.0, "max_seconds": 60.0}}
+
+
+class Sensors:
+    def __init__(self, endpoint: str, site: str, lab: Path, duration: float):
+        ctx = multiprocessing.get_context("spawn")
+        self.ready, self.stop_event = ctx.Event(), ctx.Event()
+        self.proc = ctx.Process(target=publish_room, daemon=True, args=(
+            endpoint, site, WEST, len(HEIGHTS), HEIGHTS, duration, 0, SPEED, str(lab), self.ready, self.stop_event))
+
+    def __enter__(self) -> "Sensors":
+        self.proc.start()
+        assert self.ready.wait(120), "the simulated sensors did not find the service"
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop_event.set()
+        self.proc.join(20)
+        if self.proc.is_alive():
+            self.proc.kill()
+
+
+def _poll(client: httpx.Client, path: str, pred, timeout: float, what: str, seen: list | None = None) -> dict:
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        last = client.get(path).json()
+        if seen is not None:
+            seen.append(last)
+        if pred(last):
+            return last
+        time.sleep(0.25)
+    raise AssertionError(f"{what} within {timeout} s; last: {json.dumps(last)[:3000]}")
+
+
+def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, lab_dir):
+    zport = free_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    site = "boot"
+    settings = ServiceSettings.load(None, http={"port": 0}, zenoh={"listen": (endpoint,)}, state_dir=tmp_path,
+                                    site=site, clock="data", speed=SPEED)
+    intr = yaml.safe_load((lab_dir / "intrinsics.yaml").read_text())
+    truth = {k: e for k, e in load_extrinsics(lab_dir / "reference.yaml").items() if k in WEST}
+    body = {"name": "no initial estimate", "intrinsics_yaml": yaml.safe_dump({c: intr[c] for c in WEST}),
+            "reference_yaml": dump_extrinsics(truth), "person_height": list(HEIGHTS), "config": BOOT}
+    seen: list[dict] = []
+    t0 = time.monotonic()
+    with ServiceThread(settings) as st, httpx.Client(base_url=st.url, timeout=60) as client:
+        st_started = time.time()
+        with Sensors(endpoint, site, lab_dir, duration=600.0):
+            r = client.post("/sessions", json=body)
+            assert r.status_code == 201, r.text
+            s = r.json()
+            sid = s["id"]
+            assert s["state"] == "waiting_for_data" and s["bootstrap"]["phase"] == "collecting"
+            assert s["bootstrap"]["options"]["person_height"] == list(HEIGHTS)
+            collecting = _poll(client, f"/sessions/{sid}", lambda s: s["bootstrap"]["data_seconds"] >= 10, 60,
+                               "no data collected", seen)
+            assert collecting["reason"].startswith("bootstrapping: ") and " s of 60 s collected, " in collecting["reason"]
+            assert collecting["cameras"] == [] and collecting["cycles"] == 0
+            status = client.get("/status").json()
+            assert status["session"]["reason"].startswith("bootstrapping: ")
+            done = _poll(client, f"/sessions/{sid}", lambda s: s["bootstrap"]["phase"] == "done" or s["state"] == "failed",
+                         90, "the bootstrap was not handed over", seen)
+            assert done["state"] != "failed", done["reason"]
+            cal = _poll(client, f"/sessions/{sid}", lambda s: s["state"] in ("calibrating", "converged", "failed")
+                        and s["cycles"] >= 2, 60, "no cycles after the bootstrap", seen)
+            assert cal["state"] != "failed", cal["reason"]
+            t_cal = time.monotonic()
+            stopped = client.post(f"/sessions/{sid}/stop").json()
+        result_text = client.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text
+
+    # the phases as an operator saw them
+    phases = [x["bootstrap"]["phase"] for x in seen]
+    assert "collecting" in phases and phases[-1] == "done"
+    boot = stopped["bootstrap"]
+    print(f"\nwall: handed over {done['bootstrap']['pose_wall'] - st_started:.1f} s after the service started, "
+          f"{t_cal - t0:.1f} s to {cal['cycles']} cycles, stopped after {time.monotonic() - t0:.1f} s")
+    print(json.dumps({k: boot[k] for k in ("attempts", "placed", "not_placed", "scale", "pose_data_seconds")}))
+    # the first attempt (40 s) is early: taken only when a second agrees; the one at 60 s is taken as it is
+    assert boot["attempts"][-1]["accepted"] and boot["attempts"][0]["data_seconds"] >= 40
+    assert len(boot["attempts"]) >= 2 and not boot["attempts"][0]["accepted"]
+    assert "floor" in boot["frame"] and boot["scale"]["method"] == "known height"
+    assert stopped["state"] == "stopped" and stopped["final_batch"]["ran"]
+
+    # the result: the placed cameras, the floor's frame and the people's scale in its header
+    result = parse_extrinsics(result_text)
+    assert set(result) == set(boot["placed"]) and len(result) >= 6
+    assert "floor frame" in result_text and "metric scale from people" in result_text
+    acc = evaluate({k: v.pose for k, v in result.items()}, {k: v.pose for k, v in truth.items()})
+    print(acc.summary())
+    assert acc.shape_position.max < 0.05 and acc.shape_orientation.max < 0.5
+    assert abs(acc.scale - 1) < 0.02
+    # the session's accuracy figures against the reference agree
+    assert stopped["accuracy"]["shape_position_mean"] == pytest.approx(acc.shape_position.mean, abs=1e-3)
