@@ -104,6 +104,11 @@ class _Recent:
     def __contains__(self, x: object) -> bool:
         return x in self._set
 
+    def copy(self) -> "_Recent":
+        c = _Recent(self._n)
+        c._order, c._set = deque(self._order), set(self._set)
+        return c
+
     def add(self, x: tuple) -> None:
         if x in self._set:
             return
@@ -223,7 +228,7 @@ class Synchronizer:
         for s in self.sensors:
             self._stamps[s] = list(other._stamps.get(s, []))
             self._msgs[s] = list(other._msgs.get(s, []))
-            self._last_seq[s] = deque(other._last_seq.get(s, ()), maxlen=64)
+            self._last_seq[s] = other._last_seq[s].copy() if s in other._last_seq else _Recent(64)
             if s in other.offsets:
                 self.offsets[s] = other.offsets[s]
         self.next_time = other.next_time
