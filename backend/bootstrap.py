@@ -573,8 +573,15 @@ class BootstrapResult:
         return out
 
     def to_dict(self) -> dict:
+        """The metadata, with the placed cameras' poses (``poses``: name → translation,
+        rotation quaternion x, y, z, w, as in the extrinsics YAML; the bootstrap's own
+        estimate, before any online pipeline)."""
+        from .geometry import R_to_quat
+
         return {
             "frame": self.frame,
+            "poses": {n: {"translation": self.t[c].tolist(), "rotation": R_to_quat(self.R[c]).tolist()}
+                      for c, n in enumerate(self.names) if self.located[c]},
             "scale": self.scale.to_dict() if self.scale else None,
             "located": [n for c, n in enumerate(self.names) if self.located[c]],
             "not_located": [n for c, n in enumerate(self.names) if not self.located[c]],
