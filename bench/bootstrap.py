@@ -235,8 +235,9 @@ def print_calibrate(runs: list[dict]) -> None:
             continue
         b, f = r["bootstrap"], r["final"]
         o = r.get("online")
+        ow = f"{o['within']}/{o['cameras']}" if o else "n/a"
         print(f"| {r['seed']} | {r['seconds']:g} | {f['cameras']}/20 | {b['within']}/{b['cameras']} | "
-              f"{f'{o["within"]}/{o["cameras"]}' if o else 'n/a'} | {f['within']}/{f['cameras']} | "
+              f"{ow} | {f['within']}/{f['cameras']} | "
               f"{f['shape_position']:.4f} / {f['shape_position_max']:.4f} | "
               f"{f['shape_orientation']:.3f} / {f['shape_orientation_max']:.3f} | {_worst(f)} | {r['wall']:.0f} |")
     print("\nCameras not placed (detections in the data / framesets seen together with another camera):\n")
