@@ -723,6 +723,7 @@ class BootstrapResult:
     data_seconds: float
     seconds: float
     stages: Mapping[str, float] = field(default_factory=dict)
+    checks: tuple[str, ...] = ()  # the cameras reached only over bridge pairs and their check ("cam_1 dropped ...")
 
     def __post_init__(self) -> None:
         C = len(self.names)
@@ -756,6 +757,7 @@ class BootstrapResult:
             "not_located": [n for c, n in enumerate(self.names) if not self.located[c]],
             "pairs": self.pairs, "pairs_tried": self.pairs_tried, "frames": self.frames,
             "data_seconds": self.data_seconds, "seconds": self.seconds, "stages": dict(self.stages),
+            "bridge_checks": list(self.checks),
         }
 
 
@@ -930,6 +932,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     opt = config.optimize.model_copy(update={"max_iterations": max(config.optimize.max_iterations, 100)})
     rng = np.random.default_rng(seed)
     tried_reloc = False
+    check_notes: tuple[str, ...] = ()
     rounds = cfg.batch_rounds
     r = 0
     while r < rounds:
@@ -962,10 +965,11 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
             tried_reloc = True
             R, t, located, checks = check_bridged(frames, good, R, t, located, focal, config, seed=seed)
             bridged = sum(ch.outcome in ("re-localised", "dropped") for ch in checks)
+            check_notes = tuple(f"{names[ch.cam]} {ch.outcome}" + (f" (agrees in {ch.agree}/{ch.frames} frames)"
+                                                                   if ch.frames else "") for ch in checks)
             if checks:
-                say("cameras reached only over a bridge pair, checked against the others' persons: " + ", ".join(
-                    f"{names[ch.cam]} {ch.outcome}" + (f" (agrees in {ch.agree}/{ch.frames} frames)"
-                                                       if ch.frames else "") for ch in checks))
+                say("cameras reached only over bridge pairs, checked against the others' persons: "
+                    + ", ".join(check_notes))
             found = 0
             for c in np.flatnonzero(~located):
                 rl = relocalize(frames, int(c), R, t, float(focal[c]), config.associate, seed=seed)
@@ -999,7 +1003,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     std_r[~located] = np.nan
     stages["people"] = _time.perf_counter() - t0
     return BootstrapResult(tuple(names), R, t, located, std_t, std_r, scale, note, len(good), tried, len(frames),
-                           float(data_seconds), _time.perf_counter() - t_start, stages)
+                           float(data_seconds), _time.perf_counter() - t_start, stages, check_notes)
 
 
 def bootstrap_messages(intrinsics: Mapping[str, Intrinsics], config: EngineConfig, messages: Iterable[KeypointMessage],

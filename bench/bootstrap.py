@@ -202,6 +202,7 @@ def run_calibrate(seed: int, seconds: float, cache: Path, overrides: list[str], 
     out["bootstrap_seconds"] = meta["seconds"]
     out["not_placed"] = meta["not_located"]
     out["scale"] = meta["scale"]
+    out["bridge_checks"] = meta.get("bridge_checks", [])
     out["bootstrap"] = _shape(evaluate(boot, ref))
     if len(lines) >= 2:
         cams = json.loads(lines[-2])["cameras"]
@@ -247,6 +248,11 @@ def print_calibrate(runs: list[dict]) -> None:
         vis = r["visibility"]
         lost = ", ".join(f"{n} ({vis[n]['detections']} / {vis[n]['with_another']})" for n in r["not_placed"])
         print(f"- seed {r['seed']}, {r['seconds']:g} s: {lost or 'none'}")
+    checks = [r for r in runs if r.get("bridge_checks")]
+    if checks:
+        print("\nCameras reached only over bridge pairs, checked against the others' persons:\n")
+        for r in checks:
+            print(f"- seed {r['seed']}, {r['seconds']:g} s: {', '.join(r['bridge_checks'])}")
     print("\nload average at the start of each run:", ", ".join(f"{r['load']:.1f}" for r in runs))
 
 
