@@ -24,8 +24,10 @@ intervals in a known world). This module finds one from the preprocessed framese
    persons against a known height or a population prior. A rough figure first, so that
    the pipeline's association (which assumes persons of 1.70-2.00 m) works.
 5. Bundle adjustment (``optimize.solve``, a 'batch' Problem with weak priors): all frames
-   re-associated with the estimate, outlier views dropped, a few rounds. Cameras no pair
-   placed are re-localised by PnP against the persons the others triangulate.
+   re-associated with the estimate, outlier views dropped, a few rounds. Cameras the view
+   graph reached only over bridge pairs (no triangle checked them) are checked against
+   the persons the other cameras triangulate without them (``check_bridged``). Cameras no
+   pair placed are re-localised by PnP against the persons the others triangulate.
 6. The scale from people again (now with multi-view persons, told apart by tracking) and
    the world frame from the floor: the plane of the ankles over time, z up, origin under
    the first camera, x towards the second.
