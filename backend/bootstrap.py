@@ -24,8 +24,10 @@ intervals in a known world). This module finds one from the preprocessed framese
    persons against a known height or a population prior. A rough figure first, so that
    the pipeline's association (which assumes persons of 1.70-2.00 m) works.
 5. Bundle adjustment (``optimize.solve``, a 'batch' Problem with weak priors): all frames
-   re-associated with the estimate, outlier views dropped, a few rounds. Cameras no pair
-   placed are re-localised by PnP against the persons the others triangulate.
+   re-associated with the estimate, outlier views dropped, a few rounds. Cameras the view
+   graph reached only over bridge pairs (no triangle checked them) are checked against
+   the persons the other cameras triangulate without them (``check_bridged``). Cameras no
+   pair placed are re-localised by PnP against the persons the others triangulate.
 6. The scale from people again (now with multi-view persons, told apart by tracking) and
    the world frame from the floor: the plane of the ankles over time, z up, origin under
    the first camera, x towards the second.
@@ -528,6 +530,175 @@ def place_cameras(cameras: int, R: np.ndarray, pairs: Sequence[PairPose], logs: 
     return t, located
 
 
+# ------------------------------------------------------------------ bridges
+
+
+def bridges(cameras: int, edges: Sequence[tuple[int, int]]) -> np.ndarray:
+    """(E,) bool: the edges (a, b) whose removal disconnects their cameras (bridges of the
+    view graph: a pair no cycle of pairs checks)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    E = len(edges)
+    out = np.zeros(E, bool)
+    if E == 0:
+        return out
+    ab = np.array(edges, dtype=np.int64).reshape(-1, 2)
+
+    def groups(keep: np.ndarray) -> np.ndarray:
+        g = coo_matrix((np.ones(int(keep.sum())), (ab[keep, 0], ab[keep, 1])), shape=(cameras, cameras))
+        return connected_components(g, directed=False)[1]
+
+    every = np.ones(E, bool)
+    for k in range(E):
+        every[k] = False
+        lab = groups(every)
+        out[k] = lab[ab[k, 0]] != lab[ab[k, 1]]
+        every[k] = True
+    return out
+
+
+def core_cameras(cameras: int, edges: Sequence[tuple[int, int]]) -> np.ndarray:
+    """(C,) bool: the largest group of cameras that stays connected without the bridges
+    (the largest 2-edge-connected component: every camera in it is reached by two
+    independent chains of pairs); all False when no group has 3 cameras (a corridor,
+    where every pair is a bridge)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    core = np.zeros(cameras, bool)
+    if not edges:
+        return core
+    ab = np.array(edges, dtype=np.int64).reshape(-1, 2)
+    keep = ~bridges(cameras, edges)
+    if not keep.any():
+        return core
+    g = coo_matrix((np.ones(int(keep.sum())), (ab[keep, 0], ab[keep, 1])), shape=(cameras, cameras))
+    lab = connected_components(g, directed=False)[1]
+    in_edge = np.zeros(cameras, bool)
+    in_edge[ab[keep].ravel()] = True
+    sizes = np.bincount(lab[in_edge], minlength=lab.max() + 1)
+    best = int(np.argmax(sizes))
+    if sizes[best] >= 3:
+        core = in_edge & (lab == best)
+    return core
+
+
+@dataclass(frozen=True)
+class BridgeCheck:
+    """The check of a camera reached in the view graph only over bridge pairs.
+
+    frames: frames (outside its pairs' own) in which the persons the verified cameras
+    triangulate lie in its view (where its detections lie, ``view_box``) while it sees one
+    person; agree: in how many its detection is that person by its pose (median
+    reprojection error within ``check_px``); outcome: "verified", "re-localised" (by PnP
+    against those persons), "dropped" (the evidence is against its pose and PnP found
+    none) or "unchecked" (too few such frames: kept as the view graph placed it).
+    """
+
+    cam: int
+    frames: int
+    agree: int
+    outcome: str
+
+
+def view_box(frames: Sequence[Frame], cameras: int) -> np.ndarray:
+    """(C, 2, 2) per camera the 1 % and 99 % quantiles of its detections' normalised
+    coordinates (where people appear in its image; NaN without detections)."""
+    out = np.full((cameras, 2, 2), np.nan)
+    pts: dict[int, list[np.ndarray]] = defaultdict(list)
+    for _, views in frames:
+        for v in views:
+            for d in v:
+                pts[d.cam].append(d.xy[np.all(np.isfinite(d.xy), axis=1)])
+    for c, ps in pts.items():
+        P = np.concatenate(ps)
+        if len(P):
+            out[c] = np.percentile(P, [1, 99], axis=0)
+    return out
+
+
+def _agreement(per: Sequence[tuple[np.ndarray, np.ndarray]], R: np.ndarray, t: np.ndarray, box: np.ndarray,
+               tol: float) -> tuple[int, int]:
+    """(frames whose person lies in the view box of the pose R (3, 3), t (3,), frames
+    among them whose detection is within ``tol`` (normalised, median over joints))."""
+    seen = agree = 0
+    for X, x in per:
+        Xc = (X - t) @ R
+        z = Xc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = Xc[:, :2] / z[:, None]
+        inside = (z > 0) & np.all((u >= box[0]) & (u <= box[1]), axis=1)
+        if inside.mean() < 0.5:
+            continue
+        seen += 1
+        agree += bool(np.median(np.linalg.norm(u[inside] - x[inside], axis=1)) < tol)
+    return seen, agree
+
+
+def check_bridged(frames: Sequence[Frame], pairs: Sequence[PairPose], R: np.ndarray, t: np.ndarray,
+                  located: np.ndarray, focal: np.ndarray, config: EngineConfig, *, seed: int = 0
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[BridgeCheck]]:
+    """Check the located cameras the view graph reached only over bridge pairs (pairs no
+    triangle of pairs checks: a pair whose frames mixed two walkers who happened to move
+    alike places its camera anywhere, 160° off in one measured case, and the bundle
+    adjustment keeps it with wrong associations) against the persons the cameras of the
+    core (``core_cameras``) triangulate without them, in frames outside the camera's own
+    pairs' frames (independent evidence): where such a person lies in the camera's view
+    and it sees one person, that must be the person (``_agreement``). A camera agreeing
+    in at least ``check_min_agree`` of at least ``check_min_frames`` such frames is
+    verified and joins the cameras the next ones are checked against; one agreeing less
+    is re-localised by PnP against the same persons (``relocalize``) or, failing that,
+    not placed; one with fewer frames (a corridor, where no camera triangulates what it
+    sees without it; a room behind the others) is kept unchecked. Nothing is checked
+    when no core of 3 cameras exists.
+
+    Returns (R, t, located, checks); R, t, located are copies."""
+    from .relocalize import frame_correspondences, relocalize
+
+    R, t, located = R.copy(), t.copy(), located.copy()
+    cfg = config.bootstrap
+    edges = [(p.a, p.b) for p in pairs if located[p.a] and located[p.b]]
+    verified = core_cameras(len(located), edges) & located
+    checks: list[BridgeCheck] = []
+    if not verified.any():
+        return R, t, located, checks
+    boxes = view_box(frames, len(located))
+    todo = [int(c) for c in np.flatnonzero(located & ~verified)]
+    changed = True
+    while changed and todo:
+        changed = False
+        for c in list(todo):
+            keep = verified.copy()
+            keep[c] = True
+            own = set()
+            for p in pairs:
+                if c in (p.a, p.b):
+                    own.update(p.frames.tolist())
+            fr = _without([f for i, f in enumerate(frames) if i not in own], keep)
+            per = frame_correspondences(fr, c, R, t, config.associate)
+            seen, agree = _agreement(per, R[c], t[c], boxes[c], cfg.check_px / focal[c])
+            if seen < cfg.check_min_frames:
+                continue  # perhaps after more cameras are verified
+            todo.remove(c)
+            changed = True
+            if agree >= cfg.check_min_agree * seen:
+                verified[c] = True
+                checks.append(BridgeCheck(c, seen, agree, "verified"))
+                continue
+            rl = relocalize(_without(frames, keep), c, R, t, float(focal[c]), config.associate,
+                            reprojection_px=cfg.check_px, seed=seed)
+            if rl is not None:
+                R[c], t[c] = rl.R, rl.t
+                verified[c] = True
+                checks.append(BridgeCheck(c, seen, agree, "re-localised"))
+            else:
+                located[c] = False
+                checks.append(BridgeCheck(c, seen, agree, "dropped"))
+    checks += [BridgeCheck(c, 0, 0, "unchecked") for c in todo]
+    return R, t, located, checks
+
+
 # ------------------------------------------------------------------ result
 
 
@@ -554,6 +725,7 @@ class BootstrapResult:
     data_seconds: float
     seconds: float
     stages: Mapping[str, float] = field(default_factory=dict)
+    checks: tuple[str, ...] = ()  # the cameras reached only over bridge pairs and their check ("cam_1 dropped ...")
 
     def __post_init__(self) -> None:
         C = len(self.names)
@@ -573,13 +745,21 @@ class BootstrapResult:
         return out
 
     def to_dict(self) -> dict:
+        """The metadata, with the placed cameras' poses (``poses``: name → translation,
+        rotation quaternion x, y, z, w, as in the extrinsics YAML; the bootstrap's own
+        estimate, before any online pipeline)."""
+        from .geometry import R_to_quat
+
         return {
             "frame": self.frame,
+            "poses": {n: {"translation": self.t[c].tolist(), "rotation": R_to_quat(self.R[c]).tolist()}
+                      for c, n in enumerate(self.names) if self.located[c]},
             "scale": self.scale.to_dict() if self.scale else None,
             "located": [n for c, n in enumerate(self.names) if self.located[c]],
             "not_located": [n for c, n in enumerate(self.names) if not self.located[c]],
             "pairs": self.pairs, "pairs_tried": self.pairs_tried, "frames": self.frames,
             "data_seconds": self.data_seconds, "seconds": self.seconds, "stages": dict(self.stages),
+            "bridge_checks": list(self.checks),
         }
 
 
@@ -754,6 +934,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     opt = config.optimize.model_copy(update={"max_iterations": max(config.optimize.max_iterations, 100)})
     rng = np.random.default_rng(seed)
     tried_reloc = False
+    check_notes: tuple[str, ...] = ()
     rounds = cfg.batch_rounds
     r = 0
     while r < rounds:
@@ -782,8 +963,15 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                 if np.all(np.isfinite(P)):
                     std_t[c] = np.sqrt(max(np.trace(P[3:, 3:]) / 3, 0))
                     std_r[c] = np.degrees(np.sqrt(max(np.trace(P[:3, :3]) / 3, 0)))
-        if last and not tried_reloc and not located.all():
+        if last and not tried_reloc:
             tried_reloc = True
+            R, t, located, checks = check_bridged(frames, good, R, t, located, focal, config, seed=seed)
+            bridged = sum(ch.outcome in ("re-localised", "dropped") for ch in checks)
+            check_notes = tuple(f"{names[ch.cam]} {ch.outcome}" + (f" (agrees in {ch.agree}/{ch.frames} frames)"
+                                                                   if ch.frames else "") for ch in checks)
+            if checks:
+                say("cameras reached only over bridge pairs, checked against the others' persons: "
+                    + ", ".join(check_notes))
             found = 0
             for c in np.flatnonzero(~located):
                 rl = relocalize(frames, int(c), R, t, float(focal[c]), config.associate, seed=seed)
@@ -791,7 +979,9 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                     R[c], t[c], located[c] = rl.R, rl.t, True
                     found += 1
             if found:
-                say(f"re-localised {found} camera(s) by PnP; one more bundle adjustment")
+                say(f"re-localised {found} camera(s) by PnP")
+            if found or bridged:
+                say("one more bundle adjustment")
                 rounds += 1
     stages["bundle"] = _time.perf_counter() - t0
 
@@ -815,7 +1005,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     std_r[~located] = np.nan
     stages["people"] = _time.perf_counter() - t0
     return BootstrapResult(tuple(names), R, t, located, std_t, std_r, scale, note, len(good), tried, len(frames),
-                           float(data_seconds), _time.perf_counter() - t_start, stages)
+                           float(data_seconds), _time.perf_counter() - t_start, stages, check_notes)
 
 
 def bootstrap_messages(intrinsics: Mapping[str, Intrinsics], config: EngineConfig, messages: Iterable[KeypointMessage],

@@ -162,6 +162,12 @@ class BootstrapConfig(_Section):
     min_triangulation_angle: float = Field(3.0, ge=0, description="deg: median angle between a pair's rays; below it the baseline is unknown")
     min_shared_points: int = Field(40, ge=5, description="joints two pairs triangulate at the same instants to relate their scales")
     rotation_outlier: float = Field(5.0, gt=0, description="deg: a pair disagreeing more with the averaged rotations is dropped")
+    check_min_frames: int = Field(10, ge=3, description="a camera reached only over bridge pairs is checked against "
+                                  "the persons the other cameras triangulate when this many of them (outside its pairs' "
+                                  "frames) lie in its view while it sees one person (else kept unchecked)")
+    check_min_agree: float = Field(0.5, ge=0, le=1, description="share of those frames in which its detection must be "
+                                   "that person (within check_px) to pass; else it is re-localised by PnP or not placed")
+    check_px: float = Field(8.0, gt=0, description="px: median reprojection error of an agreeing frame's joints")
     batch_rounds: int = Field(3, ge=1, description="bundle adjustments, each re-associating all frames with the previous result")
     batch_hypotheses: int = Field(800, ge=10, description="most hypotheses per bundle adjustment")
     prior_std_translation: float = Field(1.0, gt=0, description="m: the weak prior of the bundle adjustment (a gauge, not information)")

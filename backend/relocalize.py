@@ -33,12 +33,15 @@ class Relocalization:
     frames: int
 
 
-def correspondences(frames: Sequence[tuple[float, tuple[tuple[Detection, ...], ...]]], cam: int,
-                    R: np.ndarray, t: np.ndarray, cfg: AssociateConfig) -> tuple[np.ndarray, np.ndarray, int]:
-    """World points (N, 3) and the lost camera's normalised points (N, 2) from frames
-    with one person hypothesis (without camera ``cam``) and one detection in ``cam``."""
+def frame_correspondences(frames: Sequence[tuple[float, tuple[tuple[Detection, ...], ...]]], cam: int,
+                          R: np.ndarray, t: np.ndarray, cfg: AssociateConfig, *, with_camera: int | None = None
+                          ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per frame with one person hypothesis (without camera ``cam``) and one detection in
+    ``cam``: the person's triangulated joints (N, 3) and the camera's normalised points
+    (N, 2) of the same joints (N >= 6); with ``with_camera``, only hypotheses that camera
+    is part of."""
     assoc = Associator(cfg)
-    X_all, x_all, used = [], [], 0
+    out = []
     for time_, views in frames:
         mine = [d for v in views for d in v if d.cam == cam]
         if len(mine) != 1:
@@ -51,16 +54,25 @@ def correspondences(frames: Sequence[tuple[float, tuple[tuple[Detection, ...], .
         if len(hyps) != 1 or sum(len(v) for v in others) != len(hyps[0].cams):
             continue  # more than one person (or a stray detection) elsewhere: ambiguous
         h = hyps[0]
+        if with_camera is not None and with_camera not in h.cams:
+            continue
         X, n = triangulate_views(R, t, h.cams, h.xy)
         ok = np.all(np.isfinite(X), axis=1) & (n >= 2) & np.all(np.isfinite(mine[0].xy), axis=1)
         if ok.sum() < 6:
             continue
-        X_all.append(X[ok])
-        x_all.append(mine[0].xy[ok])
-        used += 1
-    if not X_all:
+        out.append((X[ok], mine[0].xy[ok]))
+    return out
+
+
+def correspondences(frames: Sequence[tuple[float, tuple[tuple[Detection, ...], ...]]], cam: int,
+                    R: np.ndarray, t: np.ndarray, cfg: AssociateConfig) -> tuple[np.ndarray, np.ndarray, int]:
+    """World points (N, 3) and the lost camera's normalised points (N, 2) from frames
+    with one person hypothesis (without camera ``cam``) and one detection in ``cam``
+    (``frame_correspondences``, concatenated), and the number of frames."""
+    per = frame_correspondences(frames, cam, R, t, cfg)
+    if not per:
         return np.zeros((0, 3)), np.zeros((0, 2)), 0
-    return np.concatenate(X_all), np.concatenate(x_all), used
+    return np.concatenate([X for X, _ in per]), np.concatenate([x for _, x in per]), len(per)
 
 
 def relocalize(frames, cam: int, R: np.ndarray, t: np.ndarray, focal: float, cfg: AssociateConfig,

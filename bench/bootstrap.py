@@ -16,6 +16,14 @@ seeds (recordings cached like bench/accuracy.py, with its helpers). Per seed:
     python bench/bootstrap.py                         # 5 seeds, checkpoints 60, 90, 120 s
     python bench/bootstrap.py --seeds 2 --checkpoints 120 --no-online
     python bench/bootstrap.py --report b.json         # the tables of an earlier --out
+    python bench/bootstrap.py --data-seconds 110 --out c.json   # `extrcal calibrate` on the first 110 s
+
+With --data-seconds T: the whole `extrcal calibrate` path without an initial estimate
+(``backend.cli_engine.calibrate`` itself, in this process: the bootstrap, the online
+pipeline from it, the final batch) on a copy of the recording cut after T s; per seed the
+similarity-aligned errors of the bootstrap alone, the online estimate before the final batch
+and the result, and the cameras not placed with their detections (a camera that never sees
+a person together with another camera cannot be placed).
 
 No figure is asserted here: tests/backend/test_bootstrap.py holds the pass/fail bars.
 """
@@ -115,6 +123,139 @@ def run_seed(seed: int, checkpoints: list[float], cache: Path, online: bool, say
     return out
 
 
+def first_seconds(rec: Path, seconds: float) -> Path:
+    """The recording's messages stamped within ``seconds`` of its first stamp (the median
+    of the first 16 messages' stamps, as the pipeline's clock starts), cached next to it."""
+    from proto import read_recording, write_recording
+
+    out = rec.with_name(f"{rec.name}.first{seconds:g}s.msgpack")
+    if out.is_file():
+        return out
+    head = []
+    for m in read_recording(rec):
+        head.append(m.stamp)
+        if len(head) >= 16:
+            break
+    t0 = float(np.median(head))
+    tmp = out.with_name(f".{os.getpid()}.{out.name}")
+    write_recording(tmp, (m for m in read_recording(rec) if m.stamp - t0 <= seconds))
+    os.replace(tmp, out)
+    return out
+
+
+def visibility(rec: Path, names, intr, cfg) -> dict[str, dict]:
+    """Per camera: detections in the recording, and framesets (after the pipeline's front
+    end, sync and preprocess) in which it sees a person together with another camera."""
+    from backend.bootstrap import collect_frames
+    from proto import read_recording
+
+    det = {n: 0 for n in names}
+    for m in read_recording(rec):
+        if m.sensor in det:
+            det[m.sensor] += len(m.persons)
+    together = np.zeros(len(names), np.int64)
+    for _, views in collect_frames(names, intr, cfg, read_recording(rec)):
+        for v in views:
+            together[v[0].cam] += 1
+    return {n: {"detections": det[n], "with_another": int(together[c])} for c, n in enumerate(names)}
+
+
+def run_calibrate(seed: int, seconds: float, cache: Path, overrides: list[str], say) -> dict:
+    """The whole `extrcal calibrate` path without an initial estimate (``cli_engine.calibrate``
+    itself: bootstrap, online pipeline, final batch) on the first ``seconds`` of the
+    recording. Errors after a similarity alignment to the truth of: the bootstrap alone
+    (its poses in out.yaml.bootstrap.json), the online estimate of the last regular cycle
+    (the history's second-to-last line; the last is after the final batch) and the result."""
+    import tempfile
+
+    import accuracy
+    import typer
+
+    from backend.cameras import Pose, load_extrinsics, load_intrinsics, natural_key
+    from backend.cli_engine import calibrate
+    from backend.config import EngineConfig
+    from backend.evaluate import evaluate
+    from backend.geometry import quat_to_R
+
+    lab = accuracy.lab_dir()
+    rec = first_seconds(accuracy.simulate(2, 180.0, seed, cache), seconds)
+    intr = load_intrinsics(lab / "intrinsics.yaml")
+    ref = {n: e.pose for n, e in load_extrinsics(lab / "reference.yaml").items()}
+    names = tuple(sorted(intr, key=natural_key))
+    out: dict = {"seed": seed, "seconds": seconds, "load": os.getloadavg()[0], "overrides": overrides}
+    out["visibility"] = visibility(rec, names, intr, EngineConfig.load(None, overrides))
+    with tempfile.TemporaryDirectory(prefix="extrcal-bench-boot-") as d:
+        res, hist = Path(d) / "out.yaml", Path(d) / "history.jsonl"
+        t0 = time.perf_counter()
+        try:
+            calibrate(intrinsics=lab / "intrinsics.yaml", recording=rec, output=res, initial=None,
+                      distrust_initial=False, person_height=None, reference=None, config=None, set_=overrides,
+                      seed=seed, history=hist, skip_bad=False, quiet=True)
+        except typer.Exit as e:  # cli.fail: the bootstrap or the run failed (its message is on stderr)
+            out["error"] = f"calibrate exited with code {e.exit_code}"
+            return out
+        out["wall"] = time.perf_counter() - t0
+        meta = json.loads(Path(f"{res}.bootstrap.json").read_text())
+        boot = {n: Pose(quat_to_R(v["rotation"]), np.array(v["translation"])) for n, v in meta["poses"].items()}
+        final = {n: e.pose for n, e in load_extrinsics(res).items()}
+        lines = hist.read_text().splitlines()
+    out["bootstrap_seconds"] = meta["seconds"]
+    out["not_placed"] = meta["not_located"]
+    out["scale"] = meta["scale"]
+    out["bridge_checks"] = meta.get("bridge_checks", [])
+    out["bootstrap"] = _shape(evaluate(boot, ref))
+    if len(lines) >= 2:
+        cams = json.loads(lines[-2])["cameras"]
+        online = {c["name"]: Pose(quat_to_R(c["rotation"]), np.array(c["translation"])) for c in cams}
+        out["online"] = _shape(evaluate(online, ref))
+    out["final"] = _shape(evaluate(final, ref))
+    f = out["final"]
+    say(f"seed {seed}, {seconds:g} s: bootstrap {out['bootstrap']['within']}/{out['bootstrap']['cameras']} within "
+        f"bars, final {f['within']}/{f['cameras']}, shape {f['shape_position']:.4f} m (max "
+        f"{f['shape_position_max']:.4f}) {f['shape_orientation']:.3f}° (max {f['shape_orientation_max']:.3f}); "
+        f"not placed: {', '.join(out['not_placed']) or '-'}; {out['wall']:.0f} s")
+    return out
+
+
+def _worst(s: dict) -> str:
+    """The camera furthest outside the bars (or the worst within them)."""
+    n, (p, o) = max(s["per_camera"].items(), key=lambda kv: max(kv[1][0] / BAR_POSITION, kv[1][1] / BAR_ORIENTATION))
+    return f"{n} {p:.3f} m / {o:.2f}°"
+
+
+def print_calibrate(runs: list[dict]) -> None:
+    print("\n## `extrcal calibrate` without an initial estimate on the first T s of data\n")
+    print("Similarity-aligned error per placed camera: bootstrap alone, online pipeline before the final "
+          "batch, the result (after the final batch). Cameras within 0.05 m / 0.5°.\n")
+    print("| seed | data s | placed | bootstrap within | online within | result within | result shape pos mean / max (m) "
+          "| orient mean / max (°) | worst camera (result) | wall s |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for r in runs:
+        if "error" in r:
+            print(f"| {r['seed']} | {r['seconds']:g} | failed: {r['error']} | | | | | | | |")
+            continue
+        b, f = r["bootstrap"], r["final"]
+        o = r.get("online")
+        ow = f"{o['within']}/{o['cameras']}" if o else "n/a"
+        print(f"| {r['seed']} | {r['seconds']:g} | {f['cameras']}/20 | {b['within']}/{b['cameras']} | "
+              f"{ow} | {f['within']}/{f['cameras']} | "
+              f"{f['shape_position']:.4f} / {f['shape_position_max']:.4f} | "
+              f"{f['shape_orientation']:.3f} / {f['shape_orientation_max']:.3f} | {_worst(f)} | {r['wall']:.0f} |")
+    print("\nCameras not placed (detections in the data / framesets seen together with another camera):\n")
+    for r in runs:
+        if "error" in r:
+            continue
+        vis = r["visibility"]
+        lost = ", ".join(f"{n} ({vis[n]['detections']} / {vis[n]['with_another']})" for n in r["not_placed"])
+        print(f"- seed {r['seed']}, {r['seconds']:g} s: {lost or 'none'}")
+    checks = [r for r in runs if r.get("bridge_checks")]
+    if checks:
+        print("\nCameras reached only over bridge pairs, checked against the others' persons:\n")
+        for r in checks:
+            print(f"- seed {r['seed']}, {r['seconds']:g} s: {', '.join(r['bridge_checks'])}")
+    print("\nload average at the start of each run:", ", ".join(f"{r['load']:.1f}" for r in runs))
+
+
 def _needed(r: dict) -> float | None:
     """Data seconds of the first checkpoint at which every placed camera is within the bars
     and no camera that a later checkpoint places is missing."""
@@ -171,18 +312,34 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--checkpoints", default="60,90,120", help="data seconds the bootstrap gets, comma separated")
     ap.add_argument("--no-online", action="store_true", help="skip the online pipeline after the bootstrap")
+    ap.add_argument("--data-seconds", help="instead: the whole `extrcal calibrate` path (bootstrap, online pipeline, "
+                    "final batch) on only the first T s of each recording; T comma separated")
+    ap.add_argument("--set", dest="set_", action="append", default=[], help="engine parameter override (with "
+                    "--data-seconds), e.g. bootstrap.min_pair_frames=20 (repeatable)")
     ap.add_argument("--cache", type=Path, default=Path(tempfile_dir()) / "extrcal-accuracy-cache")
     ap.add_argument("--out", type=Path, help="write the runs as JSON")
     ap.add_argument("--report", type=Path, help="print the tables of an earlier --out and stop")
     a = ap.parse_args(argv)
     if a.report:
-        print_tables(json.loads(a.report.read_text())["runs"])
+        data = json.loads(a.report.read_text())
+        print_calibrate(data["runs"]) if data.get("mode") == "calibrate" else print_tables(data["runs"])
+        return
+    say = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
+    if a.data_seconds:
+        from backend.cameras import write_atomic
+
+        runs = []
+        for T in [float(x) for x in a.data_seconds.split(",")]:
+            for seed in range(a.first_seed, a.first_seed + a.seeds):
+                runs.append(run_calibrate(seed, T, a.cache, a.set_, say))
+                if a.out:
+                    write_atomic(a.out, json.dumps({"mode": "calibrate", "runs": runs}, indent=1))
+        print_calibrate(runs)
         return
     checkpoints = [float(x) for x in a.checkpoints.split(",")]
     runs = []
     for seed in range(a.first_seed, a.first_seed + a.seeds):
-        runs.append(run_seed(seed, checkpoints, a.cache, not a.no_online,
-                             lambda m: print(m, file=sys.stderr, flush=True)))
+        runs.append(run_seed(seed, checkpoints, a.cache, not a.no_online, say))
         if a.out:
             from backend.cameras import write_atomic
 
