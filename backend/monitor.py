@@ -63,18 +63,22 @@ class Correspondences:
     """One camera's joints at one instant against points the others triangulated.
 
     X: (N, 3) world points; xy: (N, 2) the camera's undistorted normalised keypoints;
-    sigma: (N,) their normalised std; view: (N,) int id of the person view (hypothesis)."""
+    sigma: (N,) their normalised std; view: (N,) int id of the person view (hypothesis);
+    Xcov: (N, 3, 3) the points' covariance (m², from the others' rays and keypoint std),
+    None: the points taken as exact."""
 
     time: float
     X: np.ndarray
     xy: np.ndarray
     sigma: np.ndarray
     view: np.ndarray
+    Xcov: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         N = len(self.X)
         assert self.X.shape == (N, 3) and self.xy.shape == (N, 2) and self.sigma.shape == (N,)
         assert self.view.shape == (N,)
+        assert self.Xcov is None or self.Xcov.shape == (N, 3, 3)
 
 
 @dataclass(frozen=True)
@@ -111,16 +115,20 @@ def resect(R: np.ndarray, t: np.ndarray, data: Sequence[Correspondences], focal:
     """The camera's pose from ``data`` starting at R, t: Gauss-Newton with a Huber
     weight (``huber`` sigmas); then person views whose median residual is far above the
     rest (beyond ``outlier_px`` and 4x the median view; wrong associations) are dropped
-    and the fit repeated. None when too little is left for a pose."""
+    and the fit repeated. A residual's covariance is its keypoint's plus its point's
+    (``Xcov``) projected into the camera: a person near the camera and far from the
+    others, whose points the others place to a few cm, says little about the camera's
+    orientation, however large it is in the image. None when too little is left for a pose."""
     if not data:
         return None
     X = np.concatenate([d.X for d in data])
     xy = np.concatenate([d.xy for d in data])
     sig = np.concatenate([d.sigma for d in data])
     view = np.concatenate([d.view for d in data])
+    Xcov = np.concatenate([np.zeros((len(d.X), 3, 3)) if d.Xcov is None else d.Xcov for d in data])
     keep = np.ones(len(X), bool)
     for round_ in range(2):
-        fit = _gauss_newton(R, t, X[keep], xy[keep], sig[keep], huber, iterations)
+        fit = _gauss_newton(R, t, X[keep], xy[keep], sig[keep], Xcov[keep], huber, iterations)
         if fit is None:
             return None
         R1, t1, info, res = fit
@@ -139,20 +147,31 @@ def resect(R: np.ndarray, t: np.ndarray, data: Sequence[Correspondences], focal:
     return Resection(R1, t1, info, n, int(len(np.unique(view[keep]))), float(np.sqrt(np.mean((res * focal) ** 2))))
 
 
-def _gauss_newton(R, t, X, xy, sig, huber, iterations):
+def _gauss_newton(R, t, X, xy, sig, Xcov, huber, iterations):
     if len(X) < 12:
         return None
-    for _ in range(iterations):
+
+    def normal_equations(R, t):
         uv, J = project_normalised(R, t, X)
         if not np.all(np.isfinite(uv)):
             return None
-        r = (uv - xy) / sig[:, None]  # (N, 2) in sigmas
-        e = np.linalg.norm(r, axis=1)
+        dproj = -J[:, :, 3:]  # (N, 2, 3) d uv / d point in the camera frame
+        A = dproj @ np.transpose(R)  # d uv / d world point
+        S = np.einsum("nij,njk,nlk->nil", A, Xcov, A) + (sig ** 2)[:, None, None] * np.eye(2)
+        Si = np.linalg.inv(S)  # (N, 2, 2)
+        r = uv - xy
+        e = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", r, Si, r), 0.0))  # in sigmas
         w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
-        sw = np.sqrt(w)
-        A = (J * (sw / sig)[:, None, None]).reshape(-1, 6)
-        H = A.T @ A
-        g = A.T @ (r * sw[:, None]).reshape(-1)
+        WJ = np.einsum("n,nij,njk->nik", w, Si, J)
+        H = np.einsum("nij,nik->jk", J, WJ)
+        g = np.einsum("nik,ni->k", WJ, r)
+        return uv, H, g
+
+    for _ in range(iterations):
+        ne = normal_equations(R, t)
+        if ne is None:
+            return None
+        _, H, g = ne
         try:
             dx = -np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
@@ -160,12 +179,10 @@ def _gauss_newton(R, t, X, xy, sig, huber, iterations):
         R, t = pose_retract(R, t, dx)
         if np.linalg.norm(dx) < 1e-7:
             break
-    uv, J = project_normalised(R, t, X)
-    r = (uv - xy) / sig[:, None]
-    e = np.linalg.norm(r, axis=1)
-    w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
-    A = (J * (np.sqrt(w) / sig)[:, None, None]).reshape(-1, 6)
-    H = A.T @ A
+    ne = normal_equations(R, t)
+    if ne is None:
+        return None
+    uv, H, _ = ne
     if not np.all(np.isfinite(H)) or np.linalg.cond(H) > 1e12:
         return None
     return R, t, H, np.linalg.norm(uv - xy, axis=1)
@@ -178,11 +195,12 @@ def correspondences(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, tr
     may come from; at least two of them in the hypothesis). Left out:
     points whose rays meet at less than ``min_angle_deg`` (their depth is unknown) and
     points that reproject further than ``max_px`` from a view they were triangulated from
-    (a view of another person, a wrong detection: the point is not the person's joint)."""
+    (a view of another person, a wrong detection: the point is not the person's joint).
+    Each point comes with its covariance from its rays and their keypoints' std."""
     out: dict[int, list[Correspondences]] = {}
     C = len(R)
     trust = np.broadcast_to(trusted, (C, C)) & ~np.eye(C, dtype=bool)
-    rows_cams, rows_xy, rows_own, rows_meta = [], [], [], []
+    rows_cams, rows_xy, rows_sig, rows_own, rows_meta = [], [], [], [], []
     for k, h in enumerate(hyps):
         V = len(h.cams)
         for v in range(V):
@@ -193,6 +211,7 @@ def correspondences(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, tr
             xy[~ok] = np.nan
             rows_cams.append(np.repeat(h.cams[None], 17, axis=0))
             rows_xy.append(xy.transpose(1, 0, 2))  # (17, V, 2)
+            rows_sig.append(h.sigma.T)  # (17, V)
             rows_own.append((h.xy[v], h.sigma[v]))
             rows_meta.append((int(h.cams[v]), h.time, k))
     if not rows_meta:
@@ -201,10 +220,12 @@ def correspondences(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, tr
     n = len(rows_meta)
     cams = np.zeros((n, 17, Vmax), np.int64)
     xy = np.full((n, 17, Vmax, 2), np.nan)
-    for i, (c, x) in enumerate(zip(rows_cams, rows_xy)):
+    sig = np.full((n, 17, Vmax), np.nan)
+    for i, (c, x, sg) in enumerate(zip(rows_cams, rows_xy, rows_sig)):
         cams[i, :, :c.shape[1]] = c
         xy[i, :, :x.shape[1]] = x
-    seen = np.all(np.isfinite(xy), axis=3)  # (n, 17, V)
+        sig[i, :, :sg.shape[1]] = sg
+    seen = np.all(np.isfinite(xy), axis=3) & np.isfinite(sig) & (np.nan_to_num(sig) > 0)  # (n, 17, V)
     Xw, rays = _midpoints(R, t, cams, xy, seen)
     # the widest angle between two of a point's rays
     cos = np.einsum("njvk,njwk->njvw", rays, rays)
@@ -216,13 +237,21 @@ def correspondences(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, tr
     with np.errstate(divide="ignore", invalid="ignore"):
         px = np.linalg.norm(Xc[..., :2] / Xc[..., 2:3] - xy, axis=3) * focal[cams]
     good &= np.where(seen, px, 0.0).max(axis=2) <= max_px
+    # the point's information: each ray pins it across itself to its keypoint's std times
+    # the depth
+    with np.errstate(divide="ignore", invalid="ignore"):
+        wv = np.where(seen & (Xc[..., 2] > 0), 1.0 / (np.nan_to_num(sig, nan=1.0) * Xc[..., 2]) ** 2, 0.0)
+    wv = np.nan_to_num(wv, nan=0.0, posinf=0.0)
+    info = np.einsum("njv,njvab->njab", wv, np.eye(3) - rays[..., :, None] * rays[..., None, :])
+    info[~good] = np.eye(3)
+    Xcov = np.linalg.inv(info)
     for i, (c, time, k) in enumerate(rows_meta):
         own_xy, own_sig = rows_own[i]
         m = good[i] & np.all(np.isfinite(own_xy), axis=1) & np.isfinite(own_sig)
         if m.sum() < 4:
             continue
         out.setdefault(c, []).append(Correspondences(time, Xw[i, m], own_xy[m], own_sig[m],
-                                                     np.full(int(m.sum()), k, np.int64)))
+                                                     np.full(int(m.sum()), k, np.int64), Xcov[i, m]))
     return out
 
 
