@@ -111,11 +111,11 @@ class Recalibration:
 
 
 def resect(R: np.ndarray, t: np.ndarray, data: Sequence[Correspondences], focal: float, *, outlier_px: float,
-           huber: float = 2.0, iterations: int = 8) -> Resection | None:
+           huber: float = 2.0, reject: float = 5.0, iterations: int = 8) -> Resection | None:
     """The camera's pose from ``data`` starting at R, t: Gauss-Newton with a Huber
     weight (``huber`` sigmas); then person views whose median residual is far above the
-    rest (beyond ``outlier_px`` and 4x the median view; wrong associations) are dropped
-    and the fit repeated. A residual's covariance is its keypoint's plus its point's
+    rest (beyond ``outlier_px`` and 4x the median view; wrong associations), and joints
+    beyond ``reject`` sigmas, are dropped and the fit repeated. A residual's covariance is its keypoint's plus its point's
     (``Xcov``) projected into the camera: a person near the camera and far from the
     others, whose points the others place to a few cm, says little about the camera's
     orientation, however large it is in the image. None when too little is left for a pose."""
@@ -131,17 +131,20 @@ def resect(R: np.ndarray, t: np.ndarray, data: Sequence[Correspondences], focal:
         fit = _gauss_newton(R, t, X[keep], xy[keep], sig[keep], Xcov[keep], huber, iterations)
         if fit is None:
             return None
-        R1, t1, info, res = fit
+        R1, t1, info, res, err = fit
         if round_ == 1:
             break
         _, inv = np.unique(view[keep], return_inverse=True)
         res_px = res * focal
         med = np.array([np.median(res_px[inv == k]) for k in range(inv.max() + 1)])
         bad = med > max(outlier_px, 4.0 * float(np.median(med)))
-        if not bad.any():
+        # ... and single joints far beyond their covariance (a limb's left and right
+        # swapped, a joint put on the other person): Huber's weight still lets them pull
+        bad_joint = err > reject
+        if not bad.any() and not bad_joint.any():
             break
         idx = np.flatnonzero(keep)
-        keep[idx[bad[inv]]] = False
+        keep[idx[bad[inv] | bad_joint]] = False
         R, t = R1, t1
     n = int(keep.sum())
     return Resection(R1, t1, info, n, int(len(np.unique(view[keep]))), float(np.sqrt(np.mean((res * focal) ** 2))))
@@ -165,13 +168,13 @@ def _gauss_newton(R, t, X, xy, sig, Xcov, huber, iterations):
         WJ = np.einsum("n,nij,njk->nik", w, Si, J)
         H = np.einsum("nij,nik->jk", J, WJ)
         g = np.einsum("nik,ni->k", WJ, r)
-        return uv, H, g
+        return uv, H, g, e
 
     for _ in range(iterations):
         ne = normal_equations(R, t)
         if ne is None:
             return None
-        _, H, g = ne
+        _, H, g, _ = ne
         try:
             dx = -np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
@@ -182,10 +185,10 @@ def _gauss_newton(R, t, X, xy, sig, Xcov, huber, iterations):
     ne = normal_equations(R, t)
     if ne is None:
         return None
-    uv, H, _ = ne
+    uv, H, _, e = ne
     if not np.all(np.isfinite(H)) or np.linalg.cond(H) > 1e12:
         return None
-    return R, t, H, np.linalg.norm(uv - xy, axis=1)
+    return R, t, H, np.linalg.norm(uv - xy, axis=1), e
 
 
 def correspondences(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, trusted: np.ndarray,
