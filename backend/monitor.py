@@ -475,8 +475,9 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
     after vs before, χ² against their covariances plus ``floor`` (6, 6). Each bin's
     covariance is its information's inverse plus the error it does not show
     (``bin_floor``, measured on the bins before the window). Returns the most
-    significant split that passes ``chi2`` and the size thresholds as (χ², m, deg, data
-    time of the change), or None."""
+    significant split that passes ``chi2`` and the size thresholds, also without any one
+    of the bins after it (so at least ``min_change_bins`` + 1 of them), as (χ², m, deg,
+    data time of the change; the χ² the least of those), or None."""
     n = len(z)
     first = next((j for j in range(n) if now - start[j] <= cfg.window_seconds), n)
     first = max(first, cfg.min_reference_bins)
@@ -487,20 +488,35 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
     W = np.linalg.inv(C + F)
     _, _, kappa, _ = _mean(z[:first], W[:first])
     best = None
-    for j in range(first, n - cfg.min_change_bins + 1):
+    def step(j: int, after: np.ndarray) -> tuple[float, np.ndarray] | None:
         zr, Sr, _, _ = _mean(z[:j], W[:j], kappa)
-        zn, Sn, _, kept = _mean(z[j:], W[j:], kappa)
+        zn, Sn, _, kept = _mean(z[after], W[after], kappa)
         if kept < cfg.min_change_bins:
-            continue  # bins after the split that disagree among themselves are no step
+            return None  # bins after the split that disagree among themselves are no step
         d = zn - zr
-        S = kappa * (Sr + Sn) + floor
         try:
-            chi2 = float(d @ np.linalg.solve(S, d))
+            return float(d @ np.linalg.solve(kappa * (Sr + Sn) + floor, d)), d
         except np.linalg.LinAlgError:
+            return None
+
+    for j in range(first, n - cfg.min_change_bins):
+        found = step(j, np.arange(j, n))
+        if found is None or found[0] <= cfg.chi2:
             continue
+        # ... and still without any one of the bins after it: one bin far off (a person
+        # the camera sees oddly for a few seconds) is no step
+        for leave in range(j, n):
+            without = step(j, np.delete(np.arange(j, n), leave - j))
+            if without is None or without[0] < found[0]:
+                found = without
+            if found is None or found[0] <= cfg.chi2:
+                break
+        if found is None or found[0] <= cfg.chi2:
+            continue
+        chi2, d = found
         rot = float(np.degrees(np.linalg.norm(d[:3])))
         trans = float(np.linalg.norm(d[3:]))
-        if chi2 > cfg.chi2 and (trans > cfg.min_translation or rot > cfg.min_rotation):
+        if trans > cfg.min_translation or rot > cfg.min_rotation:
             if best is None or chi2 > best[0]:
                 best = (chi2, trans, rot, float(start[j]))
     return best
