@@ -295,7 +295,6 @@ class _Camera:
     # later would change the points, and look like this camera moving)
     trust: np.ndarray | None = None
     since: float | None = None  # being calibrated again with the data from this time on
-    failed: bool = False  # its last test found a change
 
 
 class Monitor:
@@ -353,7 +352,7 @@ class Monitor:
         self._correspond(R, t, watched)
         recalibrating = self.recalibrating()
         results: list[Recalibration] = []
-        candidates: list[tuple[float, bool, Alarm]] = []
+        candidates: list[tuple[float, Alarm]] = []
         keep_from = now - (cfg.window_seconds + 2 * cfg.bin_seconds)
         for c, k in enumerate(self.cams):
             if k.since is not None:
@@ -384,18 +383,17 @@ class Monitor:
                     self._close_bin(c, k, now, R, t)
                     a = self._test(c, k, now)
                     if a is not None:
-                        candidates.append((a.chi2, k.failed, a))
-                    k.failed = a is not None
+                        candidates.append((a.chi2, a))
             while k.data and k.data[0].time < keep_from:
                 k.data.popleft()
         alarms = []
         # Of the cameras that fail, the most significant is flagged (a moved camera biases
-        # the points the others are tested against, so they may fail too), once its next
-        # test confirms it: right after a move the moved camera may not have enough bins
-        # after it to be tested while a camera it biased already has.
+        # the points the others are tested against, so they may fail too; the bins are on
+        # a common grid, so they all have as many bins after the move). A single odd bin
+        # does not fail a test (``change_test`` leaves each one out).
         top = max(candidates, key=lambda x: x[0]) if candidates else None
-        if top is not None and top[1]:
-            a = top[2]
+        if top is not None:
+            a = top[1]
             alarms.append(a)
             self.alarms.append(a)
             k = self.cams[a.cam]
@@ -410,7 +408,6 @@ class Monitor:
             for c, o in enumerate(self.cams):
                 if c != a.cam and o.since is None:
                     o.bins = [b for b in o.bins if b[1] <= a.since]
-                    o.failed = False
                     while o.data and o.data[-1].time >= a.since:
                         o.data.pop()
         return alarms, results
@@ -421,7 +418,6 @@ class Monitor:
         k.anchor = None
         k.trust = None
         k.since = None
-        k.failed = False
         k.data.clear()
 
     def _in_anchor_frame(self, c: int, R: np.ndarray, t: np.ndarray, Rs: np.ndarray, ts: np.ndarray
@@ -552,6 +548,10 @@ def bin_floor(z: np.ndarray, C: np.ndarray, cfg: MonitorConfig) -> np.ndarray:
 
 
 _CHI2_6_MEDIAN = 5.348  # median of the χ² distribution with 6 dof
+# least overdispersion: bins that scatter less than their covariances say (the points'
+# covariance assumes the keypoint std the detector states) make the test that much
+# more sensitive, up to this (a guard against a median of few bins far below its mean)
+_KAPPA_MIN = 0.25
 _CHI2_6_Q75 = 7.841  # its upper quartile
 
 
@@ -559,8 +559,8 @@ def _mean(z: np.ndarray, W: np.ndarray, kappa: float | None = None, *, huber: fl
           ) -> tuple[np.ndarray, np.ndarray, float, int]:
     """Robust information-weighted mean of poses z (n, 6) with informations W (n, 6, 6):
     (mean, its covariance, overdispersion, bins kept). The overdispersion, unless given, is the bins'
-    median χ² around the mean over the χ² distribution's median (at least 1: what the
-    solver's information overstates). A bin further than ``huber`` (Mahalanobis, scaled by
+    median χ² around the mean over the χ² distribution's median (what the solver's
+    information overstates or, below 1, understates; at least ``_KAPPA_MIN``). A bin further than ``huber`` (Mahalanobis, scaled by
     the overdispersion) from the mean is down-weighted: one bin of wrong associations
     must not make a change; one beyond ``reject`` is left out."""
     k = 1.0 if kappa is None else kappa
@@ -569,7 +569,7 @@ def _mean(z: np.ndarray, W: np.ndarray, kappa: float | None = None, *, huber: fl
         r = z - m
         chi = np.einsum("ni,nij,nj->n", r, W, r)
         if kappa is None and len(z) >= 3:
-            k = max(float(np.median(chi)) / _CHI2_6_MEDIAN, 1.0)
+            k = max(float(np.median(chi)) / _CHI2_6_MEDIAN, _KAPPA_MIN)
         dist = np.sqrt(chi / k)
         w = np.where(dist <= huber, 1.0, huber / np.maximum(dist, 1e-12)) * (dist <= reject)
         if not w.any():

@@ -89,7 +89,11 @@ def run(seed: int, bump: tuple[float, float] | None, camera: str, bump_time: flo
                 break
         p.finish()
         calibration = _network_error(p.refiner.R, p.refiner.t, names, ref)
-        p = Pipeline.restore(cams, cfg, p.snapshot(), seed=seed)
+        snapshot = p.snapshot()
+        # the cameras the session left converged are watched from the start (as they
+        # would be had the monitor been on in the session)
+        snapshot["watched"] = [bool(p.refiner.converged(c)) for c in range(len(names))]
+        p = Pipeline.restore(cams, cfg, snapshot, seed=seed)
     else:
         p = Pipeline(cams, cfg, seed=seed)
     at_bump = None
