@@ -130,7 +130,8 @@ class MonitorConfig(_Section):
     bin_seconds: float = Field(5.0, gt=0, description="s of data per resection of a watched camera (one sample of the change test)")
     min_points: int = Field(100, ge=12, description="joints a bin needs to count")
     window_seconds: float = Field(60.0, gt=0, description="s: a change is looked for this far back")
-    min_change_bins: int = Field(2, ge=1, description="bins after a change before it is flagged")
+    min_change_bins: int = Field(2, ge=1, description="bins after a change before it is flagged, with any one "
+                                 "of them left out (so one more than this)")
     reference_seconds: float = Field(180.0, gt=0, description="s of the camera's own bins before a change it is compared with")
     min_reference_bins: int = Field(12, ge=3, description="bins a camera needs before the change test runs")
     bin_std_translation: float = Field(0.05, ge=0, description="m: most error of one bin's resection that its information does "

@@ -63,18 +63,22 @@ class Correspondences:
     """One camera's joints at one instant against points the others triangulated.
 
     X: (N, 3) world points; xy: (N, 2) the camera's undistorted normalised keypoints;
-    sigma: (N,) their normalised std; view: (N,) int id of the person view (hypothesis)."""
+    sigma: (N,) their normalised std; view: (N,) int id of the person view (hypothesis);
+    Xcov: (N, 3, 3) the points' covariance (m², from the others' rays and keypoint std),
+    None: the points taken as exact."""
 
     time: float
     X: np.ndarray
     xy: np.ndarray
     sigma: np.ndarray
     view: np.ndarray
+    Xcov: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         N = len(self.X)
         assert self.X.shape == (N, 3) and self.xy.shape == (N, 2) and self.sigma.shape == (N,)
         assert self.view.shape == (N,)
+        assert self.Xcov is None or self.Xcov.shape == (N, 3, 3)
 
 
 @dataclass(frozen=True)
@@ -107,52 +111,70 @@ class Recalibration:
 
 
 def resect(R: np.ndarray, t: np.ndarray, data: Sequence[Correspondences], focal: float, *, outlier_px: float,
-           huber: float = 2.0, iterations: int = 8) -> Resection | None:
+           huber: float = 2.0, reject: float = 5.0, iterations: int = 8) -> Resection | None:
     """The camera's pose from ``data`` starting at R, t: Gauss-Newton with a Huber
     weight (``huber`` sigmas); then person views whose median residual is far above the
-    rest (beyond ``outlier_px`` and 4x the median view; wrong associations) are dropped
-    and the fit repeated. None when too little is left for a pose."""
+    rest (beyond ``outlier_px`` and 4x the median view; wrong associations), and joints
+    beyond ``reject`` sigmas, are dropped and the fit repeated. A residual's covariance is its keypoint's plus its point's
+    (``Xcov``) projected into the camera: a person near the camera and far from the
+    others, whose points the others place to a few cm, says little about the camera's
+    orientation, however large it is in the image. None when too little is left for a pose."""
     if not data:
         return None
     X = np.concatenate([d.X for d in data])
     xy = np.concatenate([d.xy for d in data])
     sig = np.concatenate([d.sigma for d in data])
     view = np.concatenate([d.view for d in data])
+    Xcov = np.concatenate([np.zeros((len(d.X), 3, 3)) if d.Xcov is None else d.Xcov for d in data])
     keep = np.ones(len(X), bool)
     for round_ in range(2):
-        fit = _gauss_newton(R, t, X[keep], xy[keep], sig[keep], huber, iterations)
+        fit = _gauss_newton(R, t, X[keep], xy[keep], sig[keep], Xcov[keep], huber, iterations)
         if fit is None:
             return None
-        R1, t1, info, res = fit
+        R1, t1, info, res, err = fit
         if round_ == 1:
             break
         _, inv = np.unique(view[keep], return_inverse=True)
         res_px = res * focal
         med = np.array([np.median(res_px[inv == k]) for k in range(inv.max() + 1)])
         bad = med > max(outlier_px, 4.0 * float(np.median(med)))
-        if not bad.any():
+        # ... and single joints far beyond their covariance (a limb's left and right
+        # swapped, a joint put on the other person): Huber's weight still lets them pull
+        bad_joint = err > reject
+        if not bad.any() and not bad_joint.any():
             break
         idx = np.flatnonzero(keep)
-        keep[idx[bad[inv]]] = False
+        keep[idx[bad[inv] | bad_joint]] = False
         R, t = R1, t1
     n = int(keep.sum())
     return Resection(R1, t1, info, n, int(len(np.unique(view[keep]))), float(np.sqrt(np.mean((res * focal) ** 2))))
 
 
-def _gauss_newton(R, t, X, xy, sig, huber, iterations):
+def _gauss_newton(R, t, X, xy, sig, Xcov, huber, iterations):
     if len(X) < 12:
         return None
-    for _ in range(iterations):
+
+    def normal_equations(R, t):
         uv, J = project_normalised(R, t, X)
         if not np.all(np.isfinite(uv)):
             return None
-        r = (uv - xy) / sig[:, None]  # (N, 2) in sigmas
-        e = np.linalg.norm(r, axis=1)
+        dproj = -J[:, :, 3:]  # (N, 2, 3) d uv / d point in the camera frame
+        A = dproj @ np.transpose(R)  # d uv / d world point
+        S = np.einsum("nij,njk,nlk->nil", A, Xcov, A) + (sig ** 2)[:, None, None] * np.eye(2)
+        Si = np.linalg.inv(S)  # (N, 2, 2)
+        r = uv - xy
+        e = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", r, Si, r), 0.0))  # in sigmas
         w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
-        sw = np.sqrt(w)
-        A = (J * (sw / sig)[:, None, None]).reshape(-1, 6)
-        H = A.T @ A
-        g = A.T @ (r * sw[:, None]).reshape(-1)
+        WJ = np.einsum("n,nij,njk->nik", w, Si, J)
+        H = np.einsum("nij,nik->jk", J, WJ)
+        g = np.einsum("nik,ni->k", WJ, r)
+        return uv, H, g, e
+
+    for _ in range(iterations):
+        ne = normal_equations(R, t)
+        if ne is None:
+            return None
+        _, H, g, _ = ne
         try:
             dx = -np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
@@ -160,15 +182,13 @@ def _gauss_newton(R, t, X, xy, sig, huber, iterations):
         R, t = pose_retract(R, t, dx)
         if np.linalg.norm(dx) < 1e-7:
             break
-    uv, J = project_normalised(R, t, X)
-    r = (uv - xy) / sig[:, None]
-    e = np.linalg.norm(r, axis=1)
-    w = np.where(e <= huber, 1.0, huber / np.maximum(e, 1e-12))
-    A = (J * (np.sqrt(w) / sig)[:, None, None]).reshape(-1, 6)
-    H = A.T @ A
+    ne = normal_equations(R, t)
+    if ne is None:
+        return None
+    uv, H, _, e = ne
     if not np.all(np.isfinite(H)) or np.linalg.cond(H) > 1e12:
         return None
-    return R, t, H, np.linalg.norm(uv - xy, axis=1)
+    return R, t, H, np.linalg.norm(uv - xy, axis=1), e
 
 
 def correspondences(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, trusted: np.ndarray,
@@ -178,11 +198,12 @@ def correspondences(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, tr
     may come from; at least two of them in the hypothesis). Left out:
     points whose rays meet at less than ``min_angle_deg`` (their depth is unknown) and
     points that reproject further than ``max_px`` from a view they were triangulated from
-    (a view of another person, a wrong detection: the point is not the person's joint)."""
+    (a view of another person, a wrong detection: the point is not the person's joint).
+    Each point comes with its covariance from its rays and their keypoints' std."""
     out: dict[int, list[Correspondences]] = {}
     C = len(R)
     trust = np.broadcast_to(trusted, (C, C)) & ~np.eye(C, dtype=bool)
-    rows_cams, rows_xy, rows_own, rows_meta = [], [], [], []
+    rows_cams, rows_xy, rows_sig, rows_own, rows_meta = [], [], [], [], []
     for k, h in enumerate(hyps):
         V = len(h.cams)
         for v in range(V):
@@ -193,6 +214,7 @@ def correspondences(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, tr
             xy[~ok] = np.nan
             rows_cams.append(np.repeat(h.cams[None], 17, axis=0))
             rows_xy.append(xy.transpose(1, 0, 2))  # (17, V, 2)
+            rows_sig.append(h.sigma.T)  # (17, V)
             rows_own.append((h.xy[v], h.sigma[v]))
             rows_meta.append((int(h.cams[v]), h.time, k))
     if not rows_meta:
@@ -201,10 +223,12 @@ def correspondences(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, tr
     n = len(rows_meta)
     cams = np.zeros((n, 17, Vmax), np.int64)
     xy = np.full((n, 17, Vmax, 2), np.nan)
-    for i, (c, x) in enumerate(zip(rows_cams, rows_xy)):
+    sig = np.full((n, 17, Vmax), np.nan)
+    for i, (c, x, sg) in enumerate(zip(rows_cams, rows_xy, rows_sig)):
         cams[i, :, :c.shape[1]] = c
         xy[i, :, :x.shape[1]] = x
-    seen = np.all(np.isfinite(xy), axis=3)  # (n, 17, V)
+        sig[i, :, :sg.shape[1]] = sg
+    seen = np.all(np.isfinite(xy), axis=3) & np.isfinite(sig) & (np.nan_to_num(sig) > 0)  # (n, 17, V)
     Xw, rays = _midpoints(R, t, cams, xy, seen)
     # the widest angle between two of a point's rays
     cos = np.einsum("njvk,njwk->njvw", rays, rays)
@@ -216,13 +240,21 @@ def correspondences(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, tr
     with np.errstate(divide="ignore", invalid="ignore"):
         px = np.linalg.norm(Xc[..., :2] / Xc[..., 2:3] - xy, axis=3) * focal[cams]
     good &= np.where(seen, px, 0.0).max(axis=2) <= max_px
+    # the point's information: each ray pins it across itself to its keypoint's std times
+    # the depth
+    with np.errstate(divide="ignore", invalid="ignore"):
+        wv = np.where(seen & (Xc[..., 2] > 0), 1.0 / (np.nan_to_num(sig, nan=1.0) * Xc[..., 2]) ** 2, 0.0)
+    wv = np.nan_to_num(wv, nan=0.0, posinf=0.0)
+    info = np.einsum("njv,njvab->njab", wv, np.eye(3) - rays[..., :, None] * rays[..., None, :])
+    info[~good] = np.eye(3)
+    Xcov = np.linalg.inv(info)
     for i, (c, time, k) in enumerate(rows_meta):
         own_xy, own_sig = rows_own[i]
         m = good[i] & np.all(np.isfinite(own_xy), axis=1) & np.isfinite(own_sig)
         if m.sum() < 4:
             continue
         out.setdefault(c, []).append(Correspondences(time, Xw[i, m], own_xy[m], own_sig[m],
-                                                     np.full(int(m.sum()), k, np.int64)))
+                                                     np.full(int(m.sum()), k, np.int64), Xcov[i, m]))
     return out
 
 
@@ -263,7 +295,6 @@ class _Camera:
     # later would change the points, and look like this camera moving)
     trust: np.ndarray | None = None
     since: float | None = None  # being calibrated again with the data from this time on
-    failed: bool = False  # its last test found a change
 
 
 class Monitor:
@@ -321,7 +352,7 @@ class Monitor:
         self._correspond(R, t, watched)
         recalibrating = self.recalibrating()
         results: list[Recalibration] = []
-        candidates: list[tuple[float, bool, Alarm]] = []
+        candidates: list[tuple[float, Alarm]] = []
         keep_from = now - (cfg.window_seconds + 2 * cfg.bin_seconds)
         for c, k in enumerate(self.cams):
             if k.since is not None:
@@ -352,18 +383,17 @@ class Monitor:
                     self._close_bin(c, k, now, R, t)
                     a = self._test(c, k, now)
                     if a is not None:
-                        candidates.append((a.chi2, k.failed, a))
-                    k.failed = a is not None
+                        candidates.append((a.chi2, a))
             while k.data and k.data[0].time < keep_from:
                 k.data.popleft()
         alarms = []
         # Of the cameras that fail, the most significant is flagged (a moved camera biases
-        # the points the others are tested against, so they may fail too), once its next
-        # test confirms it: right after a move the moved camera may not have enough bins
-        # after it to be tested while a camera it biased already has.
+        # the points the others are tested against, so they may fail too; the bins are on
+        # a common grid, so they all have as many bins after the move). A single odd bin
+        # does not fail a test (``change_test`` leaves each one out).
         top = max(candidates, key=lambda x: x[0]) if candidates else None
-        if top is not None and top[1]:
-            a = top[2]
+        if top is not None:
+            a = top[1]
             alarms.append(a)
             self.alarms.append(a)
             k = self.cams[a.cam]
@@ -378,7 +408,6 @@ class Monitor:
             for c, o in enumerate(self.cams):
                 if c != a.cam and o.since is None:
                     o.bins = [b for b in o.bins if b[1] <= a.since]
-                    o.failed = False
                     while o.data and o.data[-1].time >= a.since:
                         o.data.pop()
         return alarms, results
@@ -389,7 +418,6 @@ class Monitor:
         k.anchor = None
         k.trust = None
         k.since = None
-        k.failed = False
         k.data.clear()
 
     def _in_anchor_frame(self, c: int, R: np.ndarray, t: np.ndarray, Rs: np.ndarray, ts: np.ndarray
@@ -443,8 +471,9 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
     after vs before, χ² against their covariances plus ``floor`` (6, 6). Each bin's
     covariance is its information's inverse plus the error it does not show
     (``bin_floor``, measured on the bins before the window). Returns the most
-    significant split that passes ``chi2`` and the size thresholds as (χ², m, deg, data
-    time of the change), or None."""
+    significant split that passes ``chi2`` and the size thresholds, also without any one
+    of the bins after it (so at least ``min_change_bins`` + 1 of them), as (χ², m, deg,
+    data time of the change; the χ² the least of those), or None."""
     n = len(z)
     first = next((j for j in range(n) if now - start[j] <= cfg.window_seconds), n)
     first = max(first, cfg.min_reference_bins)
@@ -455,20 +484,35 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
     W = np.linalg.inv(C + F)
     _, _, kappa, _ = _mean(z[:first], W[:first])
     best = None
-    for j in range(first, n - cfg.min_change_bins + 1):
+    def step(j: int, after: np.ndarray) -> tuple[float, np.ndarray] | None:
         zr, Sr, _, _ = _mean(z[:j], W[:j], kappa)
-        zn, Sn, _, kept = _mean(z[j:], W[j:], kappa)
+        zn, Sn, _, kept = _mean(z[after], W[after], kappa)
         if kept < cfg.min_change_bins:
-            continue  # bins after the split that disagree among themselves are no step
+            return None  # bins after the split that disagree among themselves are no step
         d = zn - zr
-        S = kappa * (Sr + Sn) + floor
         try:
-            chi2 = float(d @ np.linalg.solve(S, d))
+            return float(d @ np.linalg.solve(kappa * (Sr + Sn) + floor, d)), d
         except np.linalg.LinAlgError:
+            return None
+
+    for j in range(first, n - cfg.min_change_bins):
+        found = step(j, np.arange(j, n))
+        if found is None or found[0] <= cfg.chi2:
             continue
+        # ... and still without any one of the bins after it: one bin far off (a person
+        # the camera sees oddly for a few seconds) is no step
+        for leave in range(j, n):
+            without = step(j, np.delete(np.arange(j, n), leave - j))
+            if without is None or without[0] < found[0]:
+                found = without
+            if found is None or found[0] <= cfg.chi2:
+                break
+        if found is None or found[0] <= cfg.chi2:
+            continue
+        chi2, d = found
         rot = float(np.degrees(np.linalg.norm(d[:3])))
         trans = float(np.linalg.norm(d[3:]))
-        if chi2 > cfg.chi2 and (trans > cfg.min_translation or rot > cfg.min_rotation):
+        if trans > cfg.min_translation or rot > cfg.min_rotation:
             if best is None or chi2 > best[0]:
                 best = (chi2, trans, rot, float(start[j]))
     return best
@@ -504,6 +548,10 @@ def bin_floor(z: np.ndarray, C: np.ndarray, cfg: MonitorConfig) -> np.ndarray:
 
 
 _CHI2_6_MEDIAN = 5.348  # median of the χ² distribution with 6 dof
+# least overdispersion: bins that scatter less than their covariances say (the points'
+# covariance assumes the keypoint std the detector states) make the test that much
+# more sensitive, up to this (a guard against a median of few bins far below its mean)
+_KAPPA_MIN = 0.25
 _CHI2_6_Q75 = 7.841  # its upper quartile
 
 
@@ -511,8 +559,8 @@ def _mean(z: np.ndarray, W: np.ndarray, kappa: float | None = None, *, huber: fl
           ) -> tuple[np.ndarray, np.ndarray, float, int]:
     """Robust information-weighted mean of poses z (n, 6) with informations W (n, 6, 6):
     (mean, its covariance, overdispersion, bins kept). The overdispersion, unless given, is the bins'
-    median χ² around the mean over the χ² distribution's median (at least 1: what the
-    solver's information overstates). A bin further than ``huber`` (Mahalanobis, scaled by
+    median χ² around the mean over the χ² distribution's median (what the solver's
+    information overstates or, below 1, understates; at least ``_KAPPA_MIN``). A bin further than ``huber`` (Mahalanobis, scaled by
     the overdispersion) from the mean is down-weighted: one bin of wrong associations
     must not make a change; one beyond ``reject`` is left out."""
     k = 1.0 if kappa is None else kappa
@@ -521,7 +569,7 @@ def _mean(z: np.ndarray, W: np.ndarray, kappa: float | None = None, *, huber: fl
         r = z - m
         chi = np.einsum("ni,nij,nj->n", r, W, r)
         if kappa is None and len(z) >= 3:
-            k = max(float(np.median(chi)) / _CHI2_6_MEDIAN, 1.0)
+            k = max(float(np.median(chi)) / _CHI2_6_MEDIAN, _KAPPA_MIN)
         dist = np.sqrt(chi / k)
         w = np.where(dist <= huber, 1.0, huber / np.maximum(dist, 1e-12)) * (dist <= reject)
         if not w.any():

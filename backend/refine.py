@@ -120,8 +120,12 @@ class Refiner:
         scale = self.keep_scale(active) if self.cfg.keep_scale else 1.0
         dt = np.linalg.norm(self.t - t_old, axis=1)
         dr = np.array([rotation_angle_deg(R_old[c], self.R[c]) for c in range(C)])
+        batch = posterior if final is None else final
+        if batch:  # the cycles' way to it is no drift: their net change is measured from here
+            for c in np.flatnonzero(active):
+                self.history[c].clear()
         self._record(active)
-        self.batched[active] = posterior if final is None else final
+        self.batched[active] = batch
         return UpdateResult(dt, dr, scale)
 
     def _record(self, active: np.ndarray) -> None:

@@ -87,6 +87,7 @@ def _run(seed: int, bump: tuple[float, float] | None, duration: float, cam: int 
     m = Monitor(CFG, np.full(8, F))
     watched = np.ones(8, bool)
     alarms = []
+    t_start = s.t_est.copy()
     for i in range(int(duration * RATE)):
         time = i / RATE
         if bump is not None and i == int(bump_time * RATE):
@@ -102,18 +103,21 @@ def _run(seed: int, bump: tuple[float, float] | None, duration: float, cam: int 
             # once calibrated again, watched again
             watched |= ~m.recalibrating()
     err = (float(np.linalg.norm(s.t_est[cam] - s.t[cam])), rotation_angle_deg(s.R_est[cam], s.R[cam]))
+    others = np.arange(8) != cam
+    s.others_moved = float(np.max(np.linalg.norm(s.t_est[others] - t_start[others], axis=1)))
     return s, m, alarms, err
 
 
 @pytest.mark.parametrize("bump", [(0.03, 0.0), (0.0, 2.0)], ids=["3cm", "2deg"])
 def test_a_bumped_camera_is_flagged_within_30s_and_calibrated_again(bump):
-    _, m, alarms, err = _run(1, bump, 200.0)  # bumped at 120 s
+    s, m, alarms, err = _run(1, bump, 200.0)  # bumped at 120 s
     assert alarms, "not flagged"
     a = alarms[0]
     assert a.cam == 2 and 120.0 < a.time <= 150.0, alarms
     assert [x.cam for x in alarms] == [2]  # no other camera
     assert 110.0 <= a.since <= a.time
     assert err[0] < 0.03 and err[1] < 0.3, err  # 80 s after the bump
+    assert s.others_moved < 0.005  # the others are held
 
 
 def test_a_quiet_network_raises_no_alarm():
@@ -170,3 +174,37 @@ def test_correspondences_use_only_trusted_others():
             assert np.all(np.linalg.norm(it.X - hyps[0].com, axis=1) < 3.0) or \
                 np.all(np.linalg.norm(it.X - hyps[-1].com, axis=1) < 3.0)
     assert correspondences(hyps, s.R, s.t, np.zeros(8, bool), np.full(8, F), 2.0, 15.0) == {}
+
+
+def test_one_odd_bin_is_no_step_three_moved_bins_are():
+    from backend.monitor import change_test
+
+    rng = np.random.default_rng(6)
+    sd = np.r_[[np.radians(0.1)] * 3, [0.01] * 3]
+    W = np.repeat(np.diag(1 / sd ** 2)[None], 30, axis=0)
+    z = rng.normal(size=(30, 6)) * sd
+    start = 5.0 * np.arange(30)
+    now = start[-1] + 5.0
+    odd = z.copy()
+    odd[-3] += 4 * sd  # one bin far off (10 sigmas), the two after it as before
+    assert change_test(odd, W, start, now, CFG, np.zeros((6, 6))) is None
+    moved = z.copy()
+    moved[-3:, 3] += 0.05  # the camera moved by 5 cm three bins ago
+    found = change_test(moved, W, start, now, CFG, np.zeros((6, 6)))
+    assert found is not None and found[3] == start[-3] and abs(found[1] - 0.05) < 0.02
+
+
+def test_points_far_from_the_others_weigh_less():
+    """A point the others place only to 10 cm, seen from 1 m, is no exact point."""
+    rng = np.random.default_rng(7)
+    R = np.eye(3)
+    t = np.zeros(3)
+    X = np.c_[rng.normal(size=(200, 2)), 3 + rng.random(200)]
+    uv, _ = _project(R, t, X)
+    sig = np.full(200, 1.0 / F)
+    exact = resect(R, t, [Correspondences(0.0, X, uv, sig, np.arange(200) // 17)], F, outlier_px=15.0)
+    loose = resect(R, t, [Correspondences(0.0, X, uv, sig, np.arange(200) // 17,
+                                          np.repeat(0.01 * np.eye(3)[None], 200, axis=0))], F, outlier_px=15.0)
+    assert exact is not None and loose is not None
+    assert np.all(np.linalg.eigvalsh(exact.info - loose.info) > -1e-6)  # less information
+    assert np.trace(np.linalg.inv(loose.info)) > 10 * np.trace(np.linalg.inv(exact.info))
