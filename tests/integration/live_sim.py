@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import time
 from pathlib import Path
+from typing import Any, Callable
 
 
 def publish_room(endpoint: str, site: str, cams: tuple[str, ...], persons: int, heights: tuple[float, ...],
@@ -37,3 +40,19 @@ def publish_room(endpoint: str, site: str, cams: tuple[str, ...], persons: int, 
             if stop.is_set():
                 break
             pub.publish(m)
+
+
+def poll(client: Any, path: str, pred: Callable[[dict], bool], timeout: float, what: str,
+         seen: list | None = None) -> dict:
+    """GET ``path`` until ``pred`` holds (every 0.25 s), else fail saying ``what`` and the last
+    answer; ``seen`` collects every answer."""
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        last = client.get(path).json()
+        if seen is not None:
+            seen.append(last)
+        if pred(last):
+            return last
+        time.sleep(0.25)
+    raise AssertionError(f"{what} within {timeout} s; last: {json.dumps(last)[:3000]}")

@@ -8,7 +8,6 @@ them); the thread can mute one sensor or shift one sensor's stamps while it runs
 
 from __future__ import annotations
 
-import json
 import threading
 import time
 from dataclasses import replace
@@ -24,6 +23,7 @@ from backend.service import ServiceThread, free_port
 from backend.settings import ServiceSettings
 from edge_clients.publisher import SensorPublisher
 from proto.transport import ZenohSettings, open_session
+from live_sim import poll as _poll
 
 pytestmark = pytest.mark.slow
 
@@ -84,17 +84,6 @@ def _body(lab: Path, config: dict | None = None) -> dict:
             "initial_yaml": dump_extrinsics(perturb_extrinsics(ref, 0.1, 3.0, seed=1)),
             "reference_yaml": dump_extrinsics(ref), "config": {**LOOSE, **(config or {})},
             "stop": {"duration": 36000}}
-
-
-def _poll(c: httpx.Client, path: str, pred, timeout: float, what: str) -> dict:
-    deadline = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < deadline:
-        last = c.get(path).json()
-        if pred(last):
-            return last
-        time.sleep(0.2)
-    raise AssertionError(f"{what} within {timeout} s; last: {json.dumps(last)[:2000]}")
 
 
 def _live_service(tmp_path, site: str):

@@ -26,7 +26,7 @@ from backend.cameras import dump_extrinsics, load_extrinsics, parse_extrinsics
 from backend.evaluate import evaluate
 from backend.service import ServiceThread, free_port
 from backend.settings import ServiceSettings
-from live_sim import publish_room
+from live_sim import poll as _poll, publish_room
 
 pytestmark = pytest.mark.slow
 
@@ -54,19 +54,6 @@ class Sensors:
         self.proc.join(20)
         if self.proc.is_alive():
             self.proc.kill()
-
-
-def _poll(client: httpx.Client, path: str, pred, timeout: float, what: str, seen: list | None = None) -> dict:
-    deadline = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < deadline:
-        last = client.get(path).json()
-        if seen is not None:
-            seen.append(last)
-        if pred(last):
-            return last
-        time.sleep(0.25)
-    raise AssertionError(f"{what} within {timeout} s; last: {json.dumps(last)[:3000]}")
 
 
 def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, lab_dir):

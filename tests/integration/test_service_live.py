@@ -30,6 +30,7 @@ from backend.service import ServiceThread, free_port
 from backend.settings import ServiceSettings
 from proto import keys
 from proto.transport import ZenohSettings, open_session
+from live_sim import poll as _poll
 
 pytestmark = pytest.mark.slow
 
@@ -73,17 +74,6 @@ def _session_body(lab: Path, seed: int = 1) -> dict:
         "reference_yaml": dump_extrinsics(ref),
         "config": LOOSE,
     }
-
-
-def _poll(client: httpx.Client, path: str, pred, timeout: float, what: str) -> dict:
-    deadline = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < deadline:
-        last = client.get(path).json()
-        if pred(last):
-            return last
-        time.sleep(0.25)
-    raise AssertionError(f"{what} within {timeout} s; last: {json.dumps(last)[:2000]}")
 
 
 def test_live_session_converges_stops_and_has_a_result(tmp_path, lab_dir):
