@@ -332,6 +332,12 @@ def test_a_stop_or_shutdown_during_an_attempt_does_not_wait_for_it(tmp_path, lab
 
     from backend.service import ServiceThread
 
+    def attempting(c: httpx.Client, sid: str, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while c.get(f"/sessions/{sid}").json()["bootstrap"]["phase"] != "bootstrapping":
+            assert time.monotonic() < deadline, what
+            time.sleep(0.1)
+
     body = {"intrinsics_yaml": _intrinsics_yaml()}
     st = ServiceThread(_settings(tmp_path)).start()
     try:
@@ -339,20 +345,14 @@ def test_a_stop_or_shutdown_during_an_attempt_does_not_wait_for_it(tmp_path, lab
         with httpx.Client(base_url=st.url, timeout=30) as c:
             sid = c.post("/sessions", json=body).json()["id"]
             _due(st)
-            deadline = time.monotonic() + 30
-            while c.get(f"/sessions/{sid}").json()["bootstrap"]["phase"] != "bootstrapping":
-                assert time.monotonic() < deadline, "no attempt started"
-                time.sleep(0.1)
+            attempting(c, sid, 30, "no attempt started")
             t0 = time.monotonic()
             s = c.post(f"/sessions/{sid}/stop").json()
             assert s["state"] == "stopped" and time.monotonic() - t0 < 10
             # the solver works for the next session: an attempt in flight at shutdown
             sid = c.post("/sessions", json=body).json()["id"]
             _due(st)
-            deadline = time.monotonic() + 60
-            while c.get(f"/sessions/{sid}").json()["bootstrap"]["phase"] != "bootstrapping":
-                assert time.monotonic() < deadline, "no attempt started in the second session"
-                time.sleep(0.1)
+            attempting(c, sid, 60, "no attempt started in the second session")
     finally:
         t0 = time.monotonic()
         st.stop(timeout=60)
