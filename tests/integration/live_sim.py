@@ -56,3 +56,27 @@ def poll(client: Any, path: str, pred: Callable[[dict], bool], timeout: float, w
             return last
         time.sleep(0.25)
     raise AssertionError(f"{what} within {timeout} s; last: {json.dumps(last)[:3000]}")
+
+
+class SensorProcess:
+    """Simulated sensors in a spawned process, as a context: started, ready (they found the
+    service), stopped and joined. ``args(ready, stop)`` gives ``target``'s arguments with
+    the two multiprocessing events where it takes them."""
+
+    def __init__(self, target: Callable[..., None], args: Callable[[Any, Any], tuple]):
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("spawn")
+        self.ready, self.stop_event = ctx.Event(), ctx.Event()
+        self.proc = ctx.Process(target=target, daemon=True, args=args(self.ready, self.stop_event))
+
+    def __enter__(self) -> "SensorProcess":
+        self.proc.start()
+        assert self.ready.wait(120), "the simulated sensors did not find the service"
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop_event.set()
+        self.proc.join(20)
+        if self.proc.is_alive():
+            self.proc.kill()

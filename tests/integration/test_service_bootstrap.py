@@ -14,7 +14,6 @@ tests/backend/test_bootstrap.py).
 from __future__ import annotations
 
 import json
-import multiprocessing
 import time
 from pathlib import Path
 
@@ -26,7 +25,8 @@ from backend.cameras import dump_extrinsics, load_extrinsics, parse_extrinsics
 from backend.evaluate import evaluate
 from backend.service import ServiceThread, free_port
 from backend.settings import ServiceSettings
-from live_sim import poll as _poll, publish_room
+from live_sim import SensorProcess, publish_room
+from live_sim import poll as _poll
 
 pytestmark = pytest.mark.slow
 
@@ -37,23 +37,10 @@ HEIGHTS = (1.96, 1.70)
 BOOT = {"bootstrap": {"live_first": 40.0, "live_interval": 20.0, "max_seconds": 60.0}}
 
 
-class Sensors:
+class Sensors(SensorProcess):
     def __init__(self, endpoint: str, site: str, lab: Path, duration: float):
-        ctx = multiprocessing.get_context("spawn")
-        self.ready, self.stop_event = ctx.Event(), ctx.Event()
-        self.proc = ctx.Process(target=publish_room, daemon=True, args=(
-            endpoint, site, WEST, len(HEIGHTS), HEIGHTS, duration, 0, SPEED, str(lab), self.ready, self.stop_event))
-
-    def __enter__(self) -> "Sensors":
-        self.proc.start()
-        assert self.ready.wait(120), "the simulated sensors did not find the service"
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop_event.set()
-        self.proc.join(20)
-        if self.proc.is_alive():
-            self.proc.kill()
+        super().__init__(publish_room, lambda ready, stop: (
+            endpoint, site, WEST, len(HEIGHTS), HEIGHTS, duration, 0, SPEED, str(lab), ready, stop))
 
 
 def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, lab_dir):

@@ -10,7 +10,6 @@ accuracy has its own tests and benchmarks.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 import signal
 import subprocess
@@ -30,6 +29,7 @@ from backend.service import ServiceThread, free_port
 from backend.settings import ServiceSettings
 from proto import keys
 from proto.transport import ZenohSettings, open_session
+from live_sim import SensorProcess
 from live_sim import poll as _poll
 
 pytestmark = pytest.mark.slow
@@ -43,25 +43,12 @@ CAMS = ["cam_9", "cam_14", "cam_15", "cam_18", "cam_19"]
 LOOSE = {"refine": {"converged_translation": 0.02, "converged_rotation": 0.3, "converged_cycles": 3}}
 
 
-class Sensors:
+class Sensors(SensorProcess):
     """The simulated lab in its own process, publishing to ``endpoint`` at SPEED."""
 
     def __init__(self, endpoint: str, site: str, lab: Path, *, duration: float = 900.0, seed: int = 0):
-        ctx = multiprocessing.get_context("spawn")
-        self.ready, self.stop_event = ctx.Event(), ctx.Event()
-        self.proc = ctx.Process(target=publish_simulation, daemon=True, args=(
-            endpoint, site, 2, duration, seed, SPEED, CAMS, self.ready, self.stop_event, str(lab), RATE))
-
-    def __enter__(self) -> "Sensors":
-        self.proc.start()
-        assert self.ready.wait(120), "the simulated sensors did not find the service"
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop_event.set()
-        self.proc.join(20)
-        if self.proc.is_alive():
-            self.proc.kill()
+        super().__init__(publish_simulation, lambda ready, stop: (
+            endpoint, site, 2, duration, seed, SPEED, CAMS, ready, stop, str(lab), RATE))
 
 
 def _session_body(lab: Path, seed: int = 1) -> dict:
