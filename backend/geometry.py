@@ -7,6 +7,8 @@ are ordered (rotation ω, translation ρ) like GTSAM's Pose3.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 
@@ -212,6 +214,39 @@ def trimmed_similarity(src: np.ndarray, dst: np.ndarray, *, floor: float = 0.05,
         keep = fit
         s, R, tr = umeyama(src[keep], dst[keep], with_scale=True)
     return s, R, tr, keep
+
+
+@dataclass(frozen=True)
+class AlignedPoses:
+    """Camera poses of one estimate mapped onto another's frame (``align_poses``).
+
+    s, Rw (3, 3), tw (3,): the similarity (dst ≈ s·Rw·src + tw); keep (N,) bool: the
+    cameras it was fitted on; R (N, 3, 3), t (N, 3): the src poses in dst's frame;
+    dt (N,) m (dst's units) and dr (N,) deg: each camera's distance from its dst pose."""
+
+    s: float
+    Rw: np.ndarray
+    tw: np.ndarray
+    keep: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    dt: np.ndarray
+    dr: np.ndarray
+
+
+def align_poses(R_src: np.ndarray, t_src: np.ndarray, R_dst: np.ndarray, t_dst: np.ndarray) -> AlignedPoses | None:
+    """The src poses (N, 3, 3), (N, 3) (world-from-camera rotations, centres) aligned onto
+    the dst poses of the same N cameras by ``trimmed_similarity`` of the centres, with the
+    per-camera differences; None when the centres give no similarity."""
+    assert R_src.shape == R_dst.shape and t_src.shape == t_dst.shape and len(t_src) == len(R_src)
+    fit = trimmed_similarity(t_src, t_dst)
+    if fit is None:
+        return None
+    s, Rw, tw, keep = fit
+    R = np.einsum("ij,cjk->cik", Rw, R_src)
+    t = s * t_src @ Rw.T + tw
+    dr = np.array([rotation_angle_deg(R[i], R_dst[i]) for i in range(len(R))])
+    return AlignedPoses(s, Rw, tw, keep, R, t, np.linalg.norm(t - t_dst, axis=1), dr)
 
 
 def triangulate_dlt(P: np.ndarray, xy: np.ndarray) -> np.ndarray:

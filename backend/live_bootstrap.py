@@ -203,19 +203,15 @@ def compare(a: BootstrapResult, b: BootstrapResult) -> tuple[list[str], np.ndarr
     ``b`` aligned onto ``a`` by a trimmed similarity of the centres they both placed
     (``geometry.trimmed_similarity``); per camera (names, translation (N,) m in a's units,
     rotation (N,) deg). None when fewer than 3 cameras are in both."""
-    from .geometry import rotation_angle_deg, trimmed_similarity
+    from .geometry import align_poses
 
     both = np.flatnonzero(a.located & b.located)
     if len(both) < 3 or a.names != b.names:
         return None
-    fit = trimmed_similarity(b.t[both], a.t[both])
-    if fit is None:
+    al = align_poses(b.R[both], b.t[both], a.R[both], a.t[both])
+    if al is None:
         return None
-    s, Rw, tw, _ = fit
-    tb = s * b.t[both] @ Rw.T + tw
-    dt = np.linalg.norm(tb - a.t[both], axis=1)
-    dr = np.array([rotation_angle_deg(Rw @ b.R[c], a.R[c]) for c in both])
-    return [a.names[c] for c in both], dt, dr
+    return [a.names[c] for c in both], al.dt, al.dr
 
 
 def _header(result: BootstrapResult) -> str:

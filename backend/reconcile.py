@@ -38,7 +38,7 @@ from proto import KeypointMessage
 from .bootstrap import BootstrapError, BootstrapResult, Progress, bootstrap_messages
 from .cameras import CameraSet, Intrinsics
 from .config import EngineConfig
-from .geometry import rotation_angle_deg, trimmed_similarity
+from .geometry import align_poses
 from .refine import initial_covariance
 
 
@@ -167,16 +167,13 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
     if len(idx) < 3:
         return None
     k = np.array([index[names[c]] for c in idx])
-    fit = trimmed_similarity(boot.t[k], t0[idx])
-    if fit is None:
+    al = align_poses(boot.R[k], boot.t[k], R0[idx], t0[idx])
+    if al is None:
         return None
-    s, Rw, tw, keep = fit
-    Ra = np.einsum("ij,cjk->cik", Rw, boot.R[k])
-    ta = s * boot.t[k] @ Rw.T + tw
+    s, keep, Ra, ta = al.s, al.keep, al.R, al.t
     dt = np.full(C, np.nan)
     dr = np.full(C, np.nan)
-    dt[idx] = np.linalg.norm(ta - t0[idx], axis=1)
-    dr[idx] = [rotation_angle_deg(Ra[i], R0[c]) for i, c in enumerate(idx)]
+    dt[idx], dr[idx] = al.dt, al.dr
     # the bootstrap's own std, in the initial estimate's units
     st = np.full(C, np.nan)
     sr = np.full(C, np.nan)
