@@ -146,8 +146,11 @@ class MonitorConfig(_Section):
     min_rotation: float = Field(0.3, ge=0, description="deg ... or rotation, that flag a converged camera as moved")
     recalibrate_seconds: float = Field(60.0, gt=0, description="s of data since the change a flagged camera is calibrated "
                                        "again from (one resection over all of it every bin, the others fixed)")
-    process_noise: float = Field(0.0, ge=0, description="the filter's process noise of a watched camera, as a fraction of "
-                                 "refine.process_noise: a calibrated camera does not drift, the monitor catches moves")
+    hold: bool = Field(True, description="watched cameras keep their pose: the cycles calibrate only the others (and a moved "
+                       "camera against them); a calibrated camera changes when the monitor finds it moved, not by the "
+                       "cycles' noise or a moved camera's pull before it is found")
+    process_noise: float = Field(0.0, ge=0, description="without hold: the filter's process noise of a watched camera, as a "
+                                 "fraction of refine.process_noise: a calibrated camera does not drift, the monitor catches moves")
     reopen_std_translation: float = Field(0.10, gt=0, description="m: the flagged camera's uncertainty from then on")
     reopen_std_rotation: float = Field(5.0, gt=0, description="deg")
 

@@ -18,9 +18,12 @@ not show (where the people were, the others' own errors), measured on the camera
 older bins (``bin_floor``): comparing the camera with its own past, not with the filter's
 estimate, a camera whose estimate is a little off, or whose view is biased, does not look
 moved; only a change does. A change must also be large (``min_translation`` /
-``min_rotation``); of the cameras that fail at one evaluation only the most significant
-is flagged (a moved camera biases the points the others are tested against, so they may
-fail too), once its next test confirms it.
+``min_rotation``). A moved camera biases the points the others are tested against, so
+they may fail too, and before it does (its own views, now off, join fewer hypotheses):
+of the cameras that fail at one evaluation the most significant is taken, and tested
+again without each camera its points came from (``_explained_by``); a step that goes
+away without one of them was that camera's, which is flagged instead when its own bins
+since the change show it, and otherwise nobody is, yet.
 
 A flagged camera is calibrated again from the data since the change: at every bin, one
 resection over all its correspondences since then with the others fixed, until
@@ -310,6 +313,8 @@ class Monitor:
         self.cams = [_Camera() for _ in range(len(focal))]
         self.alarms: list[Alarm] = []
         self.pending: list[Hypothesis] = []  # hypotheses not yet turned into correspondences
+        # the hypotheses of the test's window, for testing a camera again without another
+        self.recent: deque[Hypothesis] = deque()
         r = np.radians(cfg.model_std_rotation)
         self.floor = np.diag([r * r] * 3 + [cfg.model_std_translation ** 2] * 3)
         r = np.radians(cfg.bin_std_rotation)
@@ -328,6 +333,7 @@ class Monitor:
 
     def _correspond(self, R: np.ndarray, t: np.ndarray, watched: np.ndarray) -> None:
         hyps, self.pending = self.pending, []
+        self.recent.extend(hyps)
         trusted = watched & ~self.recalibrating()
         if not hyps or trusted.sum() < 2:
             return
@@ -386,14 +392,17 @@ class Monitor:
                         candidates.append((a.chi2, a))
             while k.data and k.data[0].time < keep_from:
                 k.data.popleft()
+        while self.recent and self.recent[0].time < keep_from:
+            self.recent.popleft()
         alarms = []
         # Of the cameras that fail, the most significant is flagged (a moved camera biases
         # the points the others are tested against, so they may fail too; the bins are on
-        # a common grid, so they all have as many bins after the move). A single odd bin
-        # does not fail a test (``change_test`` leaves each one out).
+        # a common grid, so they all have as many bins after the move) unless its step is
+        # another camera's (``_blame``). A single odd bin does not fail a test
+        # (``change_test`` leaves each one out).
         top = max(candidates, key=lambda x: x[0]) if candidates else None
-        if top is not None:
-            a = top[1]
+        a = None if top is None else self._blame(top[1], now, watched, R, t)
+        if a is not None:
             alarms.append(a)
             self.alarms.append(a)
             k = self.cams[a.cam]
@@ -411,6 +420,72 @@ class Monitor:
                     while o.data and o.data[-1].time >= a.since:
                         o.data.pop()
         return alarms, results
+
+    def _blame(self, a: Alarm, now: float, watched: np.ndarray, R: np.ndarray, t: np.ndarray) -> Alarm | None:
+        """The alarm to raise for camera ``a.cam``'s failed test: its own, unless the step
+        goes away when its bins since the change are made again without one of the cameras
+        its points came from (that camera moved and biased them): gone is no longer large
+        (``min_translation`` / ``min_rotation``) or a quarter as significant; less data
+        alone leave a real step as large. Then the alarm of the camera among those whose
+        own bins since the change show a step already (the most significant), else none
+        yet: its own test will tell."""
+        cfg = self.cfg
+        explaining = []
+        for j in self._suspects(a, watched):
+            bins = self._bins_without(a, j, R, t)
+            step = None if bins is None else _step_at(bins, a.since, now, cfg, self.floor)
+            if step is None:
+                continue  # too little left without j to tell
+            chi2, trans, rot, _ = step
+            if chi2 < cfg.chi2 / 4 or (trans <= cfg.min_translation and rot <= cfg.min_rotation):
+                explaining.append(j)
+        if not explaining:
+            return a
+        best = None
+        for j in explaining:
+            k = self.cams[j]
+            if k.since is not None or k.anchor is None:
+                continue
+            # its reference may be short: its bins since the change were the other's evidence
+            own = _step_at(k.bins, a.since, now, cfg, self.floor, min_after=cfg.min_change_bins, min_before=3)
+            if own is None or own[0] <= cfg.chi2 or (own[1] <= cfg.min_translation and own[2] <= cfg.min_rotation):
+                continue
+            if best is None or own[0] > best.chi2:
+                best = Alarm(now, j, *own)
+        return best
+
+    def _suspects(self, a: Alarm, watched: np.ndarray) -> list[int]:
+        """The cameras camera ``a.cam``'s points since the change came from, most views first."""
+        k = self.cams[a.cam]
+        trust = (watched & ~self.recalibrating()) if k.trust is None else k.trust & watched
+        seen: dict[int, int] = {}
+        for h in self.recent:
+            if h.time >= a.since and a.cam in h.cams:
+                for c in h.cams:
+                    if c != a.cam and trust[c]:
+                        seen[int(c)] = seen.get(int(c), 0) + 1
+        return sorted(seen, key=lambda c: -seen[c])
+
+    def _bins_without(self, a: Alarm, j: int, R: np.ndarray, t: np.ndarray) -> list | None:
+        """Camera ``a.cam``'s bins with those since the change made again from points
+        camera j had no part in; None when fewer than ``min_change_bins`` + 1 are left."""
+        c, k = a.cam, self.cams[a.cam]
+        C = len(R)
+        trust = np.zeros((C, C), bool)
+        trust[c] = (k.trust if k.trust is not None else np.ones(C, bool)) & (np.arange(C) != j)
+        hyps = [h for h in self.recent if h.time >= a.since and c in h.cams]
+        data = correspondences(hyps, R, t, trust, self.focal, self.min_angle, self.outlier_px).get(c, [])
+        after = []
+        for start, end, _, _ in (b for b in k.bins if b[0] >= a.since):
+            in_bin = [d for d in data if start <= d.time < end]
+            if sum(len(d.X) for d in in_bin) < self.cfg.min_points:
+                continue
+            r = resect(R[c], t[c], in_bin, float(self.focal[c]), outlier_px=self.outlier_px)
+            if r is not None:
+                after.append((start, end, pose_local(*k.anchor, *self._in_anchor_frame(c, r.R, r.t, R, t)), r.info))
+        if len(after) < self.cfg.min_change_bins + 1:
+            return None
+        return [b for b in k.bins if b[0] < a.since] + after
 
     def _reset(self, k: _Camera) -> None:
         k.bins.clear()
@@ -462,8 +537,8 @@ class Monitor:
         return Alarm(now, c, chi2, trans, rot, since)
 
 
-def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg: MonitorConfig, floor: np.ndarray
-                ) -> tuple[float, float, float, float] | None:
+def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg: MonitorConfig, floor: np.ndarray,
+                *, leave_one_out: bool = True) -> tuple[float, float, float, float] | None:
     """The generalised likelihood ratio test for a step in a camera's data-only poses z
     (n, 6) (tangent at a fixed pose) with informations W (n, 6, 6), of bins starting at
     ``start`` (n,) data time: for every split of the last ``window_seconds`` leaving at
@@ -501,7 +576,7 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
             continue
         # ... and still without any one of the bins after it: one bin far off (a person
         # the camera sees oddly for a few seconds) is no step
-        for leave in range(j, n):
+        for leave in range(j, n) if leave_one_out else ():
             without = step(j, np.delete(np.arange(j, n), leave - j))
             if without is None or without[0] < found[0]:
                 found = without
@@ -516,6 +591,23 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
             if best is None or chi2 > best[0]:
                 best = (chi2, trans, rot, float(start[j]))
     return best
+
+
+def _step_at(bins: list, since: float, now: float, cfg: MonitorConfig, floor: np.ndarray, min_after: int = 1,
+             min_before: int | None = None) -> tuple[float, float, float, float] | None:
+    """The step of a camera's ``bins`` (start, end, z, info) at the one split ``since``,
+    unthresholded and without leaving bins out, as ``change_test`` measures it: (χ², m,
+    deg, since), or None without ``min_before`` (``min_reference_bins``) bins before it
+    and ``min_after`` after."""
+    n_after = sum(b[0] >= since for b in bins)
+    min_before = cfg.min_reference_bins if min_before is None else min_before
+    if n_after < max(min_after, 1) or len(bins) - n_after < min_before:
+        return None
+    one = cfg.model_copy(update={"window_seconds": now - since + 1e-6, "min_change_bins": n_after - 1,
+                                 "min_reference_bins": min_before,
+                                 "chi2": 0.0, "min_translation": -1.0, "min_rotation": -1.0})
+    return change_test(np.array([b[2] for b in bins]), np.array([b[3] for b in bins]),
+                       np.array([b[0] for b in bins]), now, one, floor, leave_one_out=False)
 
 
 def bin_floor(z: np.ndarray, C: np.ndarray, cfg: MonitorConfig) -> np.ndarray:

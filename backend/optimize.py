@@ -62,8 +62,9 @@ class Problem:
     spacing: float = 0.0
     seed: int = 0
     marginals: bool = True
-    kind: str = "cycle"  # cycle | first | batch | relocalize
+    kind: str = "cycle"  # cycle | first | batch | relocalize | recalibrate
     lost: tuple[int, ...] = ()  # relocalize: the cameras to find again
+    moved: tuple[int, ...] = ()  # recalibrate: the cameras calibrated again (the others held by tight priors)
 
     def __post_init__(self) -> None:
         C = len(self.R)

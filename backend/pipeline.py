@@ -69,6 +69,8 @@ class Pipeline:
         self.monitor = Monitor(self.cfg.monitor, self.focal, outlier_px=self.cfg.optimize.outlier_px,
                                min_angle_deg=self.cfg.optimize.min_triangulation_angle)
         self.watched = np.zeros(C, dtype=bool)
+        # moved cameras' adjustments: (data time due, camera, data time of its move)
+        self._recalibrate_due: list[tuple[float, int, float]] = []
         self.clocks = ClockOffsetEstimator(self.cfg.clock, self.names, cameras.intrinsics,
                                            self.cfg.preprocess.min_confidence)
         # per camera: (frameset time from which, offset applied), to know how archived views were timed
@@ -285,6 +287,10 @@ class Pipeline:
             self.cycle += 1
             horizon = self.frames[-1][0] - 180.0 if self.frames else 0.0
             p = self._relocalize_problem(lost, self._timed_frames(f for f in self.frames if f[0] >= horizon))
+        elif any(due <= now for due, _, _ in self._recalibrate_due):
+            k = next(i for i, (due, _, _) in enumerate(self._recalibrate_due) if due <= now)
+            _, cam, since = self._recalibrate_due.pop(k)
+            p = self._recalibrate_problem(cam, since)
         else:
             if self.last_cycle_time is not None and now - self.last_cycle_time < cfg.select.interval:
                 return None
@@ -323,6 +329,24 @@ class Pipeline:
         self.first_passes += 1
         self.queue.clear()  # their data are in this adjustment: a cycle must not count them again
         return replace(p, associate=a.model_copy(update={"min_views": a.min_views_unsettled}), kind="first")
+
+    def _recalibrate_problem(self, cam: int, since: float) -> Problem:
+        """A moved camera calibrated again by an adjustment over every archived frame since
+        its move, the watched cameras held (tight priors), its own prior the monitor's
+        resection with the uncertainty re-opened: the resection a bin at a time took the
+        others' points as given; the adjustment weighs every view, as the session did."""
+        rf = self.refiner
+        self.cycle += 1
+        P = rf.predicted_covariance()
+        m = self.cfg.monitor
+        P[cam] = np.diag([np.radians(m.reopen_std_rotation) ** 2] * 3 + [m.reopen_std_translation ** 2] * 3)
+        opt = self.cfg.optimize.model_copy(update={"max_iterations": max(self.cfg.optimize.max_iterations, 100)})
+        return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
+                       prior_cov=P, focal=self.focal, config=opt,
+                       frames=tuple(self._timed_frames(f for f in self.frames if f[0] >= since)),
+                       associate=self.cfg.associate, gate_px=None, max_hypotheses=self.cfg.refine.batch_size,
+                       spacing=self.cfg.select.min_spacing / 2, seed=int(self.rng.integers(2**31)),
+                       kind="recalibrate", moved=(cam,))
 
     def _relocalize_problem(self, lost, frames) -> Problem:
         """Prior = the start and its uncertainty: where a lost camera can be
@@ -399,6 +423,14 @@ class Pipeline:
             for c in np.flatnonzero(solution.active):
                 self.refiner.relocate(c, solution.R[c], solution.t[c])
                 self.relocalized.append(self.names[c])
+        elif accepted and problem.kind == "recalibrate":
+            # the moved camera's posterior over the data since its move; the held keep theirs
+            only = np.zeros(len(self.names), bool)
+            only[list(problem.moved)] = True
+            upd = self.refiner.update(solution.active & only, solution.R, solution.t, solution.cov, posterior=True,
+                                      final=True)
+            change_t = float(upd.changed_translation.max())
+            change_r = float(upd.changed_rotation.max())
         elif accepted:
             upd = self.refiner.update(solution.active, solution.R, solution.t, solution.cov, posterior=batch or first,
                                       cov_shape=solution.cov_shape, final=batch)
@@ -452,11 +484,19 @@ class Pipeline:
         names = []
         for alarm in found:
             rf.reopen(alarm.cam, m.reopen_std_translation, m.reopen_std_rotation)
+            self._recalibrate_due = [x for x in self._recalibrate_due if x[1] != alarm.cam]  # moved again
             self.watched[alarm.cam] = False
             names.append(self.names[alarm.cam])
         for r in poses:
             rf.recalibrated(r.cam, r.R, r.t, r.cov)
+            if r.final:
+                # then adjustments over all of its data since the move, now and with twice
+                # as much: a translation across the view trades against a small turn, and
+                # a minute of people in one part of the room may not tell them apart
+                since = float(self.clock or 0.0) - r.seconds
+                self._recalibrate_due += [(since + k * r.seconds, r.cam, since) for k in (1, 2)]
         rf.q_scale = np.where(self.watched, m.process_noise, 1.0)
+        rf.held = self.watched & m.hold
         return names
 
     def step(self, now: float) -> CycleReport | None:
@@ -588,6 +628,8 @@ class Pipeline:
         p.first_passes = int(snapshot.get("first_passes", 2))
         p.monitor.alarms = [Alarm(float(a[0]), int(a[1]), *map(float, a[2:])) for a in snapshot.get("moved", [])]
         p.watched = np.array(snapshot.get("watched", [False] * len(p.names)), dtype=bool)
+        if config.monitor.enabled:  # held from the first cycle after the restart, not the monitor's first turn
+            rf.held = p.watched & config.monitor.hold
         rf.batched = np.array(snapshot.get("batched", [False] * len(p.names)), dtype=bool)
         p.observations = np.array(snapshot["observations"], dtype=np.int64)
         p.observations_batch = np.array(snapshot.get("observations_batch", [0] * len(p.names)), dtype=np.int64)

@@ -36,6 +36,9 @@ class UpdateResult:
     scale_applied: float
 
 
+_HELD = 1e-4  # a held camera's share of its covariance in the cycles' graph
+
+
 def initial_covariance(cfg: RefineConfig) -> np.ndarray:
     """(6, 6) diagonal covariance of the initial estimate."""
     return _diag(cfg.initial_std_rotation, cfg.initial_std_translation)
@@ -77,14 +80,22 @@ class Refiner:
         self.S = self.P.copy()
         self.Q = _diag(cfg.filter_std_rotation, cfg.filter_std_translation) * cfg.process_noise**2
         self.q_scale = np.ones(C)  # per camera: a factor of Q (the monitor lowers it for watched cameras)
+        # per camera: held at its pose (the monitor's watched cameras): cycles leave it, and
+        # while any camera is held they also give the frame and scale (no keep_scale)
+        self.held = np.zeros(C, dtype=bool)
         self.cycles = np.zeros(C, dtype=np.int64)
         self.batched = np.zeros(C, dtype=bool)  # the last update was a batch over all data
         # pose after each of the last cycles a camera took part in: (t (3,), R (3, 3))
         self.history: list[deque] = [deque(maxlen=cfg.converged_cycles + 1) for _ in range(C)]
 
     def predicted_covariance(self) -> np.ndarray:
-        """(C, 6, 6) prior covariance for the next cycle's graph."""
-        return self.P + self.q_scale[:, None, None] * self.Q[None]
+        """(C, 6, 6) prior covariance for the next cycle's graph. A held camera's is a
+        ten-thousandth of its own: the cycle then calibrates the others in the held
+        cameras' frame, not in one its solve moved by their std (which the held cameras
+        would not follow)."""
+        P = self.P + self.q_scale[:, None, None] * self.Q[None]
+        P[self.held] *= _HELD
+        return P
 
     def update(self, active: np.ndarray, R_new: np.ndarray, t_new: np.ndarray, cov: np.ndarray,
                *, posterior: bool = False, cov_shape: np.ndarray | None = None, final: bool | None = None) -> UpdateResult:
@@ -97,6 +108,9 @@ class Refiner:
         C = len(self.R)
         R_old, t_old = self.R.copy(), self.t.copy()
         Pp = self.predicted_covariance()
+        batch = posterior if final is None else final
+        if not batch:  # a batch over all data is the posterior of every camera, held or not
+            active = active & ~self.held
         for c in np.flatnonzero(active):
             S = cov[c]
             if not np.all(np.isfinite(S)):
@@ -110,17 +124,18 @@ class Refiner:
                 self.R[c], self.t[c] = pose_retract(self.R[c], self.t[c], K @ innov)
                 self.P[c] = _sym_pd((np.eye(6) - K) @ Pp[c])
         if not posterior:  # cameras without data this cycle still become less certain
-            for c in np.flatnonzero(~active):
+            for c in np.flatnonzero(~active & ~self.held):
                 self.P[c] = Pp[c]
+        S_held = self.S[self.held]
         self.S = self.P.copy()
+        self.S[self.held] = S_held
         if cov_shape is not None:
             for c in np.flatnonzero(active):
                 if np.all(np.isfinite(cov_shape[c])):
                     self.S[c] = _sym_pd(cov_shape[c])
-        scale = self.keep_scale(active) if self.cfg.keep_scale else 1.0
+        scale = self.keep_scale(active) if self.cfg.keep_scale and not self.held.any() else 1.0
         dt = np.linalg.norm(self.t - t_old, axis=1)
         dr = np.array([rotation_angle_deg(R_old[c], self.R[c]) for c in range(C)])
-        batch = posterior if final is None else final
         if batch:  # the cycles' way to it is no drift: their net change is measured from here
             for c in np.flatnonzero(active):
                 self.history[c].clear()

@@ -31,8 +31,10 @@ class Scene:
     """8 cameras around a 4 m room, 2 persons walking in it, keypoints with 2 px noise,
     a little heavier-tailed, and now and then a view given to the wrong person."""
 
-    def __init__(self, seed: int):
+    def __init__(self, seed: int, occluded: float = 0.2):
         self.rng = np.random.default_rng(seed)
+        self.occluded = occluded  # chance a camera does not see a person in a frame
+        self.dropped: dict[int, float] = {}  # camera: chance its view is left out of a hypothesis
         C = 8
         ang = np.linspace(0, 2 * np.pi, C, endpoint=False)
         self.t = np.stack([4 * np.cos(ang), 4 * np.sin(ang), np.full(C, 2.5)], axis=1)
@@ -63,7 +65,7 @@ class Scene:
             X = self.body[k] + np.r_[self.pos[k], 0.0]
             cams, xy = [], []
             for c in range(len(self.t)):
-                if rng.random() < 0.2:  # occluded
+                if rng.random() < self.occluded or (c in self.dropped and rng.random() < self.dropped[c]):
                     continue
                 uv, _ = _project(self.R[c], self.t[c], X)
                 noise = rng.standard_t(5, size=(17, 2)) * 2.0 / F

@@ -11,6 +11,7 @@ import pytest
 from backend.cameras import CameraSet, Extrinsics
 from backend.config import EngineConfig
 from backend.evaluate import evaluate
+from backend.geometry import pose_retract, rotation_angle_deg
 from backend.optimize import solve
 from backend.perturb import perturb_extrinsics
 from backend.monitor import Alarm
@@ -275,22 +276,67 @@ def test_first_adjustment_from_a_rough_start_pulls_no_camera_off(lab20_rough, fi
         assert after.orientation.max > before.orientation.max or after.shape_position.max > 0.5, after.summary()
 
 
-def test_the_monitor_watches_converged_cameras_without_process_noise(lab):
-    """Wiring of the monitor: the watch begins once most calibrated cameras converged; a
-    watched camera gets no process noise (the monitor, not the noise, catches a move);
-    in 30 quiet seconds nothing is flagged, and an alarm survives a snapshot."""
+# convergence made easy: 30 s of data must get the watch going
+_EASY = {"converged_cycles": 3, "converged_translation": 1.0, "converged_rotation": 30.0,
+         "converged_std_translation": 1.0, "converged_std_rotation": 30.0}
+
+
+@pytest.fixture(scope="module")
+def watching(lab):
+    """A pipeline with the monitor on after the lab's 30 s, and its snapshot (one test may
+    change the pipeline: the others restore the snapshot)."""
     cams, _, msgs = lab
-    # convergence made easy: 30 s of data must get the watch going
-    easy = {"converged_cycles": 3, "converged_translation": 1.0, "converged_rotation": 30.0,
-            "converged_std_translation": 1.0, "converged_std_rotation": 30.0}
-    cfg = EngineConfig().merged({"monitor": {"enabled": True}, "refine": easy})
+    cfg = EngineConfig().merged({"monitor": {"enabled": True}, "refine": _EASY})
     p = run_offline(cams, cfg, msgs, seed=0, finish=False)
+    return cams, cfg, json.loads(json.dumps(p.snapshot())), p
+
+
+def test_the_monitor_watches_converged_cameras_and_holds_them(watching):
+    """Wiring of the monitor: the watch begins once most calibrated cameras converged; a
+    watched camera gets no process noise and is held (the monitor, not the noise or a
+    moved camera's pull, changes it), also after a restart; in 30 quiet seconds nothing
+    is flagged, and an alarm survives a snapshot."""
+    cams, cfg, snap, _ = watching
+    p = Pipeline.restore(cams, cfg, snap)
     converged = np.array([p.refiner.converged(c) for c in range(len(p.names))])
     calibrated = p.refiner.cycles > 0
     assert converged.sum() >= cfg.monitor.start_fraction * calibrated.sum()
     assert p.watched.any() and not (p.watched & ~converged).any()
-    np.testing.assert_array_equal(p.refiner.q_scale, np.where(p.watched, 0.0, 1.0))
+    np.testing.assert_array_equal(p.refiner.held, p.watched)
     assert p.monitor.alarms == [] and all(c.moved_at is None for c in p.state().cameras)
     p.monitor.alarms.append(Alarm(12.5, 2, 50.0, 0.03, 0.1, 7.5))
     q = Pipeline.restore(cams, cfg, json.loads(json.dumps(p.snapshot())))
     assert q.monitor.alarms == p.monitor.alarms and q.state().cameras[2].moved_at == 12.5
+
+
+def test_a_moved_camera_is_calibrated_again_by_an_adjustment_with_the_others_held(watching):
+    """After the monitor's resections, one adjustment over the data since the move
+    calibrates the moved camera with the watched ones held exactly where they were."""
+    p = watching[3]  # with its archive of frames (a snapshot has none)
+    p.batch_adjust()  # the network as a session leaves it; the data's own optimum to come back to
+    p.watched = np.array([p.refiner.converged(c) for c in range(len(p.names))])
+    p.refiner.held = p.watched.copy()
+    c = int(np.flatnonzero(p.watched)[0])
+    R_est, t_est = p.refiner.R[c].copy(), p.refiner.t[c].copy()
+    others = np.flatnonzero(p.watched & (np.arange(len(p.names)) != c))
+    R_o, t_o = p.refiner.R[others].copy(), p.refiner.t[others].copy()
+    # as the monitor leaves a flagged camera: not watched, not held, its resection 5 cm / 1° off
+    # where the data put it (the data did not move: the adjustment must bring it back)
+    p.watched[c] = p.refiner.held[c] = False
+    R_off, t_off = pose_retract(R_est, t_est, np.r_[np.radians([0.6, -0.5, 0.6]), 0.03, -0.03, 0.03])
+    p.refiner.recalibrated(c, R_off, t_off, np.diag([np.radians(1.0) ** 2] * 3 + [0.05 ** 2] * 3))
+    p._recalibrate_due.append((p.clock + 10.0, c, p.frames[0][0]))
+    early = p.next_problem(p.clock)
+    assert early is None or early.kind != "recalibrate"  # not due yet
+    p._inflight = None
+    p._recalibrate_due[0] = (p.clock, c, p.frames[0][0])
+    problem = p.next_problem(p.clock)
+    assert problem.kind == "recalibrate" and problem.moved == (c,) and len(problem.frames) > 100
+    report = p.apply(problem, solve(problem))
+    assert report.accepted, report.reason
+    np.testing.assert_array_equal(p.refiner.t[others], t_o)
+    np.testing.assert_array_equal(p.refiner.R[others], R_o)
+    assert np.linalg.norm(t_off - t_est) > 0.05 and rotation_angle_deg(R_off, R_est) > 0.9
+    assert np.linalg.norm(p.refiner.t[c] - t_est) < 0.02
+    assert rotation_angle_deg(p.refiner.R[c], R_est) < 0.3
+    assert p.refiner.batched[c] and p.refiner.converged(c)  # watched again at the monitor's next turn

@@ -179,3 +179,22 @@ def test_one_camera_placed_far_off_does_not_rescale_the_others():
     d = np.linalg.norm(rf.t[others][:, None] - rf.t[others][None], axis=2)
     d0 = np.linalg.norm(t0[others][:, None] - t0[others][None], axis=2)
     assert np.allclose(d, d0, rtol=0.05, atol=1e-9)
+
+
+def test_held_cameras_keep_their_pose_scale_and_covariance_through_cycles_but_not_a_batch():
+    R0, t0 = _initial()
+    rf = Refiner(RefineConfig(measurement="marginal", keep_scale=True), R0, t0)
+    rf.held = np.array([True, True, False, True])
+    P_held = rf.P.copy()
+    xi = np.tile([0.02, 0.01, -0.01, 0.05, -0.03, 0.01], (C, 1))
+    R1, t1 = _moved(R0, t0, xi)
+    cov = np.repeat(np.diag([1e-6] * 3 + [1e-5] * 3)[None], C, axis=0)
+    rf.update(np.ones(C, bool), R1, t1, cov)
+    for c in (0, 1, 3):  # held: not moved, not rescaled, no more certain
+        assert np.array_equal(rf.R[c], R0[c]) and np.array_equal(rf.t[c], t0[c])
+        assert np.array_equal(rf.P[c], P_held[c])
+    assert rf.cycles.tolist() == [0, 0, 1, 0]
+    assert np.linalg.norm(rf.t[2] - t0[2]) > 0.01  # the free camera took its data
+    # a batch over all data is every camera's posterior, held or not
+    rf.update(np.ones(C, bool), R1, t1, cov, posterior=True, final=True)
+    assert np.allclose(rf.t, t1)
