@@ -27,9 +27,11 @@ since the change show it, and otherwise nobody is, yet.
 
 A flagged camera is calibrated again from the data since the change: at every bin, one
 resection over all its correspondences since then with the others fixed, until
-``recalibrate_seconds`` of data are in (``Recalibration``); the others' bins since the
-change are dropped (their points were triangulated with the moved camera). The pipeline
-applies the poses, and watches the camera again once its cycles find it converged.
+``recalibrate_seconds`` of data are in (``Recalibration``); the cameras it was a source
+of points for start their reference over (their points come without it from then on),
+the others drop their bins since the change. The pipeline applies the poses, adjusts
+the camera over all its data since the move (the watched cameras held) at
+``recalibrate_seconds`` and twice that, and watches it again once converged.
 """
 
 from __future__ import annotations
@@ -413,9 +415,17 @@ class Monitor:
             self._reset(k)
             k.since = since
             k.data.extend(data)
-            # the others' evidence since the change was triangulated with the moved camera
+            # The others' evidence since the change was triangulated with the moved camera;
+            # and from now on their points come without it (it is not trusted while it is
+            # calibrated again): a camera it was a source of starts its reference over, or
+            # losing that source would look like a step of its own (one alarm cascading).
+            shared = {int(c) for h in self.recent if a.cam in h.cams for c in h.cams}
             for c, o in enumerate(self.cams):
-                if c != a.cam and o.since is None:
+                if c == a.cam or o.since is not None:
+                    continue
+                if c in shared and (o.trust is None or o.trust[a.cam]):
+                    self._reset(o)
+                else:
                     o.bins = [b for b in o.bins if b[1] <= a.since]
                     while o.data and o.data[-1].time >= a.since:
                         o.data.pop()

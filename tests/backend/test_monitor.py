@@ -122,6 +122,8 @@ def test_a_bumped_camera_is_flagged_within_30s_and_calibrated_again(bump):
     assert a.cam == 2 and 120.0 < a.time <= 150.0, alarms
     assert [x.cam for x in alarms] == [2]  # no other camera
     assert 110.0 <= a.since <= a.time
+    # the cameras it was a source of points for started their reference over, without it
+    assert all(b[0] >= a.time for c in range(8) if c != 2 for b in m.cams[c].bins)
     assert err[0] < 0.03 and err[1] < 0.3, err  # 80 s after the bump
     assert s.others_moved < 0.005  # the others are held
 
