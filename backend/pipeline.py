@@ -196,7 +196,7 @@ class Pipeline:
         another thread while push/advance go on; its result goes to ``apply_clock``."""
         if not self.clocks.due(now) or not self._calibrated():
             return None
-        return self.clocks.begin(now, self.refiner.R, self.refiner.t)
+        return self.clocks.begin(now, self.refiner.R, self.refiner.t, P=self.refiner.S)
 
     def apply_clock(self, job: ClockJob, result: ClockResult | None) -> list[str]:
         """Fold a clock job's result in (None: it failed or was cancelled): newly
@@ -477,7 +477,8 @@ class Pipeline:
         if self.clock is not None:
             self.advance(self.clock + self.cfg.sync.wait + 1.0 / self.cfg.sync.rate)
             if self.cfg.clock.estimate and self._calibrated():
-                self._retime(self.clocks.update(self.clock, self.refiner.R, self.refiner.t, flush=True))
+                self._retime(self.clocks.update(self.clock, self.refiner.R, self.refiner.t, flush=True,
+                                                P=self.refiner.S))
         lost = np.flatnonzero(self._never_associated()) if self.cfg.associate.relocalize else []
         if len(lost) and self.frames and self._inflight is None:
             # one more try with the final estimate of the others, before the batch needs them
