@@ -49,7 +49,7 @@ from proto import KeypointMessage
 from .associate import Hypothesis
 from .cameras import Intrinsics, undistort
 from .config import ClockConfig
-from .geometry import project_normalised, so3_exp, triangulate_batch
+from .geometry import pose_local, project_normalised, so3_exp, triangulate_batch
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +67,7 @@ _POSE_ITERS = 2  # Gauss-Newton steps of the pose at each candidate (from the ce
 # for Gaussian noise), and the median of |N(0, sigma)| is 0.674 sigma (per coordinate;
 # for the 2D distance the median is 1.18 sigma).
 _CAUCHY = 2.385 / 1.18
+_CHI2_6 = float(scipy.stats.chi2.ppf(1 - 0.0027, 6))  # the 3-sigma tail of a 6-dof pose
 
 
 # ------------------------------------------------------------------ results
@@ -947,6 +948,28 @@ class ClockOffsetEstimator:
         prev, prev_std = self.candidate[s], self.candidate_std[s]
         self.candidate[s], self.candidate_std[s] = (o, e) if passes else (np.nan, np.nan)
         return bool(passes and np.isfinite(prev) and abs(o - prev) <= k * math.hypot(e, prev_std))
+
+    def relocation(self, c: int, R: np.ndarray, t: np.ndarray, P: np.ndarray, calibrated: bool
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Where to put camera c when its first offset is applied: the pose the estimate
+        fitted with that offset (a robust PnP of its tracks against the others' 3D,
+        timed right) when the current one, R (3, 3), t (3,) with covariance P (6, 6), is
+        not calibrated yet or lies beyond the 3-sigma tail of P from it (chi² with 6 dof,
+        0.27 %); None: keep it. A mistimed sensor's views join no hypothesis (its person
+        is 14-28 cm elsewhere), so its camera stays at the initial estimate, or gets
+        calibrated to its mistimed data; once the offset is applied its new views
+        would have to be associated with that pose."""
+        pose = self.pose[c]
+        if pose is None:
+            return None
+        if not calibrated:
+            return pose
+        v = pose_local(R, t, *pose)
+        try:
+            d2 = float(v @ np.linalg.solve(P, v))
+        except np.linalg.LinAlgError:
+            return None
+        return pose if d2 > _CHI2_6 else None
 
     def _check_drift(self, c: int, o: float, s: float, now: float) -> None:
         if not np.isfinite(self.anchor[c]):

@@ -215,9 +215,15 @@ class Pipeline:
         sensor's current one by more than ``clock.retime_tolerance`` (an offset taken
         back brings its earlier views back)."""
         start = self.sync.next_time if self.sync.next_time is not None else -np.inf
+        rf = self.refiner
         for name in sensors:
             c = self.names.index(name)
             new = float(self.clocks.applied[c])
+            if not self._offset_history[c] or self._offset_history[c][-1][1] == 0.0:  # a first offset
+                pose = self.clocks.relocation(c, rf.R[c], rf.t[c], rf.S[c], bool(rf.cycles[c] > 0))
+                if pose is not None:  # the camera where the clock's estimate put it
+                    rf.relocate(c, *pose)
+                    self.relocalized.append(name)
             self.sync.set_offset(name, new)
             self._offset_history[c].append((start, new))
 
