@@ -706,11 +706,18 @@ class ClockOffsetEstimator:
     def _trusted(self, recs: list[_Record]) -> tuple[list[np.ndarray], np.ndarray]:
         """Per record (V,) bool: views timed right as far as the current estimates know
         (a sensor's view made with an offset applied that its estimate now contradicts
-        is left out of the others' 3D); and a fingerprint of that choice."""
+        is left out of the others' 3D); and a fingerprint of that choice. Estimates are
+        compared relative to the median sensor, as offsets are applied: the raw ones
+        share the synchronised clock's own lag (seed 2 of the bench: about -10 ms on
+        every sensor), which would otherwise mark every view of a synchronised sensor
+        as mistimed. With fewer than 3 estimates the median is no reference (one of them
+        may be the mistimed one): the raw estimates then."""
         tol = max(self.cfg.retime_tolerance, 0.0)
+        fin = np.isfinite(self.raw)
+        rel = self.raw - (np.median(self.raw[fin]) if fin.sum() >= 3 else 0.0)
         out = []
         for r in recs:
-            est = self.raw[r.cams]
+            est = rel[r.cams]
             ok = ~np.isfinite(est) | (np.abs(est - r.applied[r.cams]) <= tol)
             out.append(ok)
         return out, np.concatenate(out) if out else np.zeros(0, bool)

@@ -153,6 +153,22 @@ def test_identification_gate_grows_with_the_pose_covariance():
     assert est._gates(0, proj, R, t, X)[:2] * f == pytest.approx([cfg.match_max_px] * 2)
 
 
+def test_relocation_when_a_first_offset_is_applied():
+    """The pose the estimate fitted with a sensor's offset replaces its camera's when that
+    was never calibrated (a mistimed sensor's views join no hypothesis) or lies beyond
+    the 3-sigma tail of its covariance; not when they agree."""
+    intr = load_intrinsics(LAB / "intrinsics.yaml")["cam_0"]
+    est = ClockOffsetEstimator(EngineConfig().clock, ("a",), {"a": intr}, 0.6)
+    R, t = _camera(np.random.default_rng(7))
+    P = np.diag([np.radians(0.3) ** 2] * 3 + [0.02**2] * 3)
+    assert est.relocation(0, R, t, P, calibrated=False) is None  # nothing fitted yet
+    est.pose[0] = (R @ so3_exp(np.radians([0.0, 0.5, 0.0])), t + [0.01, 0.0, 0.0])
+    assert est.relocation(0, R, t, P, calibrated=True) is None  # 0.5°, 1 cm: within 3 sigma
+    assert est.relocation(0, R, t, P, calibrated=False) is est.pose[0]
+    est.pose[0] = (R @ so3_exp(np.radians([0.0, 3.0, 0.0])), t + [0.3, 0.0, 0.0])
+    assert est.relocation(0, R, t, P, calibrated=True) is est.pose[0]  # calibrated to mistimed data
+
+
 def _msg(sensor: str, seq: int, stamp: float, x: float) -> KeypointMessage:
     kp = np.zeros((17, 3))
     kp[:, 0] = x + np.arange(17)
