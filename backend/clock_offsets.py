@@ -18,10 +18,17 @@ How (docs/clock_offsets.md has the reasoning and the figures):
    and compared with the 3D persons: the sensor's own pose is fitted to them (robust
    Gauss-Newton PnP, Cauchy), because a mistimed camera is also badly calibrated and
    its pose error would swamp the timing signal; the cost left is the profile cost of g.
-   A coarse grid over the whole range finds the offset, a fine grid around it and a
-   least-squares parabola measure it; its std is the jackknife over blocks of data time.
+   A coarse grid over the whole range finds the offset with the pose held (fitted at
+   the grid's centre, then once at the best candidate: a pose fitted at every candidate
+   of a wide grid mimics a time shift), a fine grid around it (pose fitted at each) and
+   a least-squares parabola measure it; its std is the jackknife over blocks of data time.
+   A sensor's tracks that join no hypothesis are identified by projecting the person
+   into it, with a gate that grows with its pose's covariance.
 4. Offsets relative to the median sensor; confident ones are applied by the
-   synchroniser, which makes the other sensors' 3D (step 2) better timed in turn.
+   synchroniser (a first one only when beyond NTP's spread by its tail on two agreeing
+   updates), which makes the other sensors' 3D (step 2) better timed in turn. A camera
+   never calibrated (or calibrated to its mistimed data) is moved to the pose fitted
+   with its offset when that is first applied (``relocation``).
 
 Joint pose and time: walking people move along few directions over a few seconds, so a
 pose correction alone could absorb a shift in time; over a window of a minute they walk
