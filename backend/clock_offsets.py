@@ -18,10 +18,17 @@ How (docs/clock_offsets.md has the reasoning and the figures):
    and compared with the 3D persons: the sensor's own pose is fitted to them (robust
    Gauss-Newton PnP, Cauchy), because a mistimed camera is also badly calibrated and
    its pose error would swamp the timing signal; the cost left is the profile cost of g.
-   A coarse grid over the whole range finds the offset, a fine grid around it and a
-   least-squares parabola measure it; its std is the jackknife over blocks of data time.
+   A coarse grid over the whole range finds the offset with the pose held (fitted at
+   the grid's centre, then once at the best candidate: a pose fitted at every candidate
+   of a wide grid mimics a time shift), a fine grid around it (pose fitted at each) and
+   a least-squares parabola measure it; its std is the jackknife over blocks of data time.
+   A sensor's tracks that join no hypothesis are identified by projecting the person
+   into it, with a gate that grows with its pose's covariance.
 4. Offsets relative to the median sensor; confident ones are applied by the
-   synchroniser, which makes the other sensors' 3D (step 2) better timed in turn.
+   synchroniser (a first one only when beyond NTP's spread by its tail on two agreeing
+   updates), which makes the other sensors' 3D (step 2) better timed in turn. A camera
+   never calibrated (or calibrated to its mistimed data) is moved to the pose fitted
+   with its offset when that is first applied (``relocation``).
 
 Joint pose and time: walking people move along few directions over a few seconds, so a
 pose correction alone could absorb a shift in time; over a window of a minute they walk
@@ -49,7 +56,7 @@ from proto import KeypointMessage
 from .associate import Hypothesis
 from .cameras import Intrinsics, undistort
 from .config import ClockConfig
-from .geometry import project_normalised, so3_exp, triangulate_batch
+from .geometry import pose_local, project_normalised, so3_exp, triangulate_batch
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +74,7 @@ _POSE_ITERS = 2  # Gauss-Newton steps of the pose at each candidate (from the ce
 # for Gaussian noise), and the median of |N(0, sigma)| is 0.674 sigma (per coordinate;
 # for the 2D distance the median is 1.18 sigma).
 _CAUCHY = 2.385 / 1.18
+_CHI2_6 = float(scipy.stats.chi2.ppf(1 - 0.0027, 6))  # the 3-sigma tail of a 6-dof pose
 
 
 # ------------------------------------------------------------------ results
@@ -249,17 +257,28 @@ class Samples:
 
 
 def profile(samples: Samples, grid: np.ndarray, R: np.ndarray, t: np.ndarray, max_gap: float, block: float,
-            focal: float, min_scale_px: float, anneal: bool = True, bandwidth: float = 0.05) -> tuple[np.ndarray, np.ndarray, float, int] | None:
-    """Profile cost of candidate offsets: at each g in grid (K,) the sensor's pose is
-    fitted (``fit_pose``, from the pose fitted at the grid's centre) to the samples'
-    3D joints against its tracks at ``times + g`` (``smooth_track``; ``anneal``: the start pose may be far
-    off, begin with a wide Cauchy). Only joints valid at every candidate
-    count, so costs compare across the grid.
+            focal: float, min_scale_px: float, anneal: bool = True, bandwidth: float = 0.05,
+            nuisance: str = "pose") -> tuple[np.ndarray, np.ndarray, float, int] | None:
+    """Profile cost of candidate offsets: the samples' 3D joints against the sensor's
+    tracks at ``times + g`` (``smooth_track``) for each g in grid (K,), with the sensor's
+    pose handled by ``nuisance``:
+
+    - "pose": fitted at each g (``fit_pose``, from the pose fitted at the grid's centre;
+      ``anneal``: the start pose may be far off, begin with a wide Cauchy). Right over a
+      narrow grid around the offset; over a wide one a pose shift can mimic a time shift
+      (people walking one way through a view) and the profile flattens.
+    - "fixed": the pose fitted at the grid's centre (as above) and held over the grid,
+      then fitted once at the best candidate and held again (``_profile_fixed``): the
+      search over the whole range. The robust scale is taken at the best candidate.
+
+    Only joints valid at every candidate count, so costs compare across the grid.
 
     Returns block_cost (B, K) (Cauchy px², per block of ``block`` s of data time), the
-    block ids' count B, the robust scale used (px, median distance at the centre), the
-    number of joints and the pose (R, t) fitted at the centre; None without joints.
+    block ids' count B, the robust scale used (px, median distance at the centre, or at
+    the best candidate with "fixed"), the number of joints and the pose (R, t) fitted at
+    the centre (at the best candidate with "fixed"); None without joints.
     """
+    assert nuisance in ("pose", "fixed")
     K = len(grid)
     pos, val = [], []
     key = (round(float(grid[0]), 6), round(float(grid[-1]), 6), K)
@@ -289,11 +308,40 @@ def profile(samples: Samples, grid: np.ndarray, R: np.ndarray, t: np.ndarray, ma
     scale = max(min_scale_px, float(np.median(d[np.isfinite(d)])) * focal if np.isfinite(d).any() else np.inf)
     width = _CAUCHY * scale / focal
     Rc, tc, _ = fit_pose(X, obs[:, c], Rc, tc, width, 3)
+    if nuisance == "fixed":
+        return _profile_fixed(X, obs, blk, B, Rc, tc, c, focal, min_scale_px)
     out = np.zeros((B, K))
     for k in range(K):
         _, _, d = fit_pose(X, obs[:, k], Rc, tc, width, _POSE_ITERS)
         out[:, k] = np.bincount(blk, cauchy(d * focal, _CAUCHY * scale), minlength=B)
     return out, B, scale, len(X), (Rc, tc)
+
+
+def _profile_fixed(X: np.ndarray, obs: np.ndarray, blk: np.ndarray, B: int, R: np.ndarray, t: np.ndarray, k: int,
+                   focal: float, min_scale_px: float) -> tuple | None:
+    """``profile`` with the pose held: X (P, 3) joints, obs (P, K, 2) the track at each
+    candidate, blk (P,) block ids, (R, t) the pose fitted at candidate k. The profile
+    with that pose held finds the best candidate; the pose is fitted once more there
+    and the profile taken again with it held (a sensor far off in time: the pose
+    fitted at the centre absorbed part of the shift). The Cauchy width from the median
+    distance at the best candidate."""
+    K = obs.shape[1]
+    for rnd in range(2):
+        front = ((X - t) @ R)[:, 2] > 0.05
+        if front.sum() < 12:
+            return None
+        d = np.full((len(X), K), np.inf)
+        u, _ = project_normalised(R, t, X[front])
+        d[front] = np.linalg.norm(obs[front] - u[:, None, :], axis=-1) * focal  # (P, K) px
+        scale = max(min_scale_px, float(np.median(d[front, k])))
+        cost = cauchy(d, _CAUCHY * scale)  # (P, K)
+        k = int(np.argmin(cost.sum(0)))
+        scale = max(min_scale_px, float(np.median(d[front, k])))
+        if rnd == 0:
+            R, t, _ = fit_pose(X, obs[:, k], R, t, _CAUCHY * scale / focal, 3)
+    cost = cauchy(d, _CAUCHY * scale)
+    out = np.stack([np.bincount(blk, cost[:, j], minlength=B) for j in range(K)], axis=1)
+    return out, B, scale, len(X), (R, t)
 
 
 # ------------------------------------------------------------------ per-sensor tracks
@@ -522,8 +570,11 @@ class ClockOffsetEstimator:
         self.anchor = np.full(S, np.nan)  # estimate at the last drift check point
         self.anchor_std = np.full(S, np.nan)
         self.drift_warnings = np.zeros(S, np.int64)
+        self.candidate = np.full(S, np.nan)  # the last fresh estimate that passed the test to be applied (``_first``)
+        self.candidate_std = np.full(S, np.nan)
         self.note: list[str | None] = ["no update yet"] * S
         self._job: ClockJob | None = None  # the update in flight (``begin`` .. ``finish``)
+        self.pose_cov: np.ndarray | None = None  # (S, 6, 6) of the poses of the update in flight (``begin``)
 
     @property
     def _margin(self) -> float:
@@ -574,21 +625,26 @@ class ClockOffsetEstimator:
                 tol = _VIEW_MATCH_PX / self.focal[c]
                 rec.tracks.append(self.tracks[c].find(q, rec.xy[v], tol, rec.time - half, rec.time + half))
 
-    def update(self, now: float, R: np.ndarray, t: np.ndarray, *, flush: bool = False) -> list[str]:
+    def update(self, now: float, R: np.ndarray, t: np.ndarray, *, flush: bool = False,
+               P: np.ndarray | None = None) -> list[str]:
         """Estimate from the data up to ``now`` (all of it with ``flush``) with the
-        poses R (C, 3, 3), t (C, 3), in this thread (``begin`` + ``ClockJob.run`` +
-        ``finish``); returns the sensors whose applied offset changed."""
-        job = self.begin(now, R, t, flush=flush)
+        poses R (C, 3, 3), t (C, 3) (and their covariance P (C, 6, 6), see ``begin``),
+        in this thread (``begin`` + ``ClockJob.run`` + ``finish``); returns the sensors
+        whose applied offset changed."""
+        job = self.begin(now, R, t, flush=flush, P=P)
         return self.finish(job, job.run())
 
-    def begin(self, now: float, R: np.ndarray, t: np.ndarray, *, flush: bool = False) -> "ClockJob":
+    def begin(self, now: float, R: np.ndarray, t: np.ndarray, *, flush: bool = False,
+              P: np.ndarray | None = None) -> "ClockJob":
         """The cheap part of an update, on the caller's thread: drop records and track
         points that left the window, and take a ``ClockJob`` with copies of what the
         estimate reads (the per-sensor state, the tracks as they are now, the records in
         the window). ``push`` and ``add`` may go on while the job runs elsewhere; ``due``
-        says False until ``finish`` (a ``flush`` job replaces one in flight)."""
+        says False until ``finish`` (a ``flush`` job replaces one in flight).
+        P (C, 6, 6): the poses' covariance (rotation, translation; right perturbation):
+        a sensor's gate for identifying its tracks grows with it (None: the fixed gate)."""
         S = len(self.names)
-        assert R.shape == (S, 3, 3) and t.shape == (S, 3)
+        assert R.shape == (S, 3, 3) and t.shape == (S, 3) and (P is None or P.shape == (S, 6, 6))
         self.last_update = now
         cfg = self.cfg
         while self.records and self.records[0].time < now - cfg.window:
@@ -604,6 +660,7 @@ class ClockOffsetEstimator:
             setattr(work, k, getattr(self, k).copy())
         work.pose, work.note = list(self.pose), list(self.note)
         work._job = None
+        work.pose_cov = None if P is None else P.copy()
         job = ClockJob(now, flush, R.copy(), t.copy(), list(self.records), work)
         self._job = job
         return job
@@ -656,11 +713,18 @@ class ClockOffsetEstimator:
     def _trusted(self, recs: list[_Record]) -> tuple[list[np.ndarray], np.ndarray]:
         """Per record (V,) bool: views timed right as far as the current estimates know
         (a sensor's view made with an offset applied that its estimate now contradicts
-        is left out of the others' 3D); and a fingerprint of that choice."""
+        is left out of the others' 3D); and a fingerprint of that choice. Estimates are
+        compared relative to the median sensor, as offsets are applied: the raw ones
+        share the synchronised clock's own lag (seed 2 of the bench: about -10 ms on
+        every sensor), which would otherwise mark every view of a synchronised sensor
+        as mistimed. With fewer than 3 estimates the median is no reference (one of them
+        may be the mistimed one): the raw estimates then."""
         tol = max(self.cfg.retime_tolerance, 0.0)
+        fin = np.isfinite(self.raw)
+        rel = self.raw - (np.median(self.raw[fin]) if fin.sum() >= 3 else 0.0)
         out = []
         for r in recs:
-            est = self.raw[r.cams]
+            est = rel[r.cams]
             ok = ~np.isfinite(est) | (np.abs(est - r.applied[r.cams]) <= tol)
             out.append(ok)
         return out, np.concatenate(out) if out else np.zeros(0, bool)
@@ -708,12 +772,16 @@ class ClockOffsetEstimator:
 
     def _identify(self, s: int, recs: list[_Record], trusted: list[np.ndarray], R: np.ndarray, t: np.ndarray) -> None:
         """For records without sensor s (it missed the frameset or was not associated):
-        which of its tracks is that person, decided once per record. The person from the
+        which of its tracks is that person. The person from the
         other views is projected into s (its fitted pose when there is one); a track is
         the person when, at its best offset within the range searched, it fits clearly
         better than any other track (ratio test) and within the gate."""
         cfg = self.cfg
-        todo = [i for i, r in enumerate(recs) if s not in r.free and not (r.cams == s).any() and trusted[i].sum() >= 2]
+        # decided once per record, but a sensor still without an estimate looks again at
+        # the records where it found nobody (its pose and gate have changed since)
+        retry = not np.isfinite(self.raw[s])
+        todo = [i for i, r in enumerate(recs) if (s not in r.free or (retry and r.free[s] is None))
+                and not (r.cams == s).any() and trusted[i].sum() >= 2]
         if not todo:
             return
         Rs, ts = self.pose[s] if self.pose[s] is not None else (R[s], t[s])
@@ -727,7 +795,7 @@ class ClockOffsetEstimator:
         live = [tr for tr in self.tracks[s].tracks if len(tr.stamps) >= 2]
         spans = np.array([(tr.stamps[0], tr.stamps[-1]) for tr in live]).reshape(-1, 2)
         half = cfg.max_offset + cfg.track_gap
-        gate = cfg.match_px / self.focal[s]
+        gates = self._gates(s, proj, Rs, ts, X)
         for n, i in enumerate(todo):
             r = recs[i]
             r.free[s] = None
@@ -748,13 +816,39 @@ class ClockOffsetEstimator:
             if not best:
                 continue
             best.sort()
-            if best[0][0] > gate or (len(best) > 1 and best[0][0] > _RATIO * best[1][0]):
+            if best[0][0] > gates[n] or (len(best) > 1 and best[0][0] > _RATIO * best[1][0]):
                 continue
             st, txy, tok = live[best[0][1]].arrays()
             i0 = max(int(np.searchsorted(st, r.time - half, side="right")) - 1, 0)
             i1 = min(int(np.searchsorted(st, r.time + half, side="left")) + 1, len(st))
             if i1 - i0 >= 2:
                 r.free[s] = (st[i0:i1].copy(), txy[i0:i1].copy(), tok[i0:i1].copy())
+
+    def _gates(self, s: int, proj: np.ndarray, R: np.ndarray, t: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """(N,) normalised: how close a track of sensor s must come to each person X
+        (N, J, 3) projected into it (proj (N, J, 2), NaN behind it)
+        to be that person: ``clock.match_px`` widened by ``clock.match_sigmas`` times
+        the projection's std under the pose's covariance (median over the person's
+        joints, the larger axis of each joint's 2x2), at most ``clock.match_max_px``.
+        A camera whose mistimed data left it badly calibrated is also an uncertain one:
+        a fixed gate misses its persons, and with them the samples that would time it."""
+        cfg = self.cfg
+        f = float(self.focal[s])
+        base = np.full(len(X), cfg.match_px / f)
+        if self.pose_cov is None or cfg.match_sigmas <= 0:
+            return base
+        vis = np.isfinite(proj).all(-1)  # (N, J)
+        if not vis.any():
+            return base
+        _, Jac = project_normalised(R, t, X[vis])  # (M, 2, 6)
+        C = Jac @ self.pose_cov[s] @ np.swapaxes(Jac, 1, 2)  # (M, 2, 2)
+        a, b, c = C[:, 0, 0], C[:, 0, 1], C[:, 1, 1]
+        sig = np.full(vis.shape, np.nan)
+        sig[vis] = np.sqrt(np.maximum(0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b * b), 0.0))
+        med = np.zeros(len(X))
+        rows = vis.any(1)
+        med[rows] = np.nanmedian(sig[rows], axis=1)
+        return np.minimum(np.hypot(base, cfg.match_sigmas * med), max(cfg.match_max_px, cfg.match_px) / f)
 
     def _start(self, s: int, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self.pose[s] if self.pose[s] is not None else (R[s], t[s])
@@ -763,13 +857,15 @@ class ClockOffsetEstimator:
                          t: np.ndarray) -> None:
         self.note[s] = self._estimate_sensor_why(s, recs, trusted, R, t)
 
-    def _unfit(self, res: tuple | None) -> str | None:
-        """Why a profile cannot be used, or None."""
+    def _unfit(self, res: tuple | None, scale: bool = True) -> str | None:
+        """Why a profile cannot be used, or None (``scale``: also when its residuals say
+        the pose is too far off; not for the search with the pose held, whose residuals
+        include the pose's error, which the fine search then fits)."""
         if res is None:
             return "too few joints seen by it and two other cameras"
         if res[1] < self.cfg.min_blocks:
             return f"data in {res[1]} blocks of {self.cfg.block:g} s (needs {self.cfg.min_blocks})"
-        if res[2] > self.cfg.max_scale_px:
+        if scale and res[2] > self.cfg.max_scale_px:
             return f"its residuals are {res[2]:.1f} px (at most {self.cfg.max_scale_px:g}): its pose is too far off"
         return None
 
@@ -784,8 +880,11 @@ class ClockOffsetEstimator:
             if smp is None:
                 return "no samples: no person seen by it and two other cameras timed right"
             grid = np.arange(-cfg.max_offset, cfg.max_offset + 1e-9, cfg.coarse_step)
-            res = profile(smp, grid, *self._start(s, R, t), cfg.track_gap, cfg.block, f, cfg.min_scale_px)
-            if (why := self._unfit(res)) is not None:
+            # the pose held (its fit at every candidate would let a pose shift mimic a
+            # time shift over the whole range); the fine search around the minimum fits it
+            res = profile(smp, grid, *self._start(s, R, t), cfg.track_gap, cfg.block, f, cfg.min_scale_px,
+                          nuisance=cfg.coarse_nuisance)
+            if (why := self._unfit(res, scale=cfg.coarse_nuisance == "pose")) is not None:
                 return "coarse search: " + why
             k = int(np.argmin(res[0].sum(0)))
             if k == 0 or k == len(grid) - 1:
@@ -824,16 +923,22 @@ class ClockOffsetEstimator:
         for s, n in enumerate(self.names):
             o, e = self.offset[s], self.std[s]
             if not np.isfinite(o) or e > cfg.max_std:
+                if self.note[s] is None:  # a fresh estimate too uncertain: no candidate to confirm
+                    self.candidate[s] = self.candidate_std[s] = np.nan
                 continue
             self._check_drift(s, o, e, now)
-            # an offset within NTP's spread is left alone (min_apply); once applied it is
-            # kept (and followed) until it falls below half of that (hysteresis)
-            # "3 std" with the std from few blocks: Student's t on blocks - 1 degrees of
-            # freedom (8 blocks: 4.5 std; 24: 3.4)
+            # an offset within NTP's spread is left alone (min_apply, ``_first``); once
+            # applied it is kept (and followed) until it falls below half of that
+            # (hysteresis). "3 std" with the std from few blocks: Student's t on
+            # blocks - 1 degrees of freedom (8 blocks: 4.5 std; 24: 3.4)
             k = _sigmas(int(self.nblocks[s]))
-            floor = cfg.min_apply / 2 if self.applied[s] != 0.0 else cfg.min_apply
-            target = o if abs(o) >= max(floor, k * e) else 0.0
-            step = cfg.min_change if self.applied[s] != 0.0 else cfg.min_apply
+            if self.applied[s] == 0.0:
+                if self._first(s, o, e, k):
+                    self.applied[s] = o
+                    changed.append(n)
+                continue
+            target = o if abs(o) >= max(cfg.min_apply / 2, k * e) else 0.0
+            step = cfg.min_change
             # refining an applied offset: 2.5 std (the t factor is for "is there one";
             # measured: with it here too, seed 1 with offsets ended 0.038 m off, not 0.014)
             refine = target != 0.0 and self.applied[s] != 0.0
@@ -841,6 +946,44 @@ class ClockOffsetEstimator:
                 self.applied[s] = target
                 changed.append(n)
         return changed
+
+    def _first(self, s: int, o: float, e: float, k: float) -> bool:
+        """Whether sensor s's estimate o (std e, tail factor k) is applied while nothing
+        is: the offset itself (not only the estimate) is beyond NTP's spread, |o| - k e
+        >= ``clock.min_apply``, on two successive fresh estimates of the sensor that
+        agree within k times their combined std. A single estimate from few blocks can
+        pass its own jackknife's test and be wrong (a synchronised sensor, +3.9 ms true,
+        estimated +16.5 ms from 11 blocks and applied); a real offset is found again
+        ten seconds later. A stale estimate (this update left the sensor as it was)
+        counts once."""
+        if self.note[s] is not None:
+            return False
+        passes = abs(o) - k * e >= self.cfg.min_apply
+        prev, prev_std = self.candidate[s], self.candidate_std[s]
+        self.candidate[s], self.candidate_std[s] = (o, e) if passes else (np.nan, np.nan)
+        return bool(passes and np.isfinite(prev) and abs(o - prev) <= k * math.hypot(e, prev_std))
+
+    def relocation(self, c: int, R: np.ndarray, t: np.ndarray, P: np.ndarray, calibrated: bool
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Where to put camera c when its first offset is applied: the pose the estimate
+        fitted with that offset (a robust PnP of its tracks against the others' 3D,
+        timed right) when the current one, R (3, 3), t (3,) with covariance P (6, 6), is
+        not calibrated yet or lies beyond the 3-sigma tail of P from it (chi² with 6 dof,
+        0.27 %); None: keep it. A mistimed sensor's views join no hypothesis (its person
+        is 14-28 cm elsewhere), so its camera stays at the initial estimate, or gets
+        calibrated to its mistimed data; once the offset is applied its new views
+        would have to be associated with that pose."""
+        pose = self.pose[c]
+        if pose is None:
+            return None
+        if not calibrated:
+            return pose
+        v = pose_local(R, t, *pose)
+        try:
+            d2 = float(v @ np.linalg.solve(P, v))
+        except np.linalg.LinAlgError:
+            return None
+        return pose if d2 > _CHI2_6 else None
 
     def _check_drift(self, c: int, o: float, s: float, now: float) -> None:
         if not np.isfinite(self.anchor[c]):

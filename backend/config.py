@@ -210,7 +210,7 @@ class BootstrapConfig(_Section):
 class ClockConfig(_Section):
     """Sensor clock offsets estimated from the data (backend/clock_offsets.py, docs/clock_offsets.md)."""
 
-    estimate: bool = Field(False, description="(off by default: not at its 5 ms bar on every seed, and seconds of CPU per "
+    estimate: bool = Field(False, description="(off by default: not at its 5 ms bar on every seed (14 of 15 on seeds 1-3), and seconds of CPU per "
                            "interval, see docs/clock_offsets.md) estimate each sensor's clock offset from its keypoints and "
                            "apply confident ones beyond NTP's spread (the service runs the estimate in a thread)")
     max_offset: float = Field(0.25, gt=0, le=2.0, description="s: largest offset searched (relative to the synchronised clock)")
@@ -219,9 +219,15 @@ class ClockConfig(_Section):
     window: float = Field(120.0, gt=0, description="s of recent data an estimate uses (follows slow drift)")
     track_gap: float = Field(0.3, gt=0, description="s: longest gap bridged within a person's track")
     coarse_step: float = Field(0.01, gt=0, description="s: grid step of the search over the full range")
+    coarse_nuisance: Literal["fixed", "pose"] = Field("fixed", description="the sensor's pose in that search: held at its "
+                                                      "current estimate ('fixed'), or fitted at every candidate ('pose': "
+                                                      "a pose shift can mimic a time shift, the profile flattens)")
     fine_step: float = Field(0.004, gt=0, description="s: grid step around a found offset (a parabola through it measures the minimum)")
     fine_half: float = Field(0.02, gt=0, description="s: half-width of that grid")
-    match_px: float = Field(40.0, gt=0, description="px: a track of a sensor not in a hypothesis is that person only when it fits within this (median over joints)")
+    match_px: float = Field(40.0, gt=0, description="px: a track of a sensor not in a hypothesis is that person only when it fits within this (median over joints) ...")
+    match_sigmas: float = Field(3.0, ge=0, description="... widened by this many stds of the person's projection under the "
+                                "sensor's pose covariance (a mistimed sensor is also badly calibrated) ...")
+    match_max_px: float = Field(120.0, gt=0, description="... up to this (px)")
     min_blocks: int = Field(4, ge=3, description="blocks of data a sensor needs for an estimate")
     min_scale_px: float = Field(0.5, gt=0, description="px: floor of the robust residual scale (median distance) of a sensor's fit")
     max_scale_px: float = Field(12.0, gt=0, description="px: no estimate while a sensor's fit is worse than this (the poses have not settled)")

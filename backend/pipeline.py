@@ -198,7 +198,7 @@ class Pipeline:
         another thread while push/advance go on; its result goes to ``apply_clock``."""
         if not self.clocks.due(now) or not self._calibrated():
             return None
-        return self.clocks.begin(now, self.refiner.R, self.refiner.t)
+        return self.clocks.begin(now, self.refiner.R, self.refiner.t, P=self.refiner.S)
 
     def apply_clock(self, job: ClockJob, result: ClockResult | None) -> list[str]:
         """Fold a clock job's result in (None: it failed or was cancelled): newly
@@ -217,9 +217,15 @@ class Pipeline:
         sensor's current one by more than ``clock.retime_tolerance`` (an offset taken
         back brings its earlier views back)."""
         start = self.sync.next_time if self.sync.next_time is not None else -np.inf
+        rf = self.refiner
         for name in sensors:
             c = self.names.index(name)
             new = float(self.clocks.applied[c])
+            if not self._offset_history[c] or self._offset_history[c][-1][1] == 0.0:  # a first offset
+                pose = self.clocks.relocation(c, rf.R[c], rf.t[c], rf.S[c], bool(rf.cycles[c] > 0))
+                if pose is not None:  # the camera where the clock's estimate put it
+                    rf.relocate(c, *pose)
+                    self.relocalized.append(name)
             self.sync.set_offset(name, new)
             self._offset_history[c].append((start, new))
 
@@ -517,7 +523,8 @@ class Pipeline:
         if self.clock is not None:
             self.advance(self.clock + self.cfg.sync.wait + 1.0 / self.cfg.sync.rate)
             if self.cfg.clock.estimate and self._calibrated():
-                self._retime(self.clocks.update(self.clock, self.refiner.R, self.refiner.t, flush=True))
+                self._retime(self.clocks.update(self.clock, self.refiner.R, self.refiner.t, flush=True,
+                                                P=self.refiner.S))
         lost = np.flatnonzero(self._never_associated()) if self.cfg.associate.relocalize else []
         if len(lost) and self.frames and self._inflight is None:
             # one more try with the final estimate of the others, before the batch needs them

@@ -101,6 +101,74 @@ def test_profile_finds_a_delay_with_the_pose_off():
     assert abs(x - delay) < 0.003 and s < 0.003
 
 
+def test_coarse_profile_with_the_pose_held_finds_a_large_offset():
+    """The search over the whole range holds the pose (fitted at the centre, then once
+    at the best candidate) instead of fitting it at every candidate: a sensor 200 ms
+    early with its pose 1.5° / 8 cm off is found within one grid step; so is a
+    synchronised one."""
+    rng = np.random.default_rng(4)
+    R, t = _camera(rng)
+    J = len(BODY)
+    body = rng.normal(0, 0.25, (J, 3)) + [0, 0, 1.0]
+    times = np.arange(0.0, 60.0, 0.1)
+    fine_t = np.arange(-1.0, 61.0, 1 / 30)
+
+    def walk(T):
+        return np.stack([2.5 * np.sin(0.45 * T), 2 * np.cos(0.37 * T), np.zeros_like(T)], axis=1)
+
+    grid = np.arange(-0.25, 0.2501, 0.01)
+    R0, t0 = R @ so3_exp(np.radians([1.5, -1.0, 0.8])), t + [0.08, -0.05, 0.03]
+    for delay in (-0.2, 0.0):
+        X = walk(times)[:, None, :] + body
+        Xc = (walk(fine_t - delay)[:, None, :] + body - t) @ R
+        xy = Xc[..., :2] / Xc[..., 2:] + rng.normal(0, 2 / 500, Xc[..., :2].shape)
+        track = (fine_t, xy, np.ones(xy.shape[:2], bool))
+        smp = Samples(X + rng.normal(0, 0.01, X.shape), times, tuple(track for _ in times))
+        res = profile(smp, grid, R0, t0, 0.3, 5.0, 500.0, 0.5, nuisance="fixed")
+        assert res[1] == 12 and res[2] < 4.0  # 60 s in 5 s blocks; residuals near the noise at the minimum
+        assert grid[np.argmin(res[0].sum(0))] == pytest.approx(delay, abs=0.011)
+
+
+def test_identification_gate_grows_with_the_pose_covariance():
+    """A sensor's gate for its free tracks is clock.match_px with a certain pose, wider
+    with an uncertain one (3 stds of the projection), at most clock.match_max_px."""
+    cfg = EngineConfig().clock
+    intr = load_intrinsics(LAB / "intrinsics.yaml")["cam_0"]
+    est = ClockOffsetEstimator(cfg, ("a",), {"a": intr}, 0.6)
+    f = float(est.focal[0])
+    R, t = _camera(np.random.default_rng(5))
+    X = (np.random.default_rng(6).normal(0, 0.25, (3, len(BODY), 3)) + [0, 0, 1.0])
+    Xc = (X - t) @ R
+    proj = Xc[..., :2] / Xc[..., 2:]
+    proj[2] = np.nan  # a person behind the camera: the plain gate
+    assert est._gates(0, proj, R, t, X) * f == pytest.approx([cfg.match_px] * 3)  # no covariance given
+    est.pose_cov = np.zeros((1, 6, 6))
+    assert est._gates(0, proj, R, t, X) * f == pytest.approx([cfg.match_px] * 3)
+    est.pose_cov[0] = np.diag([np.radians(1.0) ** 2] * 3 + [0.02**2] * 3)  # 1°, 2 cm
+    g = est._gates(0, proj, R, t, X) * f
+    sig = np.radians(1.0) * f  # a rotation of 1° moves the image by about f rad
+    assert cfg.match_px + 5 < g[0] < cfg.match_max_px and g[0] >= np.hypot(cfg.match_px, 0.9 * 3 * sig)
+    assert g[2] == pytest.approx(cfg.match_px)
+    est.pose_cov[0] = np.diag([np.radians(10.0) ** 2] * 3 + [0.25**2] * 3)  # the initial 10° / 0.25 m
+    assert est._gates(0, proj, R, t, X)[:2] * f == pytest.approx([cfg.match_max_px] * 2)
+
+
+def test_relocation_when_a_first_offset_is_applied():
+    """The pose the estimate fitted with a sensor's offset replaces its camera's when that
+    was never calibrated (a mistimed sensor's views join no hypothesis) or lies beyond
+    the 3-sigma tail of its covariance; not when they agree."""
+    intr = load_intrinsics(LAB / "intrinsics.yaml")["cam_0"]
+    est = ClockOffsetEstimator(EngineConfig().clock, ("a",), {"a": intr}, 0.6)
+    R, t = _camera(np.random.default_rng(7))
+    P = np.diag([np.radians(0.3) ** 2] * 3 + [0.02**2] * 3)
+    assert est.relocation(0, R, t, P, calibrated=False) is None  # nothing fitted yet
+    est.pose[0] = (R @ so3_exp(np.radians([0.0, 0.5, 0.0])), t + [0.01, 0.0, 0.0])
+    assert est.relocation(0, R, t, P, calibrated=True) is None  # 0.5°, 1 cm: within 3 sigma
+    assert est.relocation(0, R, t, P, calibrated=False) is est.pose[0]
+    est.pose[0] = (R @ so3_exp(np.radians([0.0, 3.0, 0.0])), t + [0.3, 0.0, 0.0])
+    assert est.relocation(0, R, t, P, calibrated=True) is est.pose[0]  # calibrated to mistimed data
+
+
 def _msg(sensor: str, seq: int, stamp: float, x: float) -> KeypointMessage:
     kp = np.zeros((17, 3))
     kp[:, 0] = x + np.arange(17)
@@ -237,6 +305,7 @@ def _estimator_with(raw_ms: list[float], std_ms: float) -> ClockOffsetEstimator:
     est.raw[:] = np.array(raw_ms) / 1000
     est.std[:] = std_ms / 1000
     est.nblocks[:] = 24
+    est.note = [None] * len(names)  # as after an update that estimated every sensor
     return est
 
 
@@ -248,6 +317,7 @@ def test_offsets_within_ntp_spread_are_not_applied():
     cfg = EngineConfig().clock
     assert 0.01 <= cfg.min_apply <= 0.02 and cfg.min_change < cfg.min_apply
     est = _estimator_with([0.0, 9.0, -6.0, 2.0, -11.0, 200.0], 0.5)  # median 1.0 ms
+    assert est._apply(-10.0) == []  # a first estimate is a candidate: applied when the next one agrees
     assert est._apply(0.0) == ["s5"]
     assert est.applied == pytest.approx([0, 0, 0, 0, 0, 0.199])
     est.raw[5] += 0.002  # within min_change
@@ -262,11 +332,32 @@ def test_offsets_within_ntp_spread_are_not_applied():
     assert est._apply(40.0) == ["s5"] and est.applied[5] == pytest.approx(0.009)
     est.raw[5] = 0.006  # ... until below half of min_apply
     assert est._apply(50.0) == ["s5"] and est.applied[5] == 0.0
-    # 3 std from 8 blocks of data is not enough: that std is itself uncertain (Student's t)
-    est.raw[5], est.std[5], est.nblocks[5] = 0.018, 0.004, 8  # 17 ms from the median: 4.25 std
-    assert est._apply(60.0) == []
+    # the offset must be beyond min_apply by its tail, with the std from few blocks
+    # itself uncertain (Student's t): 29 ms from the median with std 4 ms is 29 - 4.5 * 4 =
+    # 11 ms beyond zero from 8 blocks (not enough), 29 - 3.4 * 4 = 15.4 ms from 30
+    est.raw[5], est.std[5], est.nblocks[5] = 0.030, 0.004, 8
+    assert est._apply(60.0) == [] and est._apply(70.0) == []
     est.nblocks[5] = 30
-    assert est._apply(70.0) == ["s5"]
+    assert est._apply(80.0) == [] and est._apply(90.0) == ["s5"]
+
+
+def test_a_first_offset_needs_two_agreeing_fresh_estimates():
+    """A synchronised sensor estimated once at +16.5 ms from few blocks (what the
+    jackknife passed on seed 2) is not applied: the offset must be beyond clock.min_apply
+    by its tail and found again, within the combined std, by the next fresh estimate;
+    an update that left the sensor's estimate as it was does not count."""
+    est = _estimator_with([0.0, 1.0, -1.0, 16.5], 1.0)
+    est.nblocks[:] = 11
+    assert est._apply(0.0) == [] and est._apply(10.0) == []  # 16 ms - 3.9 std: within NTP's spread
+    est.raw[3], est.std[3] = 0.060, 0.002
+    assert est._apply(20.0) == []  # beyond it, a first time: a candidate
+    est.note[3] = "no clear minimum (jackknife)"  # the next update did not re-estimate it: stale
+    assert est._apply(30.0) == []
+    est.note[3] = None
+    est.raw[3] = 0.080  # fresh, but 20 ms from the candidate (3.9 x 2.8 ms): not confirmed
+    assert est._apply(40.0) == []
+    est.raw[3] = 0.082  # fresh and agreeing with the last one
+    assert est._apply(50.0) == ["s3"] and est.applied[3] == pytest.approx(0.0815)  # median 0.5 ms
 
 
 def test_clock_job_runs_in_a_thread_on_a_snapshot():
