@@ -169,6 +169,17 @@ class BootstrapConfig(_Section):
     check_min_agree: float = Field(0.5, ge=0, le=1, description="share of those frames in which its detection must be "
                                    "that person (within check_px) to pass; else it is re-localised by PnP or not placed")
     check_px: float = Field(8.0, gt=0, description="px: median reprojection error of an agreeing frame's joints")
+    resect: bool = Field(True, description="cameras no pair placed are resected (PnP) against the persons the placed "
+                         "cameras triangulate (backend/resect.py)")
+    resect_px: float = Field(8.0, gt=0, description="px: a frame agrees with a resected pose when a detection lies this close "
+                             "to a triangulated person's projection (median over joints)")
+    resect_min_frames: int = Field(20, ge=6, description="agreeing frames a resected camera needs")
+    resect_min_share: float = Field(0.5, ge=0, le=1, description="share of the frames with a person in its view (while it "
+                                    "sees somebody) that must agree")
+    resect_min_spread: float = Field(0.3, ge=0, description="m: the agreeing persons' spread over the floor (2nd principal "
+                                     "std of their centres): a person at one spot leaves the pose poorly determined")
+    resect_ambiguity: float = Field(0.5, ge=0, description="no clearly different pose (10°, 0.5 m) may agree in more than "
+                                    "this share of the frames the best one agrees in")
     batch_rounds: int = Field(3, ge=1, description="bundle adjustments, each re-associating all frames with the previous result")
     batch_hypotheses: int = Field(800, ge=10, description="most hypotheses per bundle adjustment")
     prior_std_translation: float = Field(1.0, gt=0, description="m: the weak prior of the bundle adjustment (a gauge, not information)")
