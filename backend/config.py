@@ -174,7 +174,7 @@ class BootstrapConfig(_Section):
     resect_px: float = Field(8.0, gt=0, description="px: a frame agrees with a resected pose when a detection lies this close "
                              "to a triangulated person's projection (median over joints)")
     resect_min_frames: int = Field(20, ge=6, description="agreeing frames a resected camera needs")
-    resect_min_share: float = Field(0.5, ge=0, le=1, description="share of the frames with a person in its view (while it "
+    resect_min_share: float = Field(0.3, ge=0, le=1, description="share of the frames with a person in its view (while it "
                                     "sees somebody) that must agree")
     resect_min_spread: float = Field(0.3, ge=0, description="m: the agreeing persons' spread over the floor (2nd principal "
                                      "std of their centres): a person at one spot leaves the pose poorly determined")

@@ -256,22 +256,35 @@ def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, bo
     if not models:
         return empty("no PnP model")
     models.sort(key=lambda m: -m[0])
-    n, R, t = models[0]
-    sel = np.zeros(0, np.int64)
-    for _round in range(4):
-        n, sel = score(R, t)
-        if n < 2:
-            break
-        m = _pnp(P[sel].reshape(-1, 3), x[sel].reshape(-1, 2), R, t)
-        if m is None:
-            break
-        R, t = m
+
+    def refine(R, t):
+        for _round in range(4):
+            n, sel = score(R, t)
+            if n < 2:
+                break
+            m = _pnp(P[sel].reshape(-1, 3), x[sel].reshape(-1, 2), R, t)
+            if m is None:
+                break
+            R, t = m
+        return R, t
+
+    def different(Ra, ta, Rb, tb):
+        return rotation_angle_deg(Ra, Rb) > 10.0 or np.linalg.norm(ta - tb) > 0.5
+
+    R, t = refine(models[0][1], models[0][2])
     n, sel = score(R, t)
-    # the best clearly different model (another explanation of the same detections)
-    rival = 0
+    # the best clearly different pose after its own refinement (a single detection's PnP
+    # can be far from the pose its frames then refine to: that is no rival)
+    rival, tries = 0, 0
     for nm, Rm, tm in models:
-        if rotation_angle_deg(Rm, R) > 10.0 or np.linalg.norm(tm - t) > 0.5:
-            rival = max(rival, nm)
+        if nm <= rival or tries >= 3:
+            break
+        if not different(Rm, tm, R, t):
+            continue
+        tries += 1
+        Rm, tm = refine(Rm, tm)
+        if different(Rm, tm, R, t):
+            rival = max(rival, score(Rm, tm)[0])
     # frames in which the pose puts a person in view while the camera sees somebody
     u, z = _project(persons.X, R, t)
     inside = (z > 0.1) & np.all((u >= box[0]) & (u <= box[1]), axis=-1)
