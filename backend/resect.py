@@ -30,6 +30,7 @@ Synchronous numeric core; OpenCV imported lazily.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -133,10 +134,13 @@ def _frame_errors(P: np.ndarray, x: np.ndarray, R: np.ndarray, t: np.ndarray) ->
     u, z = _project(P, R, t)
     e = np.linalg.norm(u - x, axis=-1)
     ok = np.isfinite(e) & (z > 0.1)
-    e = np.where(ok, e, np.nan)
-    with np.errstate(all="ignore"):
-        med = np.nanmedian(np.where(ok.sum(1)[:, None] >= 6, e, np.nan), axis=1) if len(e) else np.zeros(0)
-    return np.where(np.isfinite(med), med, np.inf)
+    enough = ok.sum(1) >= 6
+    med = np.full(len(e), np.inf)
+    if enough.any():
+        with warnings.catch_warnings():  # rows of NaN are not possible here, but stay quiet
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med[enough] = np.nanmedian(np.where(ok[enough], e[enough], np.nan), axis=1)
+    return med
 
 
 def _pnp(X: np.ndarray, x: np.ndarray, R0: np.ndarray | None = None, t0: np.ndarray | None = None
