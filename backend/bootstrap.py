@@ -767,7 +767,9 @@ class BootstrapResult:
 
 def handover(cfg: EngineConfig, result: BootstrapResult) -> EngineConfig:
     """The engine config for the online pipeline that starts from ``result``: its initial
-    std is honest and large, 3x the worst bootstrap std or the ``handover_*`` floor."""
+    std is honest and large, 3x the worst bootstrap std or the ``handover_*`` floor; the
+    final batch runs from the result as well and is kept from there when it explains the
+    data better (``Pipeline._batch_from_start``)."""
     b = cfg.bootstrap
     st = result.std_translation[result.located]
     sr = result.std_rotation[result.located]
@@ -776,6 +778,8 @@ def handover(cfg: EngineConfig, result: BootstrapResult) -> EngineConfig:
     refine = cfg.refine.model_copy(update={
         "initial_std_translation": max(b.handover_std_translation, 3 * worst_t),
         "initial_std_rotation": max(b.handover_std_rotation, 3 * worst_r),
+        # the bootstrap saw all its data at once: a final batch from it too, kept when better
+        "final_batch_from_start": True,
     })
     return cfg.model_copy(update={"refine": refine})
 

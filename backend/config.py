@@ -118,6 +118,9 @@ class RefineConfig(_Section):
     converged_cycles: int = Field(10, ge=1, description="cycles over which the net pose change is measured")
     final_batch: bool = Field(True, description="a batch adjustment over all frames, re-associated with the final estimate, when the run stops")
     batch_size: int = Field(1000, ge=10, description="most hypotheses in the final batch adjustment")
+    final_batch_from_start: bool = Field(False, description="the final batch also from the start (the bootstrap's "
+                                         "estimate: set by the hand-over), kept when it explains at least as many "
+                                         "observations at a lower cost per observation")
     archive_frames: int = Field(10000, ge=100, description="preprocessed framesets kept for re-localisation and the final batch")
 
 
