@@ -236,17 +236,15 @@ def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, bo
     P = np.stack(cand_P)
     x = np.stack(cand_x)
     f = np.array(cand_f)
-    uf, inv = np.unique(f, return_inverse=True)
+    _, inv = np.unique(f, return_inverse=True)
 
     def score(R, t):
         """(agreeing frames, best candidate per agreeing frame)."""
         e = _frame_errors(P, x, R, t)
-        best = np.full(len(uf), np.inf)
-        arg = np.full(len(uf), -1)
-        order = np.argsort(e)[::-1]
-        best[inv[order]] = e[order]
-        arg[inv[order]] = order
-        agree = best < tol
+        order = np.lexsort((e, inv))  # by frame, then error: each frame's best candidate first
+        first = np.r_[True, inv[order][1:] != inv[order][:-1]]
+        arg = order[first]
+        agree = e[arg] < tol
         return int(agree.sum()), arg[agree]
 
     rng = np.random.default_rng(seed)
