@@ -726,6 +726,7 @@ class BootstrapResult:
     seconds: float
     stages: Mapping[str, float] = field(default_factory=dict)
     checks: tuple[str, ...] = ()  # the cameras reached only over bridge pairs and their check ("cam_1 dropped ...")
+    resections: tuple[str, ...] = ()  # the cameras no pair placed and their resection (backend/resect.py)
 
     def __post_init__(self) -> None:
         C = len(self.names)
@@ -760,12 +761,15 @@ class BootstrapResult:
             "pairs": self.pairs, "pairs_tried": self.pairs_tried, "frames": self.frames,
             "data_seconds": self.data_seconds, "seconds": self.seconds, "stages": dict(self.stages),
             "bridge_checks": list(self.checks),
+            "resections": list(self.resections),
         }
 
 
 def handover(cfg: EngineConfig, result: BootstrapResult) -> EngineConfig:
     """The engine config for the online pipeline that starts from ``result``: its initial
-    std is honest and large, 3x the worst bootstrap std or the ``handover_*`` floor."""
+    std is honest and large, 3x the worst bootstrap std or the ``handover_*`` floor; the
+    final batch runs from the result as well and is kept from there when it explains the
+    data better (``Pipeline._batch_from_start``)."""
     b = cfg.bootstrap
     st = result.std_translation[result.located]
     sr = result.std_rotation[result.located]
@@ -774,6 +778,8 @@ def handover(cfg: EngineConfig, result: BootstrapResult) -> EngineConfig:
     refine = cfg.refine.model_copy(update={
         "initial_std_translation": max(b.handover_std_translation, 3 * worst_t),
         "initial_std_rotation": max(b.handover_std_rotation, 3 * worst_r),
+        # the bootstrap saw all its data at once: a final batch from it too, kept when better
+        "final_batch_from_start": True,
     })
     return cfg.model_copy(update={"refine": refine})
 
@@ -879,6 +885,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     BootstrapError when fewer than 2 cameras can be placed."""
     from .optimize import Problem, solve
     from .relocalize import relocalize
+    from .resect import resect_unplaced
 
     cfg = config.bootstrap
     say = progress or (lambda _m: None)
@@ -935,6 +942,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     rng = np.random.default_rng(seed)
     tried_reloc = False
     check_notes: tuple[str, ...] = ()
+    resect_notes: tuple[str, ...] = ()
     rounds = cfg.batch_rounds
     r = 0
     while r < rounds:
@@ -973,13 +981,22 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                 say("cameras reached only over bridge pairs, checked against the others' persons: "
                     + ", ".join(check_notes))
             found = 0
-            for c in np.flatnonzero(~located):
-                rl = relocalize(frames, int(c), R, t, float(focal[c]), config.associate, seed=seed)
-                if rl is not None:
-                    R[c], t[c], located[c] = rl.R, rl.t, True
-                    found += 1
-            if found:
-                say(f"re-localised {found} camera(s) by PnP")
+            if cfg.resect:
+                R, t, now_located, resections = resect_unplaced(frames, R, t, located, focal, view_box(frames, C),
+                                                                config.associate, cfg, seed=seed)
+                found = int(now_located.sum() - located.sum())
+                located = now_located
+                resect_notes = tuple(r.summary(names[r.cam]) for r in resections)
+                if resections:
+                    say("cameras no pair placed, resected against the placed cameras' persons: " + "; ".join(resect_notes))
+            else:
+                for c in np.flatnonzero(~located):
+                    rl = relocalize(frames, int(c), R, t, float(focal[c]), config.associate, seed=seed)
+                    if rl is not None:
+                        R[c], t[c], located[c] = rl.R, rl.t, True
+                        found += 1
+                if found:
+                    say(f"re-localised {found} camera(s) by PnP")
             if found or bridged:
                 say("one more bundle adjustment")
                 rounds += 1
@@ -1005,7 +1022,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     std_r[~located] = np.nan
     stages["people"] = _time.perf_counter() - t0
     return BootstrapResult(tuple(names), R, t, located, std_t, std_r, scale, note, len(good), tried, len(frames),
-                           float(data_seconds), _time.perf_counter() - t_start, stages, check_notes)
+                           float(data_seconds), _time.perf_counter() - t_start, stages, check_notes, resect_notes)
 
 
 def bootstrap_messages(intrinsics: Mapping[str, Intrinsics], config: EngineConfig, messages: Iterable[KeypointMessage],

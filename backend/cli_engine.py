@@ -197,6 +197,9 @@ def calibrate(
     scale = boot.scale if boot is not None else None
     if boot is not None:
         comment += f"\nno initial estimate: {boot.frame}"
+        if p.final_batch_start is not None:
+            comment += (f"\nfinal batch adjustment: kept the one started from the "
+                        f"{'bootstrap' if p.final_batch_start == 'start' else 'online estimate'}")
         if scale is not None:
             comment += f"\nmetric scale from people: {scale.summary()}"
     elif len(p.frames):

@@ -118,6 +118,9 @@ class RefineConfig(_Section):
     converged_cycles: int = Field(10, ge=1, description="cycles over which the net pose change is measured")
     final_batch: bool = Field(True, description="a batch adjustment over all frames, re-associated with the final estimate, when the run stops")
     batch_size: int = Field(1000, ge=10, description="most hypotheses in the final batch adjustment")
+    final_batch_from_start: bool = Field(False, description="the final batch also from the start (the bootstrap's "
+                                         "estimate: set by the hand-over), kept when it explains at least as many "
+                                         "observations at a lower cost per observation")
     archive_frames: int = Field(10000, ge=100, description="preprocessed framesets kept for re-localisation and the final batch")
 
 
@@ -172,6 +175,17 @@ class BootstrapConfig(_Section):
     check_min_agree: float = Field(0.5, ge=0, le=1, description="share of those frames in which its detection must be "
                                    "that person (within check_px) to pass; else it is re-localised by PnP or not placed")
     check_px: float = Field(8.0, gt=0, description="px: median reprojection error of an agreeing frame's joints")
+    resect: bool = Field(True, description="cameras no pair placed are resected (PnP) against the persons the placed "
+                         "cameras triangulate (backend/resect.py)")
+    resect_px: float = Field(8.0, gt=0, description="px: a frame agrees with a resected pose when a detection lies this close "
+                             "to a triangulated person's projection (median over joints)")
+    resect_min_frames: int = Field(20, ge=6, description="agreeing frames a resected camera needs")
+    resect_min_share: float = Field(0.3, ge=0, le=1, description="share of the frames with a person in its view (while it "
+                                    "sees somebody) that must agree")
+    resect_min_spread: float = Field(0.3, ge=0, description="m: the agreeing persons' spread over the floor (2nd principal "
+                                     "std of their centres): a person at one spot leaves the pose poorly determined")
+    resect_ambiguity: float = Field(0.5, ge=0, description="no clearly different pose (10°, 0.5 m) may agree in more than "
+                                    "this share of the frames the best one agrees in")
     batch_rounds: int = Field(3, ge=1, description="bundle adjustments, each re-associating all frames with the previous result")
     batch_hypotheses: int = Field(800, ge=10, description="most hypotheses per bundle adjustment")
     prior_std_translation: float = Field(1.0, gt=0, description="m: the weak prior of the bundle adjustment (a gauge, not information)")

@@ -88,6 +88,7 @@ class Pipeline:
         self.last_lost_check: float | None = None
         self.first_passes = 0  # passes of the first adjustment done (select.first_scope)
         self.relocalized: list[str] = []
+        self.final_batch_start: str | None = None  # the final batch kept: from the "estimate" or the "start"
         self.clock: float | None = None
         self.cycle = 0
         self.cycles_rejected = 0
@@ -538,8 +539,26 @@ class Pipeline:
 
     def batch_adjust(self) -> CycleReport:
         p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2)
+        sol = solve(p)
+        if self.cfg.refine.final_batch_from_start:
+            p, sol = self._batch_from_start(p, sol)
         self._inflight = p
-        return self.apply(p, solve(p))
+        return self.apply(p, sol)
+
+    def _batch_from_start(self, p: Problem, sol: Solution) -> tuple[Problem, Solution]:
+        """The same batch (same frames, selection seed, prior) started from the start
+        instead of the estimate; kept when it explains at least as many observations at a
+        lower cost per observation. The batch is a local optimisation that re-associates
+        from where it starts: a camera the online cycles dragged off (few hypotheses, a
+        wide prior) can end in another minimum than from the start the bootstrap found
+        with all the data (docs/bootstrap.md, seed 2's cam_13)."""
+        rf = self.refiner
+        q = replace(p, R=rf.prior_R.copy(), t=rf.prior_t.copy())
+        alt = solve(q)
+        n_p, n_q = int(sol.obs_per_camera.sum()), int(alt.obs_per_camera.sum())
+        better = (alt.ok and (not sol.ok or (n_q >= n_p > 0 and alt.final_error / n_q < sol.final_error / n_p)))
+        self.final_batch_start = "start" if better else "estimate"
+        return (q, alt) if better else (p, sol)
 
     # ------------------------------------------------------------ state
 

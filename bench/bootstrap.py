@@ -198,11 +198,14 @@ def run_calibrate(seed: int, seconds: float, cache: Path, overrides: list[str], 
         meta = json.loads(Path(f"{res}.bootstrap.json").read_text())
         boot = {n: Pose(quat_to_R(v["rotation"]), np.array(v["translation"])) for n, v in meta["poses"].items()}
         final = {n: e.pose for n, e in load_extrinsics(res).items()}
+        res_comment = [ln.lstrip("# ").strip() for ln in res.read_text().splitlines() if ln.startswith("#")]
         lines = hist.read_text().splitlines()
     out["bootstrap_seconds"] = meta["seconds"]
     out["not_placed"] = meta["not_located"]
     out["scale"] = meta["scale"]
     out["bridge_checks"] = meta.get("bridge_checks", [])
+    out["resections"] = meta.get("resections", [])
+    out["final_batch"] = next((ln for ln in res_comment if ln.startswith("final batch adjustment")), None)
     out["bootstrap"] = _shape(evaluate(boot, ref))
     if len(lines) >= 2:
         cams = json.loads(lines[-2])["cameras"]
@@ -248,6 +251,15 @@ def print_calibrate(runs: list[dict]) -> None:
         vis = r["visibility"]
         lost = ", ".join(f"{n} ({vis[n]['detections']} / {vis[n]['with_another']})" for n in r["not_placed"])
         print(f"- seed {r['seed']}, {r['seconds']:g} s: {lost or 'none'}")
+    res = [r for r in runs if r.get("resections")]
+    if res:
+        print("\nCameras no pair placed, resected against the placed cameras' persons (backend/resect.py):\n")
+        for r in res:
+            print(f"- seed {r['seed']}, {r['seconds']:g} s: {'; '.join(r['resections'])}")
+    fb = [r for r in runs if r.get("final_batch")]
+    if fb:
+        print("\nFinal batch adjustment kept:", ", ".join(f"seed {r['seed']} {r['final_batch'].split('from the ')[-1]}"
+                                                    for r in fb))
     checks = [r for r in runs if r.get("bridge_checks")]
     if checks:
         print("\nCameras reached only over bridge pairs, checked against the others' persons:\n")
@@ -318,6 +330,8 @@ def main(argv: list[str] | None = None) -> None:
                     "--data-seconds), e.g. bootstrap.min_pair_frames=20 (repeatable)")
     ap.add_argument("--cache", type=Path, default=Path(tempfile_dir()) / "extrcal-accuracy-cache")
     ap.add_argument("--out", type=Path, help="write the runs as JSON")
+    ap.add_argument("--jobs", type=int, default=1, help="with --data-seconds: runs in parallel processes (wall "
+                    "times then include each other's load)")
     ap.add_argument("--report", type=Path, help="print the tables of an earlier --out and stop")
     a = ap.parse_args(argv)
     if a.report:
@@ -329,8 +343,20 @@ def main(argv: list[str] | None = None) -> None:
         from backend.cameras import write_atomic
 
         runs = []
-        for T in [float(x) for x in a.data_seconds.split(",")]:
-            for seed in range(a.first_seed, a.first_seed + a.seeds):
+        todo = [(seed, float(T)) for T in a.data_seconds.split(",") for seed in range(a.first_seed, a.first_seed + a.seeds)]
+        if a.jobs > 1:
+            from concurrent.futures import ProcessPoolExecutor
+
+            for seed, T in todo:  # the cut recordings, once, before the workers read them
+                first_seconds(__import__("accuracy").simulate(2, 180.0, seed, a.cache), T)
+            with ProcessPoolExecutor(a.jobs) as ex:
+                futs = [ex.submit(run_calibrate, seed, T, a.cache, a.set_, _say) for seed, T in todo]
+                for f in futs:
+                    runs.append(f.result())
+                    if a.out:
+                        write_atomic(a.out, json.dumps({"mode": "calibrate", "runs": runs}, indent=1))
+        else:
+            for seed, T in todo:
                 runs.append(run_calibrate(seed, T, a.cache, a.set_, say))
                 if a.out:
                     write_atomic(a.out, json.dumps({"mode": "calibrate", "runs": runs}, indent=1))
@@ -345,6 +371,10 @@ def main(argv: list[str] | None = None) -> None:
 
             write_atomic(a.out, json.dumps({"runs": runs}, indent=1))
     print_tables(runs)
+
+
+def _say(m: str) -> None:
+    print(m, file=sys.stderr, flush=True)
 
 
 def tempfile_dir() -> str:

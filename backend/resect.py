@@ -1,0 +1,343 @@
+"""Placing a camera without a pose by resection against the persons the placed cameras see.
+
+The bootstrap places cameras through pairs: frames in which two cameras each see one
+person, the same one. A camera that sees people mostly while another person is in the
+room, or whose partners are themselves unplaced, gets too few such frames and is left
+out. The placed network does not need pairs: wherever two placed cameras see a person
+in the same frameset, the association (``backend.associate``, on the placed cameras'
+poses) triangulates it. A camera without a pose that sees people in those framesets has
+2D-3D correspondences, 17 joints per person, but with two persons in the room it is not
+known which of its detections is which person (or whether it sees a person the network
+sees at all).
+
+So the pose decides: RANSAC over candidate correspondences (every detection of the camera
+with every triangulated person of its frameset), each model from one candidate's joints
+(PnP), scored by the frames it explains (a frame agrees when one of its detections lies
+within ``resect_px`` of one of the persons' projection, median over joints). The best
+model is refined on the agreeing frames (the matching person of each), and the frames
+classified again. Because every frame picks its person by the pose, two walkers mixed in
+some frames do not mix the pose (the failure of weak pairs, docs/bootstrap.md).
+
+A pose is accepted only when the evidence is broad and consistent (``BootstrapConfig``):
+at least ``resect_min_frames`` agreeing frames; among the frames in which the pose puts a
+triangulated person in the camera's view (where its detections lie, ``view_box``) while it
+sees somebody, at least ``resect_min_share`` agree; the agreeing persons spread over the
+room (``resect_min_spread`` m: not one spot, where a pose is poorly determined); and no
+clearly different pose explains nearly as many frames (``resect_ambiguity``).
+
+Synchronous numeric core; OpenCV imported lazily.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from .associate import Associator
+from .config import AssociateConfig, BootstrapConfig
+from .geometry import rotation_angle_deg, triangulate_views
+from .preprocess import Detection
+
+Frame = tuple[float, tuple[tuple[Detection, ...], ...]]
+
+
+@dataclass(frozen=True)
+class Persons:
+    """The persons the placed cameras triangulate, per frame.
+
+    X: (N, 17, 3) float64 joints in the world (NaN = not triangulated); frame: (N,) int
+    index of the frame; com: (N, 3) float64 torso centres.
+    """
+
+    X: np.ndarray
+    frame: np.ndarray
+    com: np.ndarray
+
+    def __post_init__(self) -> None:
+        N = len(self.frame)
+        assert self.X.shape == (N, 17, 3) and self.com.shape == (N, 3)
+
+
+def triangulate_persons(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, placed: np.ndarray,
+                        cfg: AssociateConfig) -> Persons:
+    """Every person hypothesis of the placed cameras (``placed`` (C,) bool) in each frame,
+    triangulated with the poses R (C, 3, 3), t (C, 3)."""
+    assoc = Associator(cfg)
+    Xs, fis, coms = [], [], []
+    for fi, (time_, views) in enumerate(frames):
+        vs = [v for v in views if placed[v[0].cam]]
+        if len(vs) < 2:
+            continue
+        for h in assoc(time_, vs, R, t, None):
+            X, n = triangulate_views(R, t, h.cams, h.xy)
+            if np.sum(np.all(np.isfinite(X), axis=1)) < 6:
+                continue
+            Xs.append(X)
+            fis.append(fi)
+            coms.append(h.com)
+    if not Xs:
+        return Persons(np.zeros((0, 17, 3)), np.zeros(0, np.int64), np.zeros((0, 3)))
+    return Persons(np.stack(Xs), np.array(fis, np.int64), np.stack(coms))
+
+
+@dataclass(frozen=True)
+class Resection:
+    """The outcome of resecting one camera.
+
+    R: (3, 3) world_R_cam and t: (3,) centre (None when no pose was found); frames:
+    agreeing frames; seen: frames in which the pose puts a person in the camera's view
+    while it sees somebody; spread: m, the agreeing persons' spread over the floor
+    (second principal std of their torso centres); rival: agreeing frames of the best
+    clearly different pose; residual_px: median reprojection error of the agreeing
+    joints; cov: (6, 6) covariance of (rotation rad, centre m) in the world frame from
+    the refinement (per-frame residual blocks, so correlated joints of one detection do
+    not count as independent), None without a pose; accepted and reason: the guards'
+    verdict.
+    """
+
+    cam: int
+    R: np.ndarray | None
+    t: np.ndarray | None
+    frames: int
+    seen: int
+    candidates: int
+    spread: float
+    rival: int
+    residual_px: float
+    cov: np.ndarray | None
+    accepted: bool
+    reason: str
+
+    def summary(self, name: str) -> str:
+        if self.R is None:
+            return f"{name} not resected ({self.reason})"
+        return (f"{name} {'resected' if self.accepted else 'not resected'}: agrees in {self.frames}/{self.seen} frames "
+                f"({self.candidates} with candidates), spread {self.spread:.2f} m, rival pose {self.rival} frames, "
+                f"{self.residual_px:.1f} px" + ("" if self.accepted else f" ({self.reason})"))
+
+
+def _project(X: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(..., 3) world points → (..., 2) normalised coordinates and (...,) depth."""
+    Xc = (X - t) @ R
+    z = Xc[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = Xc[..., :2] / z[..., None]
+    return u, z
+
+
+def _frame_errors(P: np.ndarray, x: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(K,) median reprojection error (normalised) of candidates: persons P (K, 17, 3)
+    against detections x (K, 17, 2); inf where fewer than 6 joints are in front."""
+    u, z = _project(P, R, t)
+    e = np.linalg.norm(u - x, axis=-1)
+    ok = np.isfinite(e) & (z > 0.1)
+    enough = ok.sum(1) >= 6
+    med = np.full(len(e), np.inf)
+    if enough.any():
+        with warnings.catch_warnings():  # rows of NaN are not possible here, but stay quiet
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med[enough] = np.nanmedian(np.where(ok[enough], e[enough], np.nan), axis=1)
+    return med
+
+
+def _pnp(X: np.ndarray, x: np.ndarray, R0: np.ndarray | None = None, t0: np.ndarray | None = None
+         ) -> tuple[np.ndarray, np.ndarray] | None:
+    """world_R_cam, centre from world points X (N, 3) and normalised points x (N, 2)."""
+    import cv2
+
+    ok = np.all(np.isfinite(X), 1) & np.all(np.isfinite(x), 1)
+    X, x = X[ok].astype(np.float64), x[ok].astype(np.float64)
+    if len(X) < 6:
+        return None
+    try:
+        if R0 is None:
+            good, rvec, tvec = cv2.solvePnP(X, x, np.eye(3), None, flags=cv2.SOLVEPNP_SQPNP)
+        else:
+            Rcw = R0.T
+            rvec0, _ = cv2.Rodrigues(Rcw)
+            tvec0 = (-Rcw @ t0).reshape(3, 1)
+            good, rvec, tvec = cv2.solvePnP(X, x, np.eye(3), None, rvec0, tvec0, useExtrinsicGuess=True,
+                                            flags=cv2.SOLVEPNP_ITERATIVE)
+    except cv2.error:
+        return None
+    if not good:
+        return None
+    Rcw, _ = cv2.Rodrigues(rvec)
+    return Rcw.T, (-Rcw.T @ np.asarray(tvec).ravel())
+
+
+def _covariance(X: np.ndarray, x: np.ndarray, frame: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(6, 6) covariance of (world rotation rad, centre m) of the pose R, t fitted to X
+    (N, 3), x (N, 2), from the Jacobian of the reprojection residuals, with the noise
+    level of the residuals and the residuals of one frame (one detection) taken as one
+    correlated block: the sandwich estimate over frames, so 17 joints of one detection
+    are not 17 independent measurements."""
+    from .geometry import so3_exp
+
+    def resid(p):
+        Rp = so3_exp(p[:3]) @ R
+        tp = t + p[3:]
+        u, _ = _project(X, Rp, tp)
+        return (u - x)
+
+    eps = 1e-6
+    r0 = resid(np.zeros(6))
+    J = np.zeros((len(X), 2, 6))
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = eps
+        J[:, :, k] = (resid(d) - r0) / eps
+    J = J.reshape(-1, 6)
+    r = r0.reshape(-1)
+    fr = np.repeat(frame, 2)
+    H = J.T @ J
+    try:
+        Hi = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return np.full((6, 6), np.inf)
+    meat = np.zeros((6, 6))
+    for f in np.unique(fr):
+        g = J[fr == f].T @ r[fr == f]
+        meat += np.outer(g, g)
+    return Hi @ meat @ Hi
+
+
+def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, box: np.ndarray,
+           cfg: BootstrapConfig, *, seed: int = 0, iterations: int = 200) -> Resection:
+    """The pose of camera ``cam`` from the persons the placed cameras triangulate
+    (``triangulate_persons``) and its own detections in the same frames; ``box`` (2, 2):
+    where its detections lie in its image (``bootstrap.view_box``). See the module doc."""
+    tol = cfg.resect_px / focal
+    # candidates: (person, detection) in the same frame
+    cand_P, cand_x, cand_f = [], [], []
+    dets_by_frame: dict[int, list[np.ndarray]] = {}
+    for fi, (_, views) in enumerate(frames):
+        mine = [d.xy for v in views for d in v if d.cam == cam]
+        if mine:
+            dets_by_frame[fi] = mine
+    for k in range(len(persons.frame)):
+        fi = int(persons.frame[k])
+        for xy in dets_by_frame.get(fi, ()):
+            ok = np.all(np.isfinite(persons.X[k]), 1) & np.all(np.isfinite(xy), 1)
+            if ok.sum() >= 6:
+                cand_P.append(persons.X[k])
+                cand_x.append(xy)
+                cand_f.append(fi)
+    nf = len(set(cand_f))
+
+    def empty(reason: str) -> Resection:
+        return Resection(cam, None, None, 0, 0, nf, 0.0, 0, float("nan"), None, False, reason)
+
+    if nf < cfg.resect_min_frames:
+        return empty(f"{nf} frames with candidates, {cfg.resect_min_frames} needed")
+    P = np.stack(cand_P)
+    x = np.stack(cand_x)
+    f = np.array(cand_f)
+    _, inv = np.unique(f, return_inverse=True)
+
+    def score(R, t):
+        """(agreeing frames, best candidate per agreeing frame)."""
+        e = _frame_errors(P, x, R, t)
+        order = np.lexsort((e, inv))  # by frame, then error: each frame's best candidate first
+        first = np.r_[True, inv[order][1:] != inv[order][:-1]]
+        arg = order[first]
+        agree = e[arg] < tol
+        return int(agree.sum()), arg[agree]
+
+    rng = np.random.default_rng(seed)
+    models = []  # (agreeing frames, R, t)
+    for k in rng.choice(len(P), size=min(iterations, len(P)), replace=False):
+        m = _pnp(P[k], x[k])
+        if m is None:
+            continue
+        n, _ = score(*m)
+        models.append((n, m[0], m[1]))
+    if not models:
+        return empty("no PnP model")
+    models.sort(key=lambda m: -m[0])
+
+    def refine(R, t):
+        for _round in range(4):
+            n, sel = score(R, t)
+            if n < 2:
+                break
+            m = _pnp(P[sel].reshape(-1, 3), x[sel].reshape(-1, 2), R, t)
+            if m is None:
+                break
+            R, t = m
+        return R, t
+
+    def different(Ra, ta, Rb, tb):
+        return rotation_angle_deg(Ra, Rb) > 10.0 or np.linalg.norm(ta - tb) > 0.5
+
+    R, t = refine(models[0][1], models[0][2])
+    n, sel = score(R, t)
+    # the best clearly different pose after its own refinement (a single detection's PnP
+    # can be far from the pose its frames then refine to: that is no rival)
+    rival, tries = 0, 0
+    for nm, Rm, tm in models:
+        if nm <= rival or tries >= 3:
+            break
+        if not different(Rm, tm, R, t):
+            continue
+        tries += 1
+        Rm, tm = refine(Rm, tm)
+        if different(Rm, tm, R, t):
+            rival = max(rival, score(Rm, tm)[0])
+    # frames in which the pose puts a person in view while the camera sees somebody
+    u, z = _project(persons.X, R, t)
+    inside = (z > 0.1) & np.all((u >= box[0]) & (u <= box[1]), axis=-1)
+    in_view = np.mean(inside, axis=1) >= 0.5
+    seen = len(set(persons.frame[in_view].tolist()) & set(dets_by_frame))
+    seen = max(seen, n)
+    coms = np.nanmean(P[sel], axis=1) if len(sel) else np.zeros((0, 3))
+    spread = 0.0
+    if len(coms) >= 3:
+        sv = np.linalg.svd(coms - coms.mean(0), compute_uv=False) / np.sqrt(len(coms))
+        spread = float(sv[1])
+    e = np.linalg.norm(_project(P[sel], R, t)[0] - x[sel], axis=-1) if len(sel) else np.zeros((0, 17))
+    res_px = float(np.nanmedian(e) * focal) if np.isfinite(e).any() else float("nan")
+    Xs, xs = P[sel].reshape(-1, 3), x[sel].reshape(-1, 2)
+    fs = np.repeat(np.arange(len(sel)), 17)
+    ok = np.all(np.isfinite(Xs), 1) & np.all(np.isfinite(xs), 1)
+    ok[ok] &= np.linalg.norm(_project(Xs[ok], R, t)[0] - xs[ok], axis=1) < 3 * tol
+    cov = _covariance(Xs[ok], xs[ok], fs[ok], R, t) if ok.sum() >= 12 else None
+    reasons = []
+    if n < cfg.resect_min_frames:
+        reasons.append(f"{n} agreeing frames, {cfg.resect_min_frames} needed")
+    if n < cfg.resect_min_share * seen:
+        reasons.append(f"agrees in {n} of {seen} frames with a person in view, {cfg.resect_min_share:.0%} needed")
+    if spread < cfg.resect_min_spread:
+        reasons.append(f"the persons it agrees with spread {spread:.2f} m, {cfg.resect_min_spread:g} m needed")
+    if rival > cfg.resect_ambiguity * n:
+        reasons.append(f"a different pose agrees in {rival} frames")
+    return Resection(cam, R, t, n, seen, nf, spread, rival, res_px, cov, not reasons, "; ".join(reasons))
+
+
+def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located: np.ndarray, focal: np.ndarray,
+                    boxes: np.ndarray, assoc: AssociateConfig, cfg: BootstrapConfig, *, seed: int = 0
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[Resection]]:
+    """Resect the cameras not ``located`` (C,) bool, one at a time, best evidence first:
+    a camera placed joins the network the next ones are resected against (a room that
+    two placed cameras see rarely is reached through the first camera placed in it).
+    Returns copies of (R (C, 3, 3), t (C, 3), located (C,)) and each camera's last
+    Resection."""
+    R, t, located = R.copy(), t.copy(), located.copy()
+    last: dict[int, Resection] = {}
+    while True:
+        todo = [int(c) for c in np.flatnonzero(~located)]
+        if not todo or located.sum() < 2:
+            break
+        persons = triangulate_persons(frames, R, t, located, assoc)
+        found = [resect(frames, persons, c, float(focal[c]), boxes[c], cfg, seed=seed + c) for c in todo]
+        for r in found:
+            last[r.cam] = r
+        ok = [r for r in found if r.accepted]
+        if not ok:
+            break
+        best = max(ok, key=lambda r: r.frames)
+        R[best.cam], t[best.cam], located[best.cam] = best.R, best.t, True
+    return R, t, located, [last[c] for c in sorted(last)]

@@ -1,0 +1,121 @@
+"""Resection of a camera no pair placed (backend/resect.py) against the persons the placed
+cameras triangulate: a short seeded simulation of the lab's west room with two walkers.
+The network's poses are the true ones, so each case is exact: the camera is found near its
+true pose though it never sees one person alone (which pairs need), a single spot or
+detections from other instants are refused, and the bootstrap places a camera with it
+that it leaves out without it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from backend.bootstrap import bootstrap, collect_frames, view_box
+from backend.config import EngineConfig
+from backend.evaluate import evaluate
+from backend.geometry import rotation_angle_deg
+from backend.preprocess import Detection
+from backend.resect import resect, resect_unplaced, triangulate_persons
+
+WEST = ("cam_11", "cam_12", "cam_13", "cam_14", "cam_15", "cam_16", "cam_17")
+LOST = 6  # cam_17
+
+
+@pytest.fixture(scope="module")
+def west2(lab_dir):
+    from edge_clients.sim import Scene, SimConfig, Simulator
+
+    full = Scene.load(lab_dir)
+    intr = {n: full.intrinsics[n] for n in WEST}
+    scene = Scene.from_cameras(intr, {n: full.poses[n] for n in WEST}, lab_dir / "room.yaml")
+    sim = Simulator(scene, SimConfig(persons=2, duration=40.0, seed=5, heights=(1.85, 1.70)))
+    frames = collect_frames(WEST, intr, EngineConfig(), [m for _, m in sim.messages()])
+    R = np.array([full.poses[n].R for n in WEST])
+    t = np.array([full.poses[n].t for n in WEST])
+    focal = np.array([0.5 * (intr[n].fx + intr[n].fy) for n in WEST])
+    return frames, R, t, focal
+
+
+def _decoy(frames, cam: int):
+    """Camera ``cam`` sees a second, made-up person (its detection mirrored) beside each
+    one it sees: it never sees exactly one person, so no pair of cameras can place it."""
+    out = []
+    for time_, views in frames:
+        vs = []
+        for v in views:
+            if v[0].cam == cam and len(v) == 1:
+                d = v[0]
+                xy = d.xy.copy()
+                xy[:, 0] = -xy[:, 0]
+                v = (d, Detection(cam, xy, d.sigma.copy(), d.focal))
+            vs.append(v)
+        out.append((time_, tuple(vs)))
+    return out
+
+
+def test_a_camera_among_two_walkers_is_resected_near_its_pose(west2):
+    frames, R, t, focal = west2
+    cfg = EngineConfig()
+    located = np.ones(7, bool)
+    located[LOST] = False
+    R0, t0 = R.copy(), t.copy()
+    R0[LOST], t0[LOST] = np.eye(3), 0.0
+    frames = _decoy(frames, LOST)
+    R1, t1, loc1, out = resect_unplaced(frames, R0, t0, located, focal, view_box(frames, 7), cfg.associate,
+                                        cfg.bootstrap, seed=1)
+    assert [r.cam for r in out] == [LOST] and out[0].accepted, out[0].summary("cam_17")
+    assert loc1.all()
+    assert np.linalg.norm(t1[LOST] - t[LOST]) < 0.05 and rotation_angle_deg(R1[LOST], R[LOST]) < 0.5
+    r = out[0]
+    assert r.frames >= cfg.bootstrap.resect_min_frames and r.spread >= cfg.bootstrap.resect_min_spread
+    assert r.rival <= cfg.bootstrap.resect_ambiguity * r.frames
+    # an honest std: finite, and the true pose lies within a few of them
+    std_t = np.sqrt(np.diag(r.cov)[3:])
+    assert np.all(np.isfinite(r.cov)) and np.all(std_t > 0)
+    assert np.all(np.abs(t1[LOST] - t[LOST]) < 6 * std_t + 0.01)
+    assert np.array_equal(R1[:LOST], R[:LOST]) and np.array_equal(t1[:LOST], t[:LOST])  # the network is not touched
+
+
+def test_one_spot_or_detections_of_other_instants_are_refused(west2):
+    frames, R, t, focal = west2
+    cfg = EngineConfig()
+    located = np.ones(7, bool)
+    located[LOST] = False
+    persons = triangulate_persons(frames, R, t, located, cfg.associate)
+    box = view_box(frames, 7)[LOST]
+    # the frames of 2 s in which the camera sees a person: the persons it can agree with are at one spot
+    seen = [k for k, (_, vs) in enumerate(frames) if any(v[0].cam == LOST for v in vs)]
+    t_mid = frames[seen[len(seen) // 2]][0]
+    spot = [f for f in frames if abs(f[0] - t_mid) <= 1.0]
+    r = resect(spot, triangulate_persons(spot, R, t, located, cfg.associate), LOST, float(focal[LOST]), box,
+               cfg.bootstrap)
+    assert not r.accepted and ("spread" in r.reason or "needed" in r.reason), r.summary("cam_17")
+    # its detections moved to other instants (4 s later): no pose explains them
+    mine = {k: tuple(v for v in vs if v[0].cam == LOST) for k, (_, vs) in enumerate(frames)}
+    times = np.array([f[0] for f in frames])
+    moved = []
+    for k, (time_, vs) in enumerate(frames):
+        j = int(np.searchsorted(times, time_ + 4.0)) % len(frames)
+        moved.append((time_, tuple(v for v in vs if v[0].cam != LOST) + mine[j]))
+    r = resect(moved, persons, LOST, float(focal[LOST]), box, cfg.bootstrap)
+    assert not r.accepted, r.summary("cam_17")
+
+
+def test_the_bootstrap_places_with_resection_a_camera_no_pair_places(west2, lab_dir):
+    from backend.cameras import Pose
+
+    frames, R, t, focal = west2
+    frames = _decoy(frames, LOST)
+    truth = {n: Pose(R[c], t[c]) for c, n in enumerate(WEST)}
+    off = EngineConfig.load(None, ["bootstrap.resect=false", "bootstrap.min_pair_frames=20"])
+    res = bootstrap(frames, WEST, focal, off, seed=2)
+    assert not res.located[LOST] and res.located.sum() >= 5
+    on = EngineConfig.load(None, ["bootstrap.min_pair_frames=20"])
+    res = bootstrap(frames, WEST, focal, on, seed=2)
+    assert res.located[LOST], res.resections
+    assert any(s.startswith("cam_17 resected") for s in res.resections)
+    ev = evaluate(res.poses(), truth)
+    _, _, pos, ori = ev.per_camera["cam_17"]
+    assert pos < 0.05 and ori < 0.5, ev.per_camera
+    assert np.isfinite(res.std_translation[LOST]) and res.std_translation[LOST] > 0
