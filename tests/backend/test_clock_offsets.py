@@ -72,26 +72,30 @@ def test_fit_pose_recovers_a_pose_3_degrees_and_20_cm_off():
     assert np.median(d[20:]) * 500 < 1.5
 
 
+def _walking(rng, R, t, body, duration: float, delay: float) -> Samples:
+    """One person (body (J, 3)) on a Lissajous path at about 1 m/s (every direction
+    within 40 s), 3D with 1 cm noise at 10 Hz framesets; the sensor (R, t) sees it
+    ``delay`` s late at 30 Hz with 2 px noise."""
+    def walk(T):
+        return np.stack([2.5 * np.sin(0.45 * T), 2 * np.cos(0.37 * T), np.zeros_like(T)], axis=1)
+
+    times = np.arange(0.0, duration, 0.1)
+    fine_t = np.arange(-1.0, duration + 1.0, 1 / 30)
+    X = walk(times)[:, None, :] + body  # (N, J, 3) at the frameset times
+    Xc = (walk(fine_t - delay)[:, None, :] + body - t) @ R  # what the sensor saw at its raw stamps
+    xy = Xc[..., :2] / Xc[..., 2:] + rng.normal(0, 2 / 500, Xc[..., :2].shape)
+    track = (fine_t, xy, np.ones(xy.shape[:2], bool))
+    return Samples(X + rng.normal(0, 0.01, X.shape), times, tuple(track for _ in times))
+
+
 def test_profile_finds_a_delay_with_the_pose_off():
     """Persons walking in every direction; the sensor sees them 80 ms late, its pose is
     2° / 10 cm off: the profile over the offset (pose fitted at each) finds 80 ms."""
     rng = np.random.default_rng(3)
     R, t = _camera(rng)
-    J = len(BODY)
-    body = rng.normal(0, 0.25, (J, 3)) + [0, 0, 1.0]
-    times = np.arange(0.0, 40.0, 0.1)
-    fine_t = np.arange(-1.0, 41.0, 1 / 30)
-
-    def walk(T):  # (n, 3) a Lissajous path at about 1 m/s: every direction within 40 s
-        return np.stack([2.5 * np.sin(0.45 * T), 2 * np.cos(0.37 * T), np.zeros_like(T)], axis=1)
-
+    body = rng.normal(0, 0.25, (len(BODY), 3)) + [0, 0, 1.0]
     delay = 0.08
-    X = walk(times)[:, None, :] + body  # (N, J, 3) at the frameset times
-    Xs = walk(fine_t - delay)[:, None, :] + body  # what the sensor saw at its raw stamps
-    Xc = (Xs - t) @ R
-    xy = Xc[..., :2] / Xc[..., 2:] + rng.normal(0, 2 / 500, Xc[..., :2].shape)
-    track = (fine_t, xy, np.ones(xy.shape[:2], bool))
-    smp = Samples(X + rng.normal(0, 0.01, X.shape), times, tuple(track for _ in times))
+    smp = _walking(rng, R, t, body, 40.0, delay)
     grid = np.arange(-0.2, 0.2001, 0.01)
     R0, t0 = R @ so3_exp(np.radians([1.5, -1.0, 0.8])), t + [0.08, -0.05, 0.03]
     res = profile(smp, grid, R0, t0, 0.3, 5.0, 500.0, 0.5)
@@ -108,22 +112,11 @@ def test_coarse_profile_with_the_pose_held_finds_a_large_offset():
     synchronised one."""
     rng = np.random.default_rng(4)
     R, t = _camera(rng)
-    J = len(BODY)
-    body = rng.normal(0, 0.25, (J, 3)) + [0, 0, 1.0]
-    times = np.arange(0.0, 60.0, 0.1)
-    fine_t = np.arange(-1.0, 61.0, 1 / 30)
-
-    def walk(T):
-        return np.stack([2.5 * np.sin(0.45 * T), 2 * np.cos(0.37 * T), np.zeros_like(T)], axis=1)
-
+    body = rng.normal(0, 0.25, (len(BODY), 3)) + [0, 0, 1.0]
     grid = np.arange(-0.25, 0.2501, 0.01)
     R0, t0 = R @ so3_exp(np.radians([1.5, -1.0, 0.8])), t + [0.08, -0.05, 0.03]
     for delay in (-0.2, 0.0):
-        X = walk(times)[:, None, :] + body
-        Xc = (walk(fine_t - delay)[:, None, :] + body - t) @ R
-        xy = Xc[..., :2] / Xc[..., 2:] + rng.normal(0, 2 / 500, Xc[..., :2].shape)
-        track = (fine_t, xy, np.ones(xy.shape[:2], bool))
-        smp = Samples(X + rng.normal(0, 0.01, X.shape), times, tuple(track for _ in times))
+        smp = _walking(rng, R, t, body, 60.0, delay)
         res = profile(smp, grid, R0, t0, 0.3, 5.0, 500.0, 0.5, nuisance="fixed")
         assert res[1] == 12 and res[2] < 4.0  # 60 s in 5 s blocks; residuals near the noise at the minimum
         assert grid[np.argmin(res[0].sum(0))] == pytest.approx(delay, abs=0.011)
