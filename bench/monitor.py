@@ -194,8 +194,9 @@ def main(argv: list[str] | None = None) -> None:
                          "online pipeline from the start, without the final batch, watched as its cameras converge")
     ap.add_argument("--bump-time", type=float, default=360.0, help="s: after the session converged")
     ap.add_argument("--after", type=float, default=125.0, help="s of data after the bump")
-    ap.add_argument("--quiet-runs", type=int, default=1, help="runs without bumps (false alarms), seeds 100...")
+    ap.add_argument("--quiet-runs", type=int, default=1, help="runs without bumps (false alarms), seeds --quiet-seed...")
     ap.add_argument("--quiet-duration", type=float, default=600.0)
+    ap.add_argument("--quiet-seed", type=int, default=100, help="seed of the first run without bumps (the next ones follow)")
     ap.add_argument("--jobs", type=int, default=1, help="runs in parallel (processes)")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/extrcal-accuracy-cache"))
     args = ap.parse_args(argv)
@@ -203,7 +204,7 @@ def main(argv: list[str] | None = None) -> None:
     bumps = [tuple(float(x) for x in b.split("/")) for b in args.bumps.split(",") if b]
     jobs = [(seed, b, args.camera, args.bump_time, args.bump_time + args.after, args.cache, args.calibrate)
             for seed in range(args.seeds) for b in bumps]
-    jobs += [(100 + k, None, args.camera, 0.0, args.quiet_duration, args.cache, args.calibrate)
+    jobs += [(args.quiet_seed + k, None, args.camera, 0.0, args.quiet_duration, args.cache, args.calibrate)
              for k in range(args.quiet_runs)]
     wall = time.perf_counter()
     if args.jobs > 1:
