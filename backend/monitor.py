@@ -21,7 +21,7 @@ moved; only a change does. A change must also be large (``min_translation`` /
 ``min_rotation``). A moved camera biases the points the others are tested against, so
 they may fail too, and before it does (its own views, now off, join fewer hypotheses):
 of the cameras that fail at one evaluation the most significant is taken, and tested
-again without each camera its points came from (``_explained_by``); a step that goes
+again without each camera its points came from (``_blame``); a step that goes
 away without one of them was that camera's, which is flagged instead when its own bins
 since the change show it, and otherwise nobody is, yet.
 
