@@ -57,7 +57,7 @@ def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, la
     t0 = time.monotonic()
     with ServiceThread(settings) as st, httpx.Client(base_url=st.url, timeout=60) as client:
         st_started = time.time()
-        with Sensors(endpoint, site, lab_dir, duration=600.0):
+        with Sensors(endpoint, site, lab_dir, duration=1500.0):  # data for longer than any wait below
             r = client.post("/sessions", json=body)
             assert r.status_code == 201, r.text
             s = r.json()
@@ -70,11 +70,13 @@ def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, la
             assert collecting["cameras"] == [] and collecting["cycles"] == 0
             status = client.get("/status").json()
             assert status["session"]["reason"].startswith("bootstrapping: ")
+            # a bound for liveness, not speed: the attempts run in the solver process on
+            # whatever CPU is left (a loaded machine took the whole test past 150 s)
             done = _poll(client, f"/sessions/{sid}", lambda s: s["bootstrap"]["phase"] == "done" or s["state"] == "failed",
-                         90, "the bootstrap was not handed over", seen)
+                         240, "the bootstrap was not handed over", seen)
             assert done["state"] != "failed", done["reason"]
             cal = _poll(client, f"/sessions/{sid}", lambda s: s["state"] in ("calibrating", "converged", "failed")
-                        and s["cycles"] >= 2, 60, "no cycles after the bootstrap", seen)
+                        and s["cycles"] >= 2, 120, "no cycles after the bootstrap", seen)
             assert cal["state"] != "failed", cal["reason"]
             t_cal = time.monotonic()
             stopped = client.post(f"/sessions/{sid}/stop").json()
