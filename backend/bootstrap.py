@@ -533,26 +533,27 @@ def place_cameras(cameras: int, R: np.ndarray, pairs: Sequence[PairPose], logs: 
 # ------------------------------------------------------------------ bridges
 
 
-def bridges(cameras: int, edges: Sequence[tuple[int, int]]) -> np.ndarray:
-    """(E,) bool: the edges (a, b) whose removal disconnects their cameras (bridges of the
-    view graph: a pair no cycle of pairs checks)."""
+def _groups(cameras: int, ab: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """(C,) label of each camera's connected group over the edges ab (E, 2) that ``keep``."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
+    g = coo_matrix((np.ones(int(keep.sum())), (ab[keep, 0], ab[keep, 1])), shape=(cameras, cameras))
+    return connected_components(g, directed=False)[1]
+
+
+def bridges(cameras: int, edges: Sequence[tuple[int, int]]) -> np.ndarray:
+    """(E,) bool: the edges (a, b) whose removal disconnects their cameras (bridges of the
+    view graph: a pair no cycle of pairs checks)."""
     E = len(edges)
     out = np.zeros(E, bool)
     if E == 0:
         return out
     ab = np.array(edges, dtype=np.int64).reshape(-1, 2)
-
-    def groups(keep: np.ndarray) -> np.ndarray:
-        g = coo_matrix((np.ones(int(keep.sum())), (ab[keep, 0], ab[keep, 1])), shape=(cameras, cameras))
-        return connected_components(g, directed=False)[1]
-
     every = np.ones(E, bool)
     for k in range(E):
         every[k] = False
-        lab = groups(every)
+        lab = _groups(cameras, ab, every)
         out[k] = lab[ab[k, 0]] != lab[ab[k, 1]]
         every[k] = True
     return out
@@ -563,9 +564,6 @@ def core_cameras(cameras: int, edges: Sequence[tuple[int, int]]) -> np.ndarray:
     (the largest 2-edge-connected component: every camera in it is reached by two
     independent chains of pairs); all False when no group has 3 cameras (a corridor,
     where every pair is a bridge)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     core = np.zeros(cameras, bool)
     if not edges:
         return core
@@ -573,8 +571,7 @@ def core_cameras(cameras: int, edges: Sequence[tuple[int, int]]) -> np.ndarray:
     keep = ~bridges(cameras, edges)
     if not keep.any():
         return core
-    g = coo_matrix((np.ones(int(keep.sum())), (ab[keep, 0], ab[keep, 1])), shape=(cameras, cameras))
-    lab = connected_components(g, directed=False)[1]
+    lab = _groups(cameras, ab, keep)
     in_edge = np.zeros(cameras, bool)
     in_edge[ab[keep].ravel()] = True
     sizes = np.bincount(lab[in_edge], minlength=lab.max() + 1)

@@ -485,14 +485,8 @@ class Monitor:
         trust[c] = (k.trust if k.trust is not None else np.ones(C, bool)) & (np.arange(C) != j)
         hyps = [h for h in self.recent if h.time >= a.since and c in h.cams]
         data = correspondences(hyps, R, t, trust, self.focal, self.min_angle, self.outlier_px).get(c, [])
-        after = []
-        for start, end, _, _ in (b for b in k.bins if b[0] >= a.since):
-            in_bin = [d for d in data if start <= d.time < end]
-            if sum(len(d.X) for d in in_bin) < self.cfg.min_points:
-                continue
-            r = resect(R[c], t[c], in_bin, float(self.focal[c]), outlier_px=self.outlier_px)
-            if r is not None:
-                after.append((start, end, pose_local(*k.anchor, *self._in_anchor_frame(c, r.R, r.t, R, t)), r.info))
+        after = [b for b in (self._bin(c, start, end, data, R, t) for start, end, _, _ in k.bins if start >= a.since)
+                 if b is not None]
         if len(after) < self.cfg.min_change_bins + 1:
             return None
         return [b for b in k.bins if b[0] < a.since] + after
@@ -521,15 +515,25 @@ class Monitor:
         s, Rg, tg = umeyama(src, dst, with_scale=True)
         return Rg @ R, s * Rg @ t + tg
 
+    def _bin(self, c: int, start: float, end: float, data: Sequence[Correspondences], Rs: np.ndarray, ts: np.ndarray
+             ) -> tuple | None:
+        """Camera c's bin [start, end) of ``data``: (start, end, z, info), its resection in
+        the anchor's frame; None when too little was seen (the bin says nothing; its data
+        still count for a recalibration) or no pose came of it."""
+        in_bin = [d for d in data if start <= d.time < end]
+        if sum(len(d.X) for d in in_bin) < self.cfg.min_points:
+            return None
+        r = resect(Rs[c], ts[c], in_bin, float(self.focal[c]), outlier_px=self.outlier_px)
+        if r is None:
+            return None
+        return start, end, pose_local(*self.cams[c].anchor, *self._in_anchor_frame(c, r.R, r.t, Rs, ts)), r.info
+
     def _close_bin(self, c: int, k: _Camera, now: float, Rs: np.ndarray, ts: np.ndarray) -> None:
         start, k.bin_start = k.bin_start, now
-        data = [d for d in k.data if start <= d.time < now]
-        if sum(len(d.X) for d in data) < self.cfg.min_points:
-            return  # too little seen: the bin says nothing (its data still count for a recalibration)
-        r = resect(Rs[c], ts[c], data, float(self.focal[c]), outlier_px=self.outlier_px)
-        if r is None:
+        b = self._bin(c, start, now, k.data, Rs, ts)
+        if b is None:
             return
-        k.bins.append((start, now, pose_local(*k.anchor, *self._in_anchor_frame(c, r.R, r.t, Rs, ts)), r.info))
+        k.bins.append(b)
         horizon = now - self.cfg.reference_seconds - self.cfg.window_seconds
         while k.bins and k.bins[0][1] < horizon:
             k.bins.pop(0)

@@ -343,17 +343,12 @@ class Pipeline:
         resection with the uncertainty re-opened: the resection a bin at a time took the
         others' points as given; the adjustment weighs every view, as the session did."""
         rf = self.refiner
-        self.cycle += 1
         P = rf.predicted_covariance()
         m = self.cfg.monitor
         P[cam] = np.diag([np.radians(m.reopen_std_rotation) ** 2] * 3 + [m.reopen_std_translation ** 2] * 3)
-        opt = self.cfg.optimize.model_copy(update={"max_iterations": max(self.cfg.optimize.max_iterations, 100)})
-        return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
-                       prior_cov=P, focal=self.focal, config=opt,
-                       frames=tuple(self._timed_frames(f for f in self.frames if f[0] >= since)),
-                       associate=self.cfg.associate, gate_px=None, max_hypotheses=self.cfg.refine.batch_size,
-                       spacing=self.cfg.select.min_spacing / 2, seed=int(self.rng.integers(2**31)),
-                       kind="recalibrate", moved=(cam,))
+        p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2,
+                                (f for f in self.frames if f[0] >= since))
+        return replace(p, prior_R=rf.R.copy(), prior_t=rf.t.copy(), prior_cov=P, kind="recalibrate", moved=(cam,))
 
     def _relocalize_problem(self, lost, frames) -> Problem:
         """Prior = the start and its uncertainty: where a lost camera can be
@@ -394,16 +389,16 @@ class Pipeline:
         det, assoc = self.detected_total, self.associated_total
         return (self.refiner.cycles == 0) & (det >= a.lost_min_detections) & (assoc < a.lost_ratio * det)
 
-    def _batch_problem(self, max_hypotheses: int, spacing: float) -> Problem:
-        """Every archived frame, re-associated in the solve with the current estimate;
-        prior = the start (the initial estimate, or the data's shape aligned onto it) with
-        its covariance, so the result is the honest posterior of all the data."""
+    def _batch_problem(self, max_hypotheses: int, spacing: float, frames: Iterable | None = None) -> Problem:
+        """Every archived frame (or ``frames``), re-associated in the solve with the current
+        estimate; prior = the start (the initial estimate, or the data's shape aligned onto
+        it) with its covariance, so the result is the honest posterior of all the data."""
         rf = self.refiner
         self.cycle += 1
         opt = self.cfg.optimize.model_copy(update={"max_iterations": max(self.cfg.optimize.max_iterations, 100)})
         return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.prior_R.copy(),
                        prior_t=rf.prior_t.copy(), prior_cov=rf.P0.copy(), focal=self.focal, config=opt,
-                       frames=tuple(self._timed_frames()),
+                       frames=tuple(self._timed_frames(frames)),
                        associate=self.cfg.associate,
                        # the batch re-associates ungated: a camera the filter got wrong must
                        # keep its views to be put right; the solve's outlier rounds drop bad ones
