@@ -530,6 +530,8 @@ class Pipeline:
             self.apply(p, solve(p))
         if self.cfg.refine.final_batch and self.frames:
             self.batch_adjust()
+            if self.cfg.clock.estimate and self._calibrated():  # the offsets as the final poses see them
+                self.clocks.reestimate(self.clock, self.refiner.R, self.refiner.t, P=self.refiner.S)
         return self.state()
 
     def batch_adjust(self) -> CycleReport:

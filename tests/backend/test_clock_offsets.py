@@ -268,6 +268,25 @@ def test_state_and_snapshot_carry_applied_offsets(short_run):
     assert q.sync.offset("cam_2") == -0.15 and q.clocks.applied[q.names.index("cam_2")] == -0.15
 
 
+def test_reestimate_after_the_final_adjustment_reports_and_applies_nothing(short_run):
+    """The estimate at the end of a run, with the final poses: the offsets reported are
+    those the given poses see (the same as a flush update with them), nothing applied
+    changes."""
+    import copy
+
+    p, _, _ = short_run
+    R, t = p.refiner.R.copy(), p.refiner.t.copy()
+    flush = copy.deepcopy(p.clocks)
+    flush.update(p.clock, R, t, flush=True)
+    again = copy.deepcopy(p.clocks)
+    applied = again.applied.copy()
+    again.reestimate(p.clock, R, t)
+    assert np.array_equal(again.applied, applied) and again._job is None
+    assert np.allclose(again.raw, flush.raw, equal_nan=True) and np.isfinite(again.raw).sum() >= 3
+    assert np.allclose(again.offset, flush.offset, equal_nan=True)
+    assert again.note == flush.note
+
+
 def test_retime_leaves_archived_views_timed_otherwise_out_until_taken_back(short_run):
     p, _, _ = short_run
     c = p.names.index("cam_8")
