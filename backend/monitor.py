@@ -560,9 +560,10 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
     after vs before, χ² against their covariances plus ``floor`` (6, 6). Each bin's
     covariance is its information's inverse plus the error it does not show
     (``bin_floor``, measured on the bins before the window). Returns the most
-    significant split that passes ``chi2`` and the size thresholds, also without any one
-    of the bins after it (so at least ``min_change_bins`` + 1 of them), as (χ², m, deg,
-    data time of the change; the χ² the least of those), or None."""
+    significant split (by its χ² over all its bins) that passes ``chi2`` and the size
+    thresholds, also without any one of the bins after it (so at least
+    ``min_change_bins`` + 1 of them), as (χ², m, deg, data time of the change; the χ²
+    and size the least of those), or None."""
     n = len(z)
     first = next((j for j in range(n) if now - start[j] <= cfg.window_seconds), n)
     first = max(first, cfg.min_reference_bins)
@@ -580,14 +581,17 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
             return None  # bins after the split that disagree among themselves are no step
         d = zn - zr
         try:
-            return float(d @ np.linalg.solve(kappa * (Sr + Sn) + floor, d)), d
+            chi2 = float(d @ np.linalg.solve(kappa * (Sr + Sn) + floor, d))
         except np.linalg.LinAlgError:
             return None
+        # NaN (no reference bin kept: infinite covariance) passes no "<=" threshold
+        return (chi2, d) if np.isfinite(chi2) else None
 
     for j in range(first, n - cfg.min_change_bins):
         found = step(j, np.arange(j, n))
         if found is None or found[0] <= cfg.chi2:
             continue
+        full = found[0]
         # ... and still without any one of the bins after it: one bin far off (a person
         # the camera sees oddly for a few seconds) is no step
         for leave in range(j, n) if leave_one_out else ():
@@ -601,10 +605,11 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
         chi2, d = found
         rot = float(np.degrees(np.linalg.norm(d[:3])))
         trans = float(np.linalg.norm(d[3:]))
-        if trans > cfg.min_translation or rot > cfg.min_rotation:
-            if best is None or chi2 > best[0]:
-                best = (chi2, trans, rot, float(start[j]))
-    return best
+        # the split is the likeliest one (all its bins; the least of the leave-one-out
+        # χ² favours splits with more bins, before the change too)
+        if (trans > cfg.min_translation or rot > cfg.min_rotation) and (best is None or full > best[0]):
+            best = (full, (chi2, trans, rot, float(start[j])))
+    return None if best is None else best[1]
 
 
 def _step_at(bins: list, since: float, now: float, cfg: MonitorConfig, floor: np.ndarray, min_after: int = 1,
@@ -654,10 +659,12 @@ def bin_floor(z: np.ndarray, C: np.ndarray, cfg: MonitorConfig) -> np.ndarray:
 
 
 _CHI2_6_MEDIAN = 5.348  # median of the χ² distribution with 6 dof
-# least overdispersion: bins that scatter less than their covariances say (the points'
-# covariance assumes the keypoint std the detector states) make the test that much
-# more sensitive, up to this (a guard against a median of few bins far below its mean)
-_KAPPA_MIN = 0.25
+# least overdispersion: bins that scatter less than their covariances say do not make the
+# test more sensitive. A dozen reference bins of people walking the same spots scatter
+# less than bins of people elsewhere do (their errors are correlated over time), and a
+# median of a dozen χ² is itself uncertain: lab seed 107 raised a false alarm (cam_12,
+# 751 s) on a reference that scattered a third of what its covariances said
+_KAPPA_MIN = 1.0
 _CHI2_6_Q75 = 7.841  # its upper quartile
 
 
@@ -670,7 +677,12 @@ def _mean(z: np.ndarray, W: np.ndarray, kappa: float | None = None, *, huber: fl
     the overdispersion) from the mean is down-weighted: one bin of wrong associations
     must not make a change; one beyond ``reject`` is left out."""
     k = 1.0 if kappa is None else kappa
-    m = np.median(z, axis=0)  # the start: a mean from a far-off bin would down-weight the good ones
+    # the start: the bin nearest the others (least median χ² to them, each in the other's
+    # information), not a mean, which a far-off bin drags, nor the coordinate-wise median,
+    # which with a bin's strongly correlated rotation and translation can lie far from
+    # every bin, so that all would be rejected
+    r = z[:, None, :] - z[None, :, :]
+    m = z[int(np.argmin(np.median(np.einsum("inj,njk,ink->in", r, W, r), axis=1)))]
     for _ in range(5):
         r = z - m
         chi = np.einsum("ni,nij,nj->n", r, W, r)
