@@ -61,17 +61,14 @@ class Joined:
     std_rotation: float
 
     def summary(self) -> str:
-        r = self.resection
-        return (f"{self.name} placed after the bootstrap: resected against the online estimate over "
-                f"{self.data_seconds:.0f} s of data (agrees in {r.frames}/{r.seen} framesets, spread {r.spread:.2f} m, "
-                f"{r.residual_px:.1f} px), entered the final batch adjustment with a prior std of "
-                f"{self.std_translation:.3f} m / {self.std_rotation:.2f}°")
+        return later_summary(self.to_dict())
 
     def to_dict(self) -> dict[str, Any]:
         r = self.resection
         return {"name": self.name, "data_seconds": round(self.data_seconds, 1), "frames": r.frames, "seen": r.seen,
                 "spread": round(r.spread, 3), "residual_px": round(r.residual_px, 2),
-                "std_translation": self.std_translation, "std_rotation": self.std_rotation}
+                "std_translation": self.std_translation, "std_rotation": self.std_rotation,
+                "translation": r.t.tolist(), "rotation_matrix": r.R.tolist()}
 
 
 class JoiningPipeline(Pipeline):
@@ -296,6 +293,15 @@ def _remap(frames: Iterable[Frame], index: dict[int, int]) -> list[Frame]:
     from .live_bootstrap import remap
 
     return remap(list(frames), index)
+
+
+def later_summary(j: Mapping[str, Any]) -> str:
+    """One line for a camera placed after the bootstrap, from ``Joined.to_dict`` (the
+    result's header, offline and live)."""
+    return (f"{j['name']} placed after the bootstrap: resected against the online estimate over "
+            f"{j['data_seconds']:.0f} s of data (agrees in {j['frames']}/{j['seen']} framesets, spread "
+            f"{j['spread']:.2f} m, {j['residual_px']:.1f} px), then adjusted by the final batch adjustment "
+            f"with the others from a prior std of {j['std_translation']:.3f} m / {j['std_rotation']:.2f}°")
 
 
 def late_comment(p: Pipeline) -> list[str]:
