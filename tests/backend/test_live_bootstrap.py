@@ -366,6 +366,59 @@ def test_distrust_initial_bootstraps_a_session_with_an_initial_estimate(tmp_path
         assert c.post(f"/sessions/{s['id']}/stop").json()["state"] == "stopped"
 
 
+def truth_job(R, t, located, job):
+    """A bootstrap attempt that finds the true poses, ``located`` (C,) bool of them."""
+    C = len(job.names)
+    return Outcome(BootstrapResult(job.names, R, t, located, np.full(C, 0.01), np.full(C, 0.1), None,
+                                   "floor frame: the truth", 6, 10, len(job.frames), job.data_seconds, 1.0), None, 0.0)
+
+
+def test_a_session_places_the_camera_its_bootstrap_left_out_when_it_stops(tmp_path, collected):
+    """The service's side of backend/late_join.py: the session says the camera's data are
+    kept, its final batch places it, the record and the result name it."""
+    import functools
+    import time
+
+    import httpx
+
+    from backend.service import ServiceThread
+
+    full, inputs, cfg, msgs = collected
+    col = Collector(inputs.cameras, cfg, LiveOptions(), initial=False)
+    _run(col, msgs)
+    col.advance(msgs[-1].stamp + 1.0)
+    frames, seen = list(col.frames), col.seen.copy()
+    located = np.array([n != "cam_14" for n in WEST])
+    R, t = np.array([full.poses[n].R for n in WEST]), np.array([full.poses[n].t for n in WEST])
+    body = {"intrinsics_yaml": inputs.intrinsics_yaml,
+            "config": {"bootstrap": {"live_first": 20.0, "max_seconds": 20.0}}}
+    with ServiceThread(_settings(tmp_path)) as st, httpx.Client(base_url=st.url, timeout=60) as c:
+        st.service.bootstrap_fn = functools.partial(truth_job, R, t, located)
+        sid = c.post("/sessions", json=body).json()["id"]
+
+        def put():
+            p = st.service.active.pipeline
+            p.frames.extend(frames)
+            p.first_time = frames[0][0]
+            p.seen[:] = seen
+        st.call(put)
+        deadline = time.monotonic() + 120
+        while (s := c.get(f"/sessions/{sid}").json())["bootstrap"]["phase"] != "done":
+            assert time.monotonic() < deadline, s["reason"]
+            time.sleep(0.2)
+        assert s["bootstrap"]["late"] == ["cam_14"] and s["bootstrap"]["not_placed"] == ["cam_14"]
+        assert "cam_14 (their data are kept: resected when the session stops)" in s["reason"]
+        assert [cam["name"] for cam in s["cameras"]] == ["cam_11", "cam_12", "cam_15", "cam_16"]
+        s = c.post(f"/sessions/{sid}/stop").json()
+        assert s["state"] == "stopped" and s["final_batch"]["ran"], s["final_batch"]
+        b = s["bootstrap"]
+        assert [j["name"] for j in b["placed_later"]] == ["cam_14"] and b["not_placed"] == [], b["late_resections"]
+        assert [cam["name"] for cam in s["cameras"]] == list(WEST)
+        text = c.get("/calibration", params={"format": "yaml"}).text
+        assert "# cam_14 placed after the bootstrap: resected against the online estimate" in text
+        assert set(parse_extrinsics(text)) == set(WEST)
+
+
 def slow_job(job):
     """A bootstrap attempt that takes minutes (in the solver process)."""
     import time
