@@ -26,7 +26,7 @@ The numeric core: synchronous, no network.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
@@ -36,6 +36,7 @@ from proto import KeypointMessage
 from .bootstrap import Frame, view_box
 from .cameras import CameraSet, Extrinsics, Intrinsics, Pose
 from .config import EngineConfig
+from .geometry import R_to_quat
 from .pipeline import Pipeline
 from .preprocess import Preprocessor
 from .resect import Resection, resect_unplaced
@@ -59,6 +60,7 @@ class Joined:
     data_seconds: float
     std_translation: float
     std_rotation: float
+    adjusted: bool = False  # the final batch took it (else its resected pose is its result)
 
     def summary(self) -> str:
         return later_summary(self.to_dict())
@@ -68,7 +70,8 @@ class Joined:
         return {"name": self.name, "data_seconds": round(self.data_seconds, 1), "frames": r.frames, "seen": r.seen,
                 "spread": round(r.spread, 3), "residual_px": round(r.residual_px, 2),
                 "std_translation": self.std_translation, "std_rotation": self.std_rotation,
-                "translation": r.t.tolist(), "rotation_matrix": r.R.tolist()}
+                # the resected pose (translation, rotation quaternion x, y, z, w, as in the extrinsics YAML)
+                "translation": r.t.tolist(), "rotation": R_to_quat(r.R).tolist(), "adjusted": self.adjusted}
 
 
 class JoiningPipeline(Pipeline):
@@ -184,6 +187,7 @@ class JoiningPipeline(Pipeline):
             j = self.joined
             if j.frames:
                 j.batch_adjust()
+            self.late = [replace(x, adjusted=bool(j.refiner.cycles[j.names.index(x.name)] > 0)) for x in self.late]
             self.final_batch_start, self.cycle, self.last_report = j.final_batch_start, j.cycle, j.last_report
             return j.state()
         if self.frames:
@@ -300,8 +304,10 @@ def later_summary(j: Mapping[str, Any]) -> str:
     result's header, offline and live)."""
     return (f"{j['name']} placed after the bootstrap: resected against the online estimate over "
             f"{j['data_seconds']:.0f} s of data (agrees in {j['frames']}/{j['seen']} framesets, spread "
-            f"{j['spread']:.2f} m, {j['residual_px']:.1f} px), then adjusted by the final batch adjustment "
-            f"with the others from a prior std of {j['std_translation']:.3f} m / {j['std_rotation']:.2f}°")
+            f"{j['spread']:.2f} m, {j['residual_px']:.1f} px), "
+            + ("then adjusted by the final batch adjustment with the others from a prior std of "
+               f"{j['std_translation']:.3f} m / {j['std_rotation']:.2f}°" if j.get("adjusted") else
+               "not adjusted (the final batch adjustment was not taken: its resected pose is its result)"))
 
 
 def late_comment(p: Pipeline) -> list[str]:
