@@ -172,9 +172,15 @@ def calibrate(
             line += f" | err {err.position.mean:.4f} m {err.orientation.mean:.3f}° (shape {err.shape_position.mean:.4f} m)"
         console.print(line, highlight=False)
 
+    joining = None
+    if boot is not None and cfg.bootstrap.late and not boot.located.all():
+        # the cameras it did not place: archived beside the pipeline, resected at the end (backend/late_join.py)
+        from .late_join import JoiningPipeline
+
+        joining = JoiningPipeline(cams, cfg, intrinsics=intr, names=boot.names, seed=seed)
     try:
         p = run_offline(cams, cfg, messages(), seed=seed, progress=progress,
-                        start=rec.start(cfg) if rec is not None else None)
+                        start=rec.start(cfg) if rec is not None else None, pipeline=joining)
     except RecordingError as e:
         raise fail(f"{e} (use --skip-bad to skip malformed records)")
     finally:
@@ -182,6 +188,13 @@ def calibrate(
             hist_f.close()
     state = p.state()
     wall = time.perf_counter() - t_start
+    late_lines: list[str] = []
+    if joining is not None:
+        from .late_join import late_comment
+
+        late_lines = late_comment(joining)
+        if joining.joined is not None:
+            cams = joining.joined.cameras
     started = {n for n, u in zip(rec.names, rec.from_bootstrap) if u} if rec is not None else set()
     not_calibrated = [c.name for c in state.cameras if c.cycles == 0 and c.name not in started]
     only_bootstrap = [c.name for c in state.cameras if c.cycles == 0 and c.name in started]
@@ -197,6 +210,7 @@ def calibrate(
     scale = boot.scale if boot is not None else None
     if boot is not None:
         comment += f"\nno initial estimate: {boot.frame}"
+        comment += "".join(f"\n{ln}" for ln in late_lines)
         if p.final_batch_start is not None:
             comment += (f"\nfinal batch adjustment: kept the one started from the "
                         f"{'bootstrap' if p.final_batch_start == 'start' else 'online estimate'}")
@@ -219,6 +233,9 @@ def calibrate(
 
         meta = {**boot.to_dict(), "online": {"initial_std_translation": cfg.refine.initial_std_translation,
                                              "initial_std_rotation": cfg.refine.initial_std_rotation}}
+        if joining is not None:
+            meta["placed_later"] = [j.to_dict() for j in joining.late]
+            meta["late_resections"] = list(joining.late_notes)
         write_atomic(Path(f"{output}.bootstrap.json"), json.dumps(meta, indent=1) + "\n")
 
     span = (state.data_time or 0) - (first_stamp[0] if first_stamp else 0)
@@ -229,6 +246,8 @@ def calibrate(
         f"({c.cycles_rejected} rejected) in {wall:.1f} s = {span / max(wall, 1e-9):.1f}x real time",
         highlight=False,
     )
+    for ln in late_lines:
+        console.print(ln, highlight=False)
     if not_calibrated:
         console.print(f"[yellow]not calibrated (too few observations, initial pose kept): {', '.join(not_calibrated)}[/]")
     if scale is not None:

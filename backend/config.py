@@ -186,6 +186,9 @@ class BootstrapConfig(_Section):
                                      "std of their centres): a person at one spot leaves the pose poorly determined")
     resect_ambiguity: float = Field(0.5, ge=0, description="no clearly different pose (10°, 0.5 m) may agree in more than "
                                     "this share of the frames the best one agrees in")
+    late: bool = Field(True, description="cameras the bootstrap did not place are resected again (same guards) against "
+                       "the online estimate over all data when the run ends, and join its final batch adjustment "
+                       "(backend/late_join.py)")
     batch_rounds: int = Field(3, ge=1, description="bundle adjustments, each re-associating all frames with the previous result")
     batch_hypotheses: int = Field(800, ge=10, description="most hypotheses per bundle adjustment")
     prior_std_translation: float = Field(1.0, gt=0, description="m: the weak prior of the bundle adjustment (a gauge, not information)")

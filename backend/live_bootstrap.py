@@ -23,7 +23,9 @@ recording: the session collects the data first.
       ▼ calibrating   the service swaps the pipeline in and goes on live
 
 Cameras the bootstrap did not place are not in the online pipeline (as offline: a camera
-without a pose would only feed wrong associations); the session lists them as not placed.
+without a pose would only feed wrong associations); their framesets are archived beside it
+and they are resected when the session stops, joining its final batch when they pass
+(backend/late_join.py, ``late_record``); the session lists them as not placed until then.
 
 Everything here is synchronous and free of asyncio: the service (backend/service.py)
 drives it from its loop.
@@ -164,8 +166,17 @@ class Handover:
             meta["note"] = (f"the bootstrap placed {len(cams.names)}/{len(result.names)} cameras from "
                             f"{result.data_seconds:.0f} s of data")
         index = {job.names.index(n): k for k, n in enumerate(cams.names)}
-        p = Pipeline(cams, config, seed=seed, start=start)
         frames = job.frames if frames is None else frames
+        if not initial and config.bootstrap.late and not result.located.all():
+            # the cameras it did not place: archived beside the pipeline, resected when the session
+            # stops (backend/late_join.py); the collector's framesets index all cameras, as it does
+            from .late_join import JoiningPipeline
+
+            p = JoiningPipeline(cams, config, intrinsics=cameras.intrinsics, names=job.names, seed=seed)
+            p.take_late_frames(frames)
+            meta["late"] = list(p.unplaced)
+        else:
+            p = Pipeline(cams, config, seed=seed, start=start)
         new = p.take_frames(remap(frames, index))
         taken = frames[-1][0] if frames else -math.inf
         return Handover(p, cams, initial_yaml, config, taken, new, meta, index)
@@ -177,10 +188,14 @@ class Handover:
         p = self.pipeline
         later = [f for f in collector.frames if f[0] > self.taken]
         new = p.take_frames(remap(later, self.index))
+        late = getattr(p, "late_sync", None)
+        if late is not None:  # a JoiningPipeline: its second front end goes on where the collector is
+            p.take_late_frames(later)
+            late.take_over(collector.sync)
         p.clock = collector.clock
         p.messages = collector.messages
         p.rejected = Counter(collector.rejected)
-        p.last_seen = {n: s for n, s in collector.last_seen.items() if n in p.names}
+        p.last_seen = {n: s for n, s in collector.last_seen.items() if n in p.names or n in getattr(p, "unplaced", ())}
         p.sync.take_over(collector.sync)
         return new
 
@@ -188,8 +203,8 @@ class Handover:
 def remap(frames: Sequence[Frame], index: dict[int, int]) -> list[Frame]:
     """Frames with their detections' camera indices mapped by ``index`` (collector →
     pipeline); views of cameras not in it dropped, frames left with < 2 views dropped."""
-    if all(k == v for k, v in index.items()) and len(index) == (1 + max(index, default=-1)):
-        return list(frames)
+    if all(k == v for k, v in index.items()) and all(v[0].cam in index for _, views in frames for v in views if v):
+        return list(frames)  # (a camera after the last one in ``index`` is not in it: no shortcut then)
     out = []
     for T, views in frames:
         vs = tuple(tuple(replace(d, cam=index[d.cam]) for d in v) for v in views if v and v[0].cam in index)
@@ -447,6 +462,13 @@ class Collector:
                 "attempts": list(self.attempts), "options": self.options.to_dict()}
 
 
+def later_summary(j: dict[str, Any]) -> str:
+    """One line for a camera placed after the bootstrap, from ``late_join.Joined.to_dict``."""
+    from .late_join import later_summary as summary
+
+    return summary(j)
+
+
 def result_comment(bootstrap_record: dict[str, Any] | None) -> str:
     """Lines for a result's header from a session's ``bootstrap`` record: where the frame
     and the scale come from (as ``extrcal calibrate`` writes them), the cameras not placed."""
@@ -464,14 +486,32 @@ def result_comment(bootstrap_record: dict[str, Any] | None) -> str:
         if sc:
             lines.append(f"metric scale from people: scale {sc['factor']:.4f} ± {100 * sc['rel_std']:.1f} % from the "
                          f"{sc['method']} ({sc['persons']} persons: {', '.join(f'{h:.2f}' for h in sc['heights'])} m)")
+    lines += [later_summary(j) for j in b.get("placed_later") or ()]
     if b.get("not_placed"):
-        lines.append(f"not placed by the bootstrap (not calibrated): {', '.join(b['not_placed'])}")
+        lines.append(f"not placed by the bootstrap{' nor later' if b.get('placed_later') is not None else ''} "
+                     f"(not calibrated): {', '.join(b['not_placed'])}")
     return "\n".join(lines)
+
+
+def late_record(pipeline: Any) -> dict[str, Any] | None:
+    """After the final batch of a session whose bootstrap left cameras out (a
+    ``JoiningPipeline``): what the session record's ``bootstrap`` says of them now
+    (``placed_later``, ``late_resections``, the cameras still ``not_placed``); None for
+    another pipeline."""
+    from .late_join import JoiningPipeline
+
+    if not isinstance(pipeline, JoiningPipeline):
+        return None
+    placed = {j.name for j in pipeline.late}
+    return {"placed_later": [j.to_dict() for j in pipeline.late], "late_resections": list(pipeline.late_notes),
+            "not_placed": [n for n in pipeline.unplaced if n not in placed]}
 
 
 def reason_suffix(bootstrap_record: dict[str, Any] | None) -> str:
     """What a calibrating session's reason adds: the cameras the bootstrap did not place."""
     b = bootstrap_record or {}
     if b.get("phase") == "done" and b.get("not_placed"):
-        return f"; not placed by the bootstrap: {', '.join(b['not_placed'])}"
+        later = " (their data are kept: resected when the session stops)" if b.get("late") and \
+            b.get("placed_later") is None else ""
+        return f"; not placed by the bootstrap: {', '.join(b['not_placed'])}{later}"
     return ""

@@ -666,10 +666,12 @@ class Pipeline:
 
 def run_offline(cameras: CameraSet, config: EngineConfig, messages: Iterable[KeypointMessage], *, seed: int = 0,
                 progress: Callable[[CalibrationState, CycleReport], None] | None = None,
-                finish: bool = True, start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> Pipeline:
+                finish: bool = True, start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                pipeline: Pipeline | None = None) -> Pipeline:
     """Run the online pipeline on recorded messages on virtual time (the newest stamp);
-    ``start`` as for ``Pipeline``."""
-    p = Pipeline(cameras, config, seed=seed, start=start)
+    ``start`` as for ``Pipeline``; ``pipeline``: one built by the caller instead (e.g.
+    backend/late_join.py's), whose cameras and config are then its own."""
+    p = Pipeline(cameras, config, seed=seed, start=start) if pipeline is None else pipeline
     for msg in messages:
         p.push(msg)
         if p.clock is None:

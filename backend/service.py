@@ -37,7 +37,7 @@ import time
 from collections import Counter, deque
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, AsyncIterator, Callable
 
 import numpy as np
@@ -49,7 +49,7 @@ from .cameras import dump_extrinsics, parse_extrinsics, parse_intrinsics
 from .config import ConfigError, EngineConfig
 from .history import CalibrationHistory
 from .ingest import HandOff, SensorTable, ServiceClock
-from .live_bootstrap import Collector, LiveOptions, reason_suffix, result_comment
+from .live_bootstrap import Collector, LiveOptions, late_record, reason_suffix, result_comment
 from .session import (
     NotAvailable, SessionConflict, SessionInputError, SessionInputs, SessionRecord,
     SessionState, SessionStore, StopCriteria, clean_json, dumps_json, new_session_id,
@@ -805,8 +805,8 @@ class Service:
         s.inputs = SessionInputs(s.inputs.intrinsics_yaml, h.initial_yaml or s.inputs.initial_yaml,
                                  s.inputs.reference_yaml, h.cameras, s.inputs.reference, h.config)
         s.__dict__.pop("names", None)  # the cached camera names: now the placed cameras
-        if self.handoff is not None:
-            self.handoff.accept(s.names)
+        if self.handoff is not None:  # and the cameras it did not place, archived for later (backend/late_join.py)
+            self.handoff.accept(s.names | frozenset(getattr(h.pipeline, "unplaced", ())))
         s.state = s.pipeline.state()
         s.last_snapshot = time.monotonic()
         data_time = None if rec.first_data is None or col.clock is None else col.clock - rec.first_data
@@ -1245,6 +1245,12 @@ class Service:
                 else:
                     s.pipeline = await self.solver.run(_finish_pipeline, s.pipeline)
                     batch = s.pipeline.cycle > before
+                    late = late_record(s.pipeline)
+                    if late is not None:  # cameras the bootstrap left out, resected now (backend/late_join.py)
+                        rec.bootstrap = {**(rec.bootstrap or {}), **late}
+                        if s.pipeline.joined is not None:
+                            s.inputs = replace(s.inputs, cameras=s.pipeline.joined.cameras)
+                            s.__dict__.pop("names", None)
                     rec.final_batch = {"ran": batch, "seconds": time.monotonic() - t0, "report":
                                        s.pipeline.last_report.to_dict() if batch and s.pipeline.last_report else None}
             except Exception as e:

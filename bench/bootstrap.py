@@ -205,6 +205,8 @@ def run_calibrate(seed: int, seconds: float, cache: Path, overrides: list[str], 
     out["scale"] = meta["scale"]
     out["bridge_checks"] = meta.get("bridge_checks", [])
     out["resections"] = meta.get("resections", [])
+    out["placed_later"] = meta.get("placed_later", [])  # backend/late_join.py: resected at the end of the run
+    out["late_resections"] = meta.get("late_resections", [])
     out["final_batch"] = next((ln for ln in res_comment if ln.startswith("final batch adjustment")), None)
     out["bootstrap"] = _shape(evaluate(boot, ref))
     if len(lines) >= 2:
@@ -216,7 +218,8 @@ def run_calibrate(seed: int, seconds: float, cache: Path, overrides: list[str], 
     say(f"seed {seed}, {seconds:g} s: bootstrap {out['bootstrap']['within']}/{out['bootstrap']['cameras']} within "
         f"bars, final {f['within']}/{f['cameras']}, shape {f['shape_position']:.4f} m (max "
         f"{f['shape_position_max']:.4f}) {f['shape_orientation']:.3f}° (max {f['shape_orientation_max']:.3f}); "
-        f"not placed: {', '.join(out['not_placed']) or '-'}; {out['wall']:.0f} s")
+        f"not placed: {', '.join(out['not_placed']) or '-'}; placed later: "
+        f"{', '.join(j['name'] for j in out['placed_later']) or '-'}; {out['wall']:.0f} s")
     return out
 
 
@@ -244,13 +247,25 @@ def print_calibrate(runs: list[dict]) -> None:
               f"{ow} | {f['within']}/{f['cameras']} | "
               f"{f['shape_position']:.4f} / {f['shape_position_max']:.4f} | "
               f"{f['shape_orientation']:.3f} / {f['shape_orientation_max']:.3f} | {_worst(f)} | {r['wall']:.0f} |")
-    print("\nCameras not placed (detections in the data / framesets seen together with another camera):\n")
+    print("\nCameras the bootstrap did not place (detections in the data / framesets seen together with another camera):\n")
     for r in runs:
         if "error" in r:
             continue
         vis = r["visibility"]
-        lost = ", ".join(f"{n} ({vis[n]['detections']} / {vis[n]['with_another']})" for n in r["not_placed"])
+        later = {j["name"] for j in r.get("placed_later", [])}
+        lost = ", ".join(f"{n} ({vis[n]['detections']} / {vis[n]['with_another']})"
+                         + (" placed later" if n in later else "") for n in r["not_placed"])
         print(f"- seed {r['seed']}, {r['seconds']:g} s: {lost or 'none'}")
+    late = [r for r in runs if r.get("late_resections")]
+    if late:
+        print("\nCameras the bootstrap did not place, resected at the end of the run against the online estimate "
+              "(backend/late_join.py; errors in the result, similarity-aligned):\n")
+        for r in late:
+            placed = {j["name"] for j in r.get("placed_later", [])}
+            errs = "; ".join(f"{n} {r['final']['per_camera'][n][0]:.3f} m / {r['final']['per_camera'][n][1]:.2f}°"
+                             for n in sorted(placed) if n in r["final"]["per_camera"])
+            print(f"- seed {r['seed']}, {r['seconds']:g} s: {'; '.join(r['late_resections'])}"
+                  + (f" → in the result: {errs}" if errs else ""))
     res = [r for r in runs if r.get("resections")]
     if res:
         print("\nCameras no pair placed, resected against the placed cameras' persons (backend/resect.py):\n")

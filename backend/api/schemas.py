@@ -76,7 +76,8 @@ class BootstrapInfo(BaseModel):
     attempts: list[BootstrapAttempt] = Field(default_factory=list)
     options: dict[str, Any] = Field(default_factory=dict, description="person_height, distrust_initial as asked")
     placed: list[str] | None = Field(None, description="cameras the bootstrap placed (done)")
-    not_placed: list[str] | None = Field(None, description="cameras it could not place: not calibrated (done)")
+    not_placed: list[str] | None = Field(None, description="cameras it could not place: not calibrated (done; once "
+                                         "stopped, those the resection then did not place either)")
     frame: str | None = Field(None, description="the world frame of the result (done)")
     scale: dict[str, Any] | None = Field(None, description="metric scale from people: factor, rel_std, method, persons, heights")
     note: str | None = Field(None, description="what the hand-over did")
@@ -84,6 +85,11 @@ class BootstrapInfo(BaseModel):
     result: dict[str, Any] | None = Field(None, description="the bootstrap's metadata (backend/bootstrap.py)")
     pose_data_seconds: float | None = Field(None, description="s of data from the first message to the first pose")
     pose_wall: float | None = Field(None, description="wall time (epoch s) of the hand-over")
+    late: list[str] | None = Field(None, description="cameras it did not place whose framesets are kept beside the online "
+                                   "pipeline: resected against its estimate when the session stops (backend/late_join.py)")
+    placed_later: list[dict[str, Any]] | None = Field(None, description="(stopped) those placed then and adjusted by the "
+                                                      "final batch: name, data_seconds, agreeing frames, spread, prior std")
+    late_resections: list[str] | None = Field(None, description="(stopped) each resection's outcome")
 
 
 class CameraOut(BaseModel):

@@ -162,6 +162,9 @@ def test_remap_drops_cameras_not_placed():
     out = remap(frames, {0: 0, 2: 1, 3: 2})
     assert len(out) == 1 and [v[0].cam for v in out[0][1]] == [0, 1, 2]
     assert remap(frames, {0: 0, 1: 1, 2: 2, 3: 3}) == frames
+    # the last camera not placed: the identity of the others is no shortcut
+    out = remap(frames, {0: 0, 1: 1, 2: 2})
+    assert [[v[0].cam for v in views] for _, views in out] == [[0, 2], [0, 1]]
 
 
 # ------------------------------------------------------------------ hand-over, on a short simulation
@@ -222,6 +225,58 @@ def test_handover_builds_the_pipeline_of_the_placed_cameras_and_goes_on_without_
     times = [T for T, _ in p.frames]
     assert times == sorted(times) and len(set(times)) == len(times)  # nothing twice, in order
     assert times[-1] > msgs[half + 300].stamp - 1.0
+
+
+def test_a_camera_the_bootstrap_left_out_is_resected_when_the_session_stops(collected):
+    """The live path of backend/late_join.py: the collector's framesets and those after the
+    hand-over keep the unplaced camera's views; the session's final batch places it."""
+    from backend.cameras import Pose
+    from backend.evaluate import evaluate
+    from backend.late_join import JoiningPipeline
+    from backend.live_bootstrap import late_record, reason_suffix
+
+    full, inputs, cfg, msgs = collected
+    col = Collector(inputs.cameras, cfg, LiveOptions(), initial=False)
+    half = len(msgs) // 2
+    _run(col, msgs[:half])
+    job = BootstrapJob(1, tuple(col.frames), col.names, col.focal, cfg, (), 0, col.data_seconds, col.seen.copy(), True)
+    C = len(WEST)
+    located = np.array([n != "cam_14" for n in WEST])
+    res = BootstrapResult(tuple(WEST), np.array([full.poses[n].R for n in WEST]),
+                          np.array([full.poses[n].t for n in WEST]), located, np.full(C, 0.01), np.full(C, 0.1),
+                          None, "floor frame: the truth", 6, 10, len(col.frames), col.data_seconds, 1.0)
+    h = Handover.build(job, res, inputs.cameras, cfg, False)
+    p = h.pipeline
+    assert isinstance(p, JoiningPipeline) and p.unplaced == ("cam_14",) and h.meta["late"] == ["cam_14"]
+    n_late = len(p.late_frames)
+    assert n_late > 20 and all(any(v[0].cam == 2 for v in views) for _, views in p.late_frames)
+    rec = {"phase": "done", **h.meta}
+    assert reason_suffix(rec) == "; not placed by the bootstrap: cam_14 (their data are kept: resected when the session stops)"
+    _run(col, msgs[half:half + 200])
+    col.advance(msgs[half + 199].stamp)
+    h.catch_up(col)
+    assert p.late_sync.next_time == col.sync.next_time and len(p.late_frames) > n_late
+    for k, m in enumerate(msgs[half + 200:]):
+        assert p.push(m, m.stamp) is None  # cam_14's messages too: archived, not an unknown sensor
+        if k % 20 == 0:
+            p.advance(m.stamp)
+            p.step(m.stamp)
+    before = len(p.late_frames)
+    state = p.finish()
+    times = [T for T, _ in p.late_frames]
+    assert len(times) >= before and times == sorted(times) and len(set(times)) == len(times)
+    j = p.joined
+    assert j is not None and j.names == WEST and [x.name for x in p.late] == ["cam_14"], p.late_notes
+    assert [c.name for c in state.cameras] == list(WEST) and state.cameras[2].cycles > 0
+    assert p.snapshot()["names"] == list(WEST)
+    ev = evaluate(state.poses(), {n: full.poses[n] for n in WEST})
+    _, _, pos, ori = ev.per_camera["cam_14"]
+    assert pos < 0.05 and ori < 0.5, ev.per_camera
+    rec.update(late_record(p))
+    assert rec["not_placed"] == [] and rec["placed_later"][0]["name"] == "cam_14"
+    text = result_comment(rec)
+    assert "cam_14 placed after the bootstrap: resected against the online estimate over" in text
+    assert "not placed" not in text and reason_suffix(rec) == ""
 
 
 def test_handover_with_a_distrusted_initial_estimate_reconciles(collected):
@@ -309,6 +364,59 @@ def test_distrust_initial_bootstraps_a_session_with_an_initial_estimate(tmp_path
         assert s["cameras"] == [] and s["reason"]
         assert (tmp_path / "sessions" / s["id"] / "initial.yaml").is_file()
         assert c.post(f"/sessions/{s['id']}/stop").json()["state"] == "stopped"
+
+
+def truth_job(R, t, located, job):
+    """A bootstrap attempt that finds the true poses, ``located`` (C,) bool of them."""
+    C = len(job.names)
+    return Outcome(BootstrapResult(job.names, R, t, located, np.full(C, 0.01), np.full(C, 0.1), None,
+                                   "floor frame: the truth", 6, 10, len(job.frames), job.data_seconds, 1.0), None, 0.0)
+
+
+def test_a_session_places_the_camera_its_bootstrap_left_out_when_it_stops(tmp_path, collected):
+    """The service's side of backend/late_join.py: the session says the camera's data are
+    kept, its final batch places it, the record and the result name it."""
+    import functools
+    import time
+
+    import httpx
+
+    from backend.service import ServiceThread
+
+    full, inputs, cfg, msgs = collected
+    col = Collector(inputs.cameras, cfg, LiveOptions(), initial=False)
+    _run(col, msgs)
+    col.advance(msgs[-1].stamp + 1.0)
+    frames, seen = list(col.frames), col.seen.copy()
+    located = np.array([n != "cam_14" for n in WEST])
+    R, t = np.array([full.poses[n].R for n in WEST]), np.array([full.poses[n].t for n in WEST])
+    body = {"intrinsics_yaml": inputs.intrinsics_yaml,
+            "config": {"bootstrap": {"live_first": 20.0, "max_seconds": 20.0}}}
+    with ServiceThread(_settings(tmp_path)) as st, httpx.Client(base_url=st.url, timeout=60) as c:
+        st.service.bootstrap_fn = functools.partial(truth_job, R, t, located)
+        sid = c.post("/sessions", json=body).json()["id"]
+
+        def put():
+            p = st.service.active.pipeline
+            p.frames.extend(frames)
+            p.first_time = frames[0][0]
+            p.seen[:] = seen
+        st.call(put)
+        deadline = time.monotonic() + 120
+        while (s := c.get(f"/sessions/{sid}").json())["bootstrap"]["phase"] != "done":
+            assert time.monotonic() < deadline, s["reason"]
+            time.sleep(0.2)
+        assert s["bootstrap"]["late"] == ["cam_14"] and s["bootstrap"]["not_placed"] == ["cam_14"]
+        assert "cam_14 (their data are kept: resected when the session stops)" in s["reason"]
+        assert [cam["name"] for cam in s["cameras"]] == ["cam_11", "cam_12", "cam_15", "cam_16"]
+        s = c.post(f"/sessions/{sid}/stop").json()
+        assert s["state"] == "stopped" and s["final_batch"]["ran"], s["final_batch"]
+        b = s["bootstrap"]
+        assert [j["name"] for j in b["placed_later"]] == ["cam_14"] and b["not_placed"] == [], b["late_resections"]
+        assert [cam["name"] for cam in s["cameras"]] == list(WEST)
+        text = c.get("/calibration", params={"format": "yaml"}).text
+        assert "# cam_14 placed after the bootstrap: resected against the online estimate" in text
+        assert set(parse_extrinsics(text)) == set(WEST)
 
 
 def slow_job(job):

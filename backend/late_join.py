@@ -1,0 +1,323 @@
+"""Cameras the bootstrap did not place join the calibration later (docs/bootstrap.md, session 6).
+
+The bootstrap places a camera from its first ``bootstrap.max_seconds`` of data; a camera
+that saw few people together with the placed cameras then (a corner people reach rarely
+early on) is left out, and the online pipeline, which needs a pose for every camera it
+associates, runs without it. Later data may place it: the same resection that placed
+cameras no pair placed (``backend.resect``: RANSAC PnP of its detections against the
+persons the placed cameras triangulate, with the same guards), now against the online
+estimate over every frameset seen so far.
+
+``JoiningPipeline`` is the online ``Pipeline`` of the placed cameras with a second front
+end beside it: the same sync and preprocess over *all* cameras, which archives the
+framesets in which a camera without a pose sees somebody (nothing else of the pipeline
+sees them: association, cycles, clock offsets, monitor and scale run on the placed
+cameras as before). When the run ends (``finish``: offline at the end of the recording,
+live when the session stops) the unplaced cameras are resected against the final online
+estimate; a camera that passes the guards joins a pipeline of the placed cameras and it
+(``joined``: the placed cameras' state carried over, the new camera at its resected pose
+with an honest, large std), and the final batch adjustment over all archived framesets
+adjusts it with the others. Without a camera that passes, the final batch runs as in the
+plain pipeline, on the same frames and seeds: the result does not change.
+
+The numeric core: synchronous, no network.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, replace
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from proto import KeypointMessage
+
+from .bootstrap import Frame, view_box
+from .cameras import CameraSet, Extrinsics, Intrinsics, Pose
+from .config import EngineConfig
+from .geometry import R_to_quat
+from .pipeline import Pipeline
+from .preprocess import Preprocessor
+from .resect import Resection, resect_unplaced
+from .sync import Synchronizer
+
+# The resection's own std (reprojections, one correlated block per detection) was 3-5x
+# too small against the truth before the bundle adjustment (docs/bootstrap.md, Limits):
+# the joined camera's prior in the final batch is this many times it, at least the
+# hand-over's std of the placed cameras.
+STD_FACTOR = 5.0
+
+
+@dataclass(frozen=True)
+class Joined:
+    """A camera placed after the bootstrap: its name, the resection, the data seconds
+    (first archived frameset to the last) it was resected on, and the prior std (m, deg)
+    it entered the final batch with."""
+
+    name: str
+    resection: Resection
+    data_seconds: float
+    std_translation: float
+    std_rotation: float
+    adjusted: bool = False  # the final batch took it (else its resected pose is its result)
+
+    def summary(self) -> str:
+        return later_summary(self.to_dict())
+
+    def to_dict(self) -> dict[str, Any]:
+        r = self.resection
+        return {"name": self.name, "data_seconds": round(self.data_seconds, 1), "frames": r.frames, "seen": r.seen,
+                "spread": round(r.spread, 3), "residual_px": round(r.residual_px, 2),
+                "std_translation": self.std_translation, "std_rotation": self.std_rotation,
+                # the resected pose (translation, rotation quaternion x, y, z, w, as in the extrinsics YAML)
+                "translation": r.t.tolist(), "rotation": R_to_quat(r.R).tolist(), "adjusted": self.adjusted}
+
+
+class JoiningPipeline(Pipeline):
+    """The online pipeline of the placed cameras (``cameras``), with the framesets of the
+    cameras without a pose (the rest of ``intrinsics``) archived beside it, and their
+    resection when it finishes (see the module doc). After ``finish``: ``joined`` is the
+    pipeline that ran the final batch with the cameras placed late (None when none was),
+    ``late`` their records and ``late_notes`` one line per camera tried."""
+
+    def __init__(self, cameras: CameraSet, config: EngineConfig | None = None, *,
+                 intrinsics: Mapping[str, Intrinsics], names: Sequence[str], seed: int = 0,
+                 start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
+        super().__init__(cameras, config, seed=seed, start=start)
+        self.all_names = tuple(names)
+        assert set(self.names) <= set(self.all_names), "the placed cameras must be among all cameras"
+        self.all_intrinsics = {n: intrinsics[n] for n in self.all_names}
+        self.unplaced = tuple(n for n in self.all_names if n not in self.names)
+        self._unplaced_idx = frozenset(self.all_names.index(n) for n in self.unplaced)
+        self.late_sync = Synchronizer(self.cfg.sync, self.all_names)
+        self.late_preprocess = Preprocessor(self.cfg.preprocess, self.all_names, self.all_intrinsics)
+        # framesets (camera indices of all_names) in which an unplaced camera sees somebody
+        self.late_frames: deque[Frame] = deque(maxlen=self.cfg.refine.archive_frames)
+        self._late_pending: list[KeypointMessage] = []
+        self._releasing = False
+        self.joined: Pipeline | None = None
+        self.late: list[Joined] = []
+        self.late_notes: list[str] = []
+
+    # ------------------------------------------------------------ the second front end
+
+    def push(self, msg: KeypointMessage, arrival: float | None = None) -> str | None:
+        """As ``Pipeline.push``; a message of an unplaced camera goes to the second
+        front end only (accepted: it is archived, not an unknown sensor)."""
+        if msg.sensor in self.unplaced:
+            self.messages += 1
+            self.last_seen[msg.sensor] = msg.stamp
+            reason = None
+        else:
+            reason = super().push(msg, arrival)
+        if not self._releasing:  # the held-back messages re-enter push: they are in _late_pending already
+            self._late_push(msg, arrival)
+        return reason
+
+    def _release_pending(self) -> str | None:
+        self._releasing = True
+        try:
+            return super()._release_pending()
+        finally:
+            self._releasing = False
+
+    def _late_push(self, msg: KeypointMessage, arrival: float | None) -> None:
+        now = arrival if arrival is not None else self.clock
+        if now is None:  # offline, before the clock is known (as the pipeline holds them back)
+            self._late_pending.append(msg)
+            return
+        if self._late_pending:
+            pending, self._late_pending = self._late_pending, []
+            for m in sorted(pending, key=lambda m: m.stamp):
+                self.late_sync.push(m, now)
+        self.late_sync.push(msg, now)
+
+    def advance(self, now: float | None, *, clock_offsets: bool = True) -> int:
+        new = super().advance(now, clock_offsets=clock_offsets)
+        if now is not None:
+            self._late_advance(now)
+        return new
+
+    def _late_advance(self, now: float) -> None:
+        if self._late_pending and self.clock is not None:
+            pending, self._late_pending = self._late_pending, []
+            for m in sorted(pending, key=lambda m: m.stamp):
+                self.late_sync.push(m, self.clock)
+        for fs in self.late_sync.pop_ready(now):
+            # only framesets in which an unplaced camera sees somebody (the others are the pipeline's)
+            if not any(v.sensor in self.unplaced and len(v.kp) for v in fs.views):
+                continue
+            dets = self.late_preprocess(fs)
+            if len(dets) >= 2 and any(v[0].cam in self._unplaced_idx for v in dets):
+                self.late_frames.append((fs.time, tuple(tuple(v) for v in dets)))
+
+    def take_late_frames(self, frames: Iterable[Frame]) -> int:
+        """Framesets (camera indices of ``all_names``) from before this pipeline existed (the
+        live bootstrap's collector): those with an unplaced camera's view are archived;
+        returns how many."""
+        n = 0
+        for T, views in frames:
+            if len(views) >= 2 and any(v and v[0].cam in self._unplaced_idx for v in views):
+                self.late_frames.append((T, views))
+                n += 1
+        return n
+
+    def _retime(self, sensors: list[str]) -> None:
+        super()._retime(sensors)
+        for name in sensors:  # the second front end times the placed cameras as the pipeline does
+            self.late_sync.set_offset(name, float(self.sync.offset(name)))
+
+    # ------------------------------------------------------------ the end of the run
+
+    def finish(self):
+        """As ``Pipeline.finish``; before the final batch the unplaced cameras are resected
+        against the final online estimate, and those placed join it (``joined``)."""
+        cfg = self.cfg
+        if not (cfg.refine.final_batch and self.unplaced):
+            return super().finish()
+        self.cfg = cfg.model_copy(update={"refine": cfg.refine.model_copy(update={"final_batch": False})})
+        try:
+            super().finish()  # both front ends flushed, the clock, the lost cameras: all but the batch
+        finally:
+            self.cfg = cfg
+        if self.late_frames:
+            self._join()
+        if self.joined is not None:
+            j = self.joined
+            if j.frames:
+                j.batch_adjust()
+            self.late = [replace(x, adjusted=bool(j.refiner.cycles[j.names.index(x.name)] > 0)) for x in self.late]
+            self.final_batch_start, self.cycle, self.last_report = j.final_batch_start, j.cycle, j.last_report
+            return j.state()
+        if self.frames:
+            self.batch_adjust()
+        return self.state()
+
+    def state(self):
+        """The joined pipeline's state once cameras joined (all of its cameras), else the
+        placed cameras'."""
+        return self.joined.state() if self.joined is not None else super().state()
+
+    def snapshot(self) -> dict:
+        return self.joined.snapshot() if self.joined is not None else super().snapshot()
+
+    def _join(self) -> None:
+        """Resect the unplaced cameras against the online estimate over the archived
+        framesets; build ``joined`` when any passes the guards."""
+        names, C = self.all_names, len(self.all_names)
+        idx = {n: k for k, n in enumerate(self.names)}
+        rf = self.refiner
+        R = np.repeat(np.eye(3)[None], C, axis=0)
+        t = np.zeros((C, 3))
+        located = np.zeros(C, dtype=bool)
+        for c, n in enumerate(names):
+            if n in idx:
+                R[c], t[c], located[c] = rf.R[idx[n]], rf.t[idx[n]], True
+        focal = np.array([0.5 * (self.all_intrinsics[n].fx + self.all_intrinsics[n].fy) for n in names])
+        frames = list(self.late_frames)
+        _, _, now_located, found = resect_unplaced(frames, R, t, located, focal, view_box(frames, C),
+                                                   self.cfg.associate, self.cfg.bootstrap, seed=self.cycle)
+        self.late_notes = [r.summary(names[r.cam]) for r in found]
+        ok = [r for r in found if r.accepted and now_located[r.cam]]
+        if not ok:
+            return
+        times = [f[0] for f in (frames[0], frames[-1], *(self.frames[k] for k in (0, -1) if self.frames))]
+        seconds = max(times) - min(times)
+        st0, sr0 = self.cfg.refine.initial_std_translation, self.cfg.refine.initial_std_rotation
+        for r in ok:
+            cov = r.cov if r.cov is not None and np.all(np.isfinite(r.cov)) else None
+            st = max(st0, STD_FACTOR * float(np.sqrt(np.trace(cov[3:, 3:]) / 3))) if cov is not None else st0
+            sr = max(sr0, STD_FACTOR * float(np.degrees(np.sqrt(np.trace(cov[:3, :3]) / 3)))) if cov is not None else sr0
+            self.late.append(Joined(names[r.cam], r, float(seconds), st, sr))
+        self.joined = self._joined_pipeline()
+
+    def _joined_pipeline(self) -> Pipeline:
+        """A pipeline of the placed cameras and those placed late: the placed cameras'
+        state carried over (snapshot), the new ones at their resected pose with their
+        prior std (``Joined``), the archived framesets of both front ends merged."""
+        late = {j.name: j for j in self.late}
+        names = tuple(n for n in self.all_names if n in self.names or n in late)
+        old = {n: k for k, n in enumerate(self.names)}
+        ext = dict(self.cameras.extrinsics)
+        for n, j in late.items():
+            res = self.all_intrinsics[n].resolution
+            ext[n] = Extrinsics(Pose(j.resection.R.copy(), j.resection.t.copy()), res, j.std_translation,
+                                j.std_rotation)
+        cams = CameraSet.combine({n: self.all_intrinsics[n] for n in names}, {n: ext[n] for n in names})
+        assert cams.names == names
+        snap = self.snapshot()
+        rf = self.refiner
+
+        def grow(arr: np.ndarray, new) -> list:
+            return [arr[old[n]].tolist() if n in old else new(n) for n in names]
+
+        def cov(n: str) -> list:
+            j = late[n]
+            r = np.radians(j.std_rotation)
+            return np.diag([r * r] * 3 + [j.std_translation ** 2] * 3).tolist()
+
+        pose_R = lambda n: late[n].resection.R.tolist()  # noqa: E731
+        pose_t = lambda n: late[n].resection.t.tolist()  # noqa: E731
+        snap.update({
+            "names": list(names),
+            "R": grow(rf.R, pose_R), "t": grow(rf.t, pose_t), "P": grow(rf.P, cov), "S": grow(rf.S, cov),
+            "R0": grow(rf.R0, pose_R), "t0": grow(rf.t0, pose_t),
+            "prior_R": grow(rf.prior_R, pose_R), "prior_t": grow(rf.prior_t, pose_t), "P0": grow(rf.P0, cov),
+            "cycles": [int(rf.cycles[old[n]]) if n in old else 0 for n in names],
+            "history": [snap["history"][old[n]] if n in old else [] for n in names],
+            "moved": [[a[0], names.index(self.names[int(a[1])]), *a[2:]] for a in snap["moved"]],
+            "watched": [bool(self.watched[old[n]]) if n in old else False for n in names],
+            "batched": [bool(rf.batched[old[n]]) if n in old else False for n in names],
+            "observations": [int(self.observations[old[n]]) if n in old else 0 for n in names],
+            "observations_batch": [int(self.observations_batch[old[n]]) if n in old else 0 for n in names],
+        })
+        p = Pipeline.restore(cams, self.cfg, snap)
+        p.rng = self.rng  # the batch draws its selection seed as this pipeline's would have
+        p.clock = self.clock
+        p.messages, p.rejected, p.last_seen = self.messages, self.rejected, dict(self.last_seen)
+        p.relocalized = list(self.relocalized)
+        # the front end's counters are this pipeline's (nothing is pushed to the joined one)
+        p.sync, p.preprocess, p.associate, p.queue = self.sync, self.preprocess, self.associate, self.queue
+        p._offset_history = [list(self._offset_history[old[n]]) if n in old else [] for n in names]
+        new = {n: k for k, n in enumerate(names)}
+        from_all = {c: new[n] for c, n in enumerate(self.all_names) if n in new}
+        from_placed = {c: new[n] for c, n in enumerate(self.names)}
+        rate = self.cfg.sync.rate
+        merged: dict[int, Frame] = {}
+        for T, views in _remap(self.frames, from_placed):
+            merged[round(T * rate)] = (T, views)
+        for T, views in _remap(self.late_frames, from_all):  # the same instant with the late camera's view
+            merged[round(T * rate)] = (T, views)
+        p.frames = deque((merged[k] for k in sorted(merged)), maxlen=max(self.cfg.refine.archive_frames, len(merged)))
+        return p
+
+
+def _remap(frames: Iterable[Frame], index: dict[int, int]) -> list[Frame]:
+    from .live_bootstrap import remap
+
+    return remap(list(frames), index)
+
+
+def later_summary(j: Mapping[str, Any]) -> str:
+    """One line for a camera placed after the bootstrap, from ``Joined.to_dict`` (the
+    result's header, offline and live)."""
+    return (f"{j['name']} placed after the bootstrap: resected against the online estimate over "
+            f"{j['data_seconds']:.0f} s of data (agrees in {j['frames']}/{j['seen']} framesets, spread "
+            f"{j['spread']:.2f} m, {j['residual_px']:.1f} px), "
+            + ("then adjusted by the final batch adjustment with the others from a prior std of "
+               f"{j['std_translation']:.3f} m / {j['std_rotation']:.2f}°" if j.get("adjusted") else
+               "not adjusted (the final batch adjustment was not taken: its resected pose is its result)"))
+
+
+def late_comment(p: Pipeline) -> list[str]:
+    """Lines for a result's header: the cameras placed after the bootstrap, how; those
+    tried and not placed."""
+    if not isinstance(p, JoiningPipeline):
+        return []
+    lines = [j.summary() for j in p.late]
+    placed = {j.name for j in p.late}
+    still = [n for n in p.unplaced if n not in placed]
+    if still:
+        lines.append(f"not placed by the bootstrap nor later (not calibrated): {', '.join(still)}")
+    return lines
