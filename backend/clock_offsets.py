@@ -674,9 +674,7 @@ class ClockOffsetEstimator:
         self._job = None
         if result is None:
             return []
-        self.raw, self.std, self.scale = result.raw.copy(), result.std.copy(), result.scale.copy()
-        self.nblocks, self.center, self.pose = result.nblocks.copy(), result.center.copy(), list(result.pose)
-        self.note = list(result.note)
+        self._take(result)
         for live, done in zip(self.tracks, job.work.tracks):  # keep the arrays the job built
             for a, b in zip(live.tracks, done.tracks):
                 if a._arrays is None and b._arrays is not None and len(a.stamps) == len(b.stamps):
@@ -698,9 +696,17 @@ class ClockOffsetEstimator:
         result = job.run()
         if result is None:
             return
+        self._take(result)
+        self._relative()
+
+    def _take(self, result: "ClockResult") -> None:
+        """A job's estimates become this estimator's."""
         self.raw, self.std, self.scale = result.raw.copy(), result.std.copy(), result.scale.copy()
         self.nblocks, self.center, self.pose = result.nblocks.copy(), result.center.copy(), list(result.pose)
         self.note = list(result.note)
+
+    def _relative(self) -> None:
+        """The offsets relative to the sensors' median (the network's own clock)."""
         est = np.isfinite(self.raw)
         self.offset = self.raw - np.median(self.raw[est]) if est.any() else self.raw.copy()
 
@@ -938,8 +944,7 @@ class ClockOffsetEstimator:
 
     def _apply(self, now: float) -> list[str]:
         cfg = self.cfg
-        est = np.isfinite(self.raw)
-        self.offset = self.raw - np.median(self.raw[est]) if est.any() else self.raw.copy()
+        self._relative()
         changed = []
         for s, n in enumerate(self.names):
             o, e = self.offset[s], self.std[s]

@@ -37,6 +37,7 @@ from .bootstrap import Frame, view_box
 from .cameras import CameraSet, Extrinsics, Intrinsics, Pose
 from .config import EngineConfig
 from .geometry import R_to_quat
+from .live_bootstrap import remap
 from .pipeline import Pipeline
 from .preprocess import Preprocessor
 from .resect import Resection, resect_unplaced
@@ -194,6 +195,12 @@ class JoiningPipeline(Pipeline):
             self.batch_adjust()
         return self.state()
 
+    @property
+    def not_placed(self) -> list[str]:
+        """The unplaced cameras not placed late either."""
+        placed = {j.name for j in self.late}
+        return [n for n in self.unplaced if n not in placed]
+
     def state(self):
         """The joined pipeline's state once cameras joined (all of its cameras), else the
         placed cameras'."""
@@ -285,18 +292,12 @@ class JoiningPipeline(Pipeline):
         from_placed = {c: new[n] for c, n in enumerate(self.names)}
         rate = self.cfg.sync.rate
         merged: dict[int, Frame] = {}
-        for T, views in _remap(self.frames, from_placed):
+        for T, views in remap(list(self.frames), from_placed):
             merged[round(T * rate)] = (T, views)
-        for T, views in _remap(self.late_frames, from_all):  # the same instant with the late camera's view
+        for T, views in remap(list(self.late_frames), from_all):  # the same instant with the late camera's view
             merged[round(T * rate)] = (T, views)
         p.frames = deque((merged[k] for k in sorted(merged)), maxlen=max(self.cfg.refine.archive_frames, len(merged)))
         return p
-
-
-def _remap(frames: Iterable[Frame], index: dict[int, int]) -> list[Frame]:
-    from .live_bootstrap import remap
-
-    return remap(list(frames), index)
 
 
 def later_summary(j: Mapping[str, Any]) -> str:
@@ -316,8 +317,6 @@ def late_comment(p: Pipeline) -> list[str]:
     if not isinstance(p, JoiningPipeline):
         return []
     lines = [j.summary() for j in p.late]
-    placed = {j.name for j in p.late}
-    still = [n for n in p.unplaced if n not in placed]
-    if still:
-        lines.append(f"not placed by the bootstrap nor later (not calibrated): {', '.join(still)}")
+    if p.not_placed:
+        lines.append(f"not placed by the bootstrap nor later (not calibrated): {', '.join(p.not_placed)}")
     return lines

@@ -462,13 +462,6 @@ class Collector:
                 "attempts": list(self.attempts), "options": self.options.to_dict()}
 
 
-def later_summary(j: dict[str, Any]) -> str:
-    """One line for a camera placed after the bootstrap, from ``late_join.Joined.to_dict``."""
-    from .late_join import later_summary as summary
-
-    return summary(j)
-
-
 def result_comment(bootstrap_record: dict[str, Any] | None) -> str:
     """Lines for a result's header from a session's ``bootstrap`` record: where the frame
     and the scale come from (as ``extrcal calibrate`` writes them), the cameras not placed."""
@@ -486,7 +479,10 @@ def result_comment(bootstrap_record: dict[str, Any] | None) -> str:
         if sc:
             lines.append(f"metric scale from people: scale {sc['factor']:.4f} ± {100 * sc['rel_std']:.1f} % from the "
                          f"{sc['method']} ({sc['persons']} persons: {', '.join(f'{h:.2f}' for h in sc['heights'])} m)")
-    lines += [later_summary(j) for j in b.get("placed_later") or ()]
+    if b.get("placed_later"):
+        from .late_join import later_summary
+
+        lines += [later_summary(j) for j in b["placed_later"]]
     if b.get("not_placed"):
         lines.append(f"not placed by the bootstrap{' nor later' if b.get('placed_later') is not None else ''} "
                      f"(not calibrated): {', '.join(b['not_placed'])}")
@@ -502,9 +498,8 @@ def late_record(pipeline: Any) -> dict[str, Any] | None:
 
     if not isinstance(pipeline, JoiningPipeline):
         return None
-    placed = {j.name for j in pipeline.late}
     return {"placed_later": [j.to_dict() for j in pipeline.late], "late_resections": list(pipeline.late_notes),
-            "not_placed": [n for n in pipeline.unplaced if n not in placed]}
+            "not_placed": pipeline.not_placed}
 
 
 def reason_suffix(bootstrap_record: dict[str, Any] | None) -> str:

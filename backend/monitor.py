@@ -574,8 +574,12 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
     W = np.linalg.inv(C + F)
     _, _, kappa, _ = _mean(z[:first], W[:first])
     best = None
+    reference: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # split: the mean before it (once per split)
+
     def step(j: int, after: np.ndarray) -> tuple[float, np.ndarray] | None:
-        zr, Sr, _, _ = _mean(z[:j], W[:j], kappa)
+        if j not in reference:
+            reference[j] = _mean(z[:j], W[:j], kappa)[:2]
+        zr, Sr = reference[j]
         zn, Sn, _, kept = _mean(z[after], W[after], kappa)
         if kept < cfg.min_change_bins:
             return None  # bins after the split that disagree among themselves are no step
