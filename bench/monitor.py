@@ -179,8 +179,22 @@ def _job(args: tuple) -> dict:
     return run(*args)
 
 
+def _print_run(con, r: dict) -> None:
+    if r["bump"] is None:
+        con.print(f"  no bump, seed {r['seed']}, {r['data_s']:g} s (watched from {r['watched_from']} s): "
+                  f"alarms {r['alarms']}, calibration (shape m, deg) {r['calibration']}, {r['wall_s']:.0f} s wall")
+        return
+    b = r["bump"]
+    con.print(f"  seed {r['seed']} bump {b}: calibration (shape m, deg) {r['calibration']}")
+    con.print(f"  seed {r['seed']} bump {b[0]:.2f} m / {b[1]:g}°: before the bump {r['before_bump']}, flagged after "
+              f"{r['flagged_after']} s, +60 s {r['error_60']}, +120 s {r['error_120']}, others moved (aligned) "
+              f"median {r['others_moved_median_mm']} max {r['others_moved_mm']} mm ({r['others_moved_worst']}), raw "
+              f"{r['others_moved_raw_mm']} mm, false alarms {r['false_alarms']}, cameras watched at the bump "
+              f"{r['watched_at_bump']}, {r['wall_s']:.0f} s wall")
+
+
 def main(argv: list[str] | None = None) -> None:
-    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures import ProcessPoolExecutor, as_completed
 
     from rich.console import Console
     from rich.table import Table
@@ -207,25 +221,21 @@ def main(argv: list[str] | None = None) -> None:
     jobs += [(args.quiet_seed + k, None, args.camera, 0.0, args.quiet_duration, args.cache, args.calibrate)
              for k in range(args.quiet_runs)]
     wall = time.perf_counter()
+    results = []
+    # each run is printed as it ends: a long quiet bench interrupted keeps the hours it ran
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as ex:
-            results = list(ex.map(_job, jobs))
+            for fut in as_completed([ex.submit(_job, j) for j in jobs]):
+                results.append(fut.result())
+                _print_run(con, results[-1])
     else:
-        results = [_job(j) for j in jobs]
+        for j in jobs:
+            results.append(_job(j))
+            _print_run(con, results[-1])
     wall = time.perf_counter() - wall
+    results.sort(key=lambda r: (r["bump"] is None, r["seed"]))
     rows = [r for r in results if r["bump"] is not None]
     quiet = [r for r in results if r["bump"] is None]
-    for r in rows:
-        b = r["bump"]
-        con.print(f"  seed {r['seed']} bump {r['bump']}: calibration (shape m, deg) {r['calibration']}")
-        con.print(f"  seed {r['seed']} bump {b[0]:.2f} m / {b[1]:g}°: before the bump {r['before_bump']}, flagged after "
-                  f"{r['flagged_after']} s, +60 s {r['error_60']}, +120 s {r['error_120']}, others moved (aligned) "
-                  f"median {r['others_moved_median_mm']} max {r['others_moved_mm']} mm ({r['others_moved_worst']}), raw "
-                  f"{r['others_moved_raw_mm']} mm, false alarms {r['false_alarms']}, cameras watched at the bump "
-                  f"{r['watched_at_bump']}, {r['wall_s']:.0f} s wall")
-    for r in quiet:
-        con.print(f"  no bump, seed {r['seed']}, {r['data_s']:g} s (watched from {r['watched_from']} s): "
-                  f"alarms {r['alarms']}, calibration (shape m, deg) {r['calibration']}, {r['wall_s']:.0f} s wall")
 
     t = Table(title=f"Bumped {args.camera} at {args.bump_time:g} s (20-camera lab, 2 persons, start 0.10 m / 5°)")
     for col in ("seed", "bump", "flagged after (s)", "before: m / °", "+60 s: m / °", "+120 s: m / °",
