@@ -22,7 +22,9 @@ def calibrate(
                                                     "alone (docs/bootstrap.md)")] = None,
     distrust_initial: Annotated[bool, typer.Option("--distrust-initial", help="ignore the initial estimate's poses: bootstrap as without one")] = False,
     person_height: Annotated[Optional[str], typer.Option(help="known height(s) of the walkers in m, e.g. 1.85 or 1.96,1.70: "
-                                                         "metric scale from them (else from a population prior)")] = None,
+                                                         "metric scale from them (else from a population prior); with "
+                                                         "--initial, the result's scale is checked against them and "
+                                                         "corrected (bootstrap.initial_scale)")] = None,
     reference: Annotated[Optional[Path], typer.Option(help="reference extrinsics: report the error against it")] = None,
     config: Annotated[Optional[Path], typer.Option(help="TOML file with engine parameters (sections sync, preprocess, associate, select, optimize, refine, bootstrap)")] = None,
     set_: Annotated[Optional[list[str]], typer.Option("--set", help="override one parameter, e.g. --set select.scope=80 (repeatable)")] = None,
@@ -180,7 +182,8 @@ def calibrate(
         joining = JoiningPipeline(cams, cfg, intrinsics=intr, names=boot.names, seed=seed)
     try:
         p = run_offline(cams, cfg, messages(), seed=seed, progress=progress,
-                        start=rec.start(cfg) if rec is not None else None, pipeline=joining)
+                        start=rec.start(cfg) if rec is not None else None, pipeline=joining,
+                        scale_heights=heights if boot is None else None)
     except RecordingError as e:
         raise fail(f"{e} (use --skip-bad to skip malformed records)")
     finally:
@@ -199,6 +202,7 @@ def calibrate(
     not_calibrated = [c.name for c in state.cameras if c.cycles == 0 and c.name not in started]
     only_bootstrap = [c.name for c in state.cameras if c.cycles == 0 and c.name in started]
     extr = state.extrinsics({n: cams.extrinsics[n].resolution for n in cams.names})
+    check = p.scale_check  # the initial estimate's scale against the people's (backend/scale_check.py)
     comment = (f"extrcal calibrate of {recording}: {state.cycle} cycles, "
                f"converged: {sum(c.converged for c in state.cameras)}/{len(state.cameras)}")
     if not_calibrated:
@@ -207,7 +211,7 @@ def calibrate(
         comment += f"\nnot calibrated online (kept the bootstrap's pose): {', '.join(only_bootstrap)}"
     if rec is not None:
         comment += f"\n{rec.summary()}"
-    scale = boot.scale if boot is not None else None
+    scale = boot.scale if boot is not None else (check.people if check is not None else None)
     if boot is not None:
         comment += f"\nno initial estimate: {boot.frame}"
         comment += "".join(f"\n{ln}" for ln in late_lines)
@@ -216,16 +220,8 @@ def calibrate(
                         f"{'bootstrap' if p.final_batch_start == 'start' else 'online estimate'}")
         if scale is not None:
             comment += f"\nmetric scale from people: {scale.summary()}"
-    elif len(p.frames):
-        # a check of the initial estimate's scale: what the people say about it
-        from .people import measure_scale
-
-        rf = p.refiner
-        scale, _ = measure_scale(p.frames, rf.R, rf.t, cfg.associate, cfg.bootstrap, heights=heights,
-                                 cameras=rf.cycles > 0)
-        if scale is not None:
-            comment += f"\nscale check (people): the initial estimate's metres are {scale.factor:.4f} ± " \
-                       f"{100 * scale.rel_std:.1f} % true metres ({scale.method})"
+    elif check is not None:
+        comment += f"\n{check.summary()}"
     extra = {n: {"calibrated": n not in not_calibrated and n not in only_bootstrap} for n in cams.names}
     save_extrinsics(output, extr, comment=comment, extra=extra)
     if boot is not None:
@@ -253,9 +249,8 @@ def calibrate(
     if scale is not None:
         if boot is not None:
             console.print(f"metric {scale.summary()}", highlight=False)
-        else:
-            console.print(f"scale check from the people: the initial estimate's scale x {scale.factor:.4f} "
-                          f"± {100 * scale.rel_std:.1f} % ({scale.method}; {len(scale.heights)} persons of "
+        elif check is not None:
+            console.print(f"{check.summary()} ({len(scale.heights)} persons of "
                           f"{', '.join(f'{h:.2f}' for h in scale.heights)} m)", highlight=False)
     if ref is not None:
         console.print(f"vs reference: {evaluate(state.poses(), ref).summary()}", highlight=False)

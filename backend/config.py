@@ -203,6 +203,12 @@ class BootstrapConfig(_Section):
         "shape onto the initial estimate (its frame and scale kept) and start the online pipeline there; 'auto': only "
         "when the initial estimate is further off the data than its stated std says (auto_sigma), 'never': the paper's way "
         "(backend/reconcile.py)")
+    initial_scale: Literal["auto", "keep", "combine", "people"] = Field(
+        "auto", description="with an initial estimate, the result's scale is checked against the people's (known "
+        "heights, else the population prior; backend/scale_check.py): 'keep' reports the check and keeps the initial "
+        "estimate's scale (the paper's protocol), 'combine' corrects it to the inverse-variance mean of the two, "
+        "'people' to the people's; 'auto': 'combine' when the walkers' heights are known, else 'keep'. A correction "
+        "the two disagree on by more than refuse_sigma of their joint std is not made")
     agree_translation: float = Field(0.05, ge=0, description="m: a camera of the initial estimate agrees with the data when "
                                      "its centre is within this (or 3x the bootstrap's std) of the aligned bootstrap's ...")
     agree_rotation: float = Field(0.5, ge=0, description="deg ... and its orientation within this (or 3x the std)")

@@ -175,8 +175,8 @@ class Handover:
             p = JoiningPipeline(cams, config, intrinsics=cameras.intrinsics, names=job.names, seed=seed)
             p.take_late_frames(frames)
             meta["late"] = list(p.unplaced)
-        else:
-            p = Pipeline(cams, config, seed=seed, start=start)
+        else:  # an initial estimate's frame and scale are checked against the people's at the end
+            p = Pipeline(cams, config, seed=seed, start=start, scale_heights=job.heights if initial else None)
         new = p.take_frames(remap(frames, index))
         taken = frames[-1][0] if frames else -math.inf
         return Handover(p, cams, initial_yaml, config, taken, new, meta, index)

@@ -10,6 +10,7 @@
             ─► optimize    GTSAM factor graph → poses + marginals   (pure function, any process)
             ─► refine      Kalman update on SE(3), scale kept from the initial estimate
             ─► monitor     converged cameras that moved are flagged and calibrated again
+  at the end   final batch, then the initial estimate's scale checked against the people's
             ─► state       CalibrationState
 
 The clock is the caller's: offline it is the recording's data time (the newest stamp),
@@ -22,7 +23,7 @@ from __future__ import annotations
 
 from collections import Counter, deque
 from dataclasses import replace
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -36,6 +37,7 @@ from .monitor import Alarm, Monitor
 from .optimize import Problem, Solution, solve
 from .preprocess import Detection, Preprocessor
 from .refine import Refiner
+from .scale_check import ScaleCheck, check_run
 from .selection import HypothesisQueue
 from .state import CalibrationState, CameraState, Counters, CycleReport
 from .sync import Synchronizer
@@ -46,12 +48,17 @@ _CLOCK_SAMPLES = 16  # offline: messages held back to find a plausible start of 
 
 class Pipeline:
     def __init__(self, cameras: CameraSet, config: EngineConfig | None = None, *, seed: int = 0,
-                 start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
+                 start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                 scale_heights: Sequence[float] | None = None):
         """``start``: (R (C, 3, 3), t (C, 3), P (C, 6, 6)): where the estimate starts and
         what adjustments over all data are anchored to, when that is not the initial
         estimate with ``refine.initial_std_*`` (e.g. the data's shape aligned onto a rough
         initial estimate, backend/reconcile.py); the initial estimate keeps the frame and
-        the scale."""
+        the scale. ``scale_heights``: when not None, ``finish`` checks the initial
+        estimate's scale against the people's (the walkers' heights in m if known, else
+        ``()``: the population prior) and corrects it as ``bootstrap.initial_scale`` says
+        (backend/scale_check.py); None for cameras whose scale is the people's already
+        (a bootstrap's)."""
         self.cameras = cameras
         self.cfg = config or EngineConfig()
         self.names = cameras.names
@@ -89,6 +96,8 @@ class Pipeline:
         self.first_passes = 0  # passes of the first adjustment done (select.first_scope)
         self.relocalized: list[str] = []
         self.final_batch_start: str | None = None  # the final batch kept: from the "estimate" or the "start"
+        self.scale_heights = None if scale_heights is None else tuple(float(h) for h in scale_heights)
+        self.scale_check: ScaleCheck | None = None
         self.clock: float | None = None
         self.cycle = 0
         self.cycles_rejected = 0
@@ -532,7 +541,19 @@ class Pipeline:
             self.batch_adjust()
             if self.cfg.clock.estimate and self._calibrated():  # the offsets as the final poses see them
                 self.clocks.reestimate(self.clock, self.refiner.R, self.refiner.t, P=self.refiner.S)
+        if self.scale_heights is not None and self.frames and self.cycle > 0:
+            self.check_scale()
         return self.state()
+
+    def check_scale(self) -> ScaleCheck | None:
+        """The initial estimate's scale against the people's on the archived frames, and
+        the correction ``bootstrap.initial_scale`` asks for made to the frame the estimate
+        keeps (``Refiner.rescale_frame``)."""
+        rf = self.refiner
+        self.scale_check = check_run(self.frames, rf.R, rf.t, rf.cycles > 0, rf.t0, self.cfg, self.scale_heights or ())
+        if self.scale_check is not None and self.scale_check.corrected:
+            rf.rescale_frame(self.scale_check.apply)
+        return self.scale_check
 
     def batch_adjust(self) -> CycleReport:
         p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2)
@@ -591,7 +612,8 @@ class Pipeline:
         calibrated = [c for c in cams if c.cycles > 0 or c.moved_at is not None]
         converged = bool(calibrated) and all(c.converged for c in calibrated)
         return CalibrationState(self.clock, self.cycle, tuple(cams), converged, self.counters(), self.last_report,
-                                clocks=self.clocks.clocks() if self.cfg.clock.estimate else ())
+                                clocks=self.clocks.clocks() if self.cfg.clock.estimate else (),
+                                scale_check=self.scale_check.to_dict() if self.scale_check is not None else None)
 
     def skeletons(self, n: int = 4) -> list[list[list[float] | None]]:
         """The newest ``n`` hypotheses of distinct persons as 3D skeletons (17 joints, world
@@ -628,13 +650,17 @@ class Pipeline:
             "observations_batch": self.observations_batch.tolist(),
             "clock": self.clock,
             "clock_offsets": {n: float(o) for n, o in zip(self.names, self.clocks.applied) if o},
+            "scale_heights": None if self.scale_heights is None else list(self.scale_heights),
+            "scale_check": self.scale_check.to_dict() if self.scale_check is not None else None,
         }
 
     @classmethod
     def restore(cls, cameras: CameraSet, config: EngineConfig, snapshot: dict, *, seed: int = 0) -> "Pipeline":
         if snapshot.get("version") != 2 or list(snapshot.get("names", [])) != list(cameras.names):
             raise ValueError("snapshot does not belong to this camera set")
-        p = cls(cameras, config, seed=seed)
+        p = cls(cameras, config, seed=seed, scale_heights=snapshot.get("scale_heights"))
+        if snapshot.get("scale_check") is not None:
+            p.scale_check = ScaleCheck.from_dict(snapshot["scale_check"])
         rf = p.refiner
         rf.R, rf.t, rf.P, rf.S = (np.array(snapshot[k], dtype=np.float64) for k in ("R", "t", "P", "S"))
         rf.R0, rf.t0 = np.array(snapshot["R0"]), np.array(snapshot["t0"])
@@ -667,11 +693,12 @@ class Pipeline:
 def run_offline(cameras: CameraSet, config: EngineConfig, messages: Iterable[KeypointMessage], *, seed: int = 0,
                 progress: Callable[[CalibrationState, CycleReport], None] | None = None,
                 finish: bool = True, start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-                pipeline: Pipeline | None = None) -> Pipeline:
+                pipeline: Pipeline | None = None, scale_heights: Sequence[float] | None = None) -> Pipeline:
     """Run the online pipeline on recorded messages on virtual time (the newest stamp);
-    ``start`` as for ``Pipeline``; ``pipeline``: one built by the caller instead (e.g.
-    backend/late_join.py's), whose cameras and config are then its own."""
-    p = Pipeline(cameras, config, seed=seed, start=start) if pipeline is None else pipeline
+    ``start``, ``scale_heights`` as for ``Pipeline``; ``pipeline``: one built by the caller
+    instead (e.g. backend/late_join.py's), whose cameras and config are then its own."""
+    p = Pipeline(cameras, config, seed=seed, start=start, scale_heights=scale_heights) if pipeline is None \
+        else pipeline
     for msg in messages:
         p.push(msg)
         if p.clock is None:

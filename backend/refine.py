@@ -201,6 +201,16 @@ class Refiner:
             M[m, 3:, :3] *= s
         return float(s)
 
+    def rescale_frame(self, apply) -> float:
+        """The initial estimate's scale corrected: ``apply`` maps its centres (C, 3) to the
+        corrected ones (``scale_check.ScaleCheck.apply``). Cameras that never had data move
+        with it, the others are brought to its new scale (``keep_scale``); returns that scale."""
+        self.t0 = apply(self.t0)
+        self.prior_t = apply(self.prior_t)
+        never = self.cycles == 0
+        self.t[never] = apply(self.t[never])
+        return self.keep_scale()
+
     def change(self, c: int) -> tuple[float, float]:
         """Net pose change (m, deg) of camera c over its last ``converged_cycles`` cycles:
         a converging camera drifts; a converged one only jitters, which the filter averages."""

@@ -572,7 +572,8 @@ class Service:
             elif snap is not None:
                 pipeline = Pipeline.restore(inputs.cameras, inputs.config, snap, seed=rec.seed + rec.resumed + 1)
             else:
-                pipeline = Pipeline(inputs.cameras, inputs.config, seed=rec.seed)
+                pipeline = Pipeline(inputs.cameras, inputs.config, seed=rec.seed, scale_heights=None if rec.scale is None
+                                    else tuple(rec.scale.get("person_height") or ()))
         except Exception as e:  # a snapshot or files that no longer load: say so, keep the files
             rec.state, rec.reason, rec.ended_wall = SessionState.failed, f"could not resume: {e}", time.time()
             self.store.save_record(rec)
@@ -1132,9 +1133,6 @@ class Service:
         an initial estimate, or told to distrust it, bootstraps its start from the people."""
         live = live or LiveOptions()
         boot = inputs.initial_yaml is None or live.distrust_initial
-        if live.heights and not boot:
-            raise SessionInputError("person_height: only a session that bootstraps (no initial estimate, or "
-                                    "distrust_initial) uses it")
 
         def check() -> None:
             if self._closing:
@@ -1151,12 +1149,16 @@ class Service:
             from .pipeline import Pipeline
 
             with self.work.measure("new_pipeline"):
+                # with an initial estimate, its scale is checked against the people's at the end
                 pipeline = Collector(inputs.cameras, inputs.config, live, initial=inputs.initial_yaml is not None,
-                                     seed=seed) if boot else Pipeline(inputs.cameras, inputs.config, seed=seed)
+                                     seed=seed) if boot else Pipeline(inputs.cameras, inputs.config, seed=seed,
+                                                                       scale_heights=live.heights)
             rec = SessionRecord(
                 id=new_session_id(), name=name, state=SessionState.waiting_for_data,
                 reason="no messages from the session's cameras yet", stop=stop, config_overrides=overrides,
                 sources=sources, seed=seed, bootstrap=pipeline.progress() if boot else None,
+                scale=None if inputs.initial_yaml is None else {"person_height": list(live.heights) or None,
+                                                                "check": None},
             )
             try:  # on disk before we answer with its id; fsyncs, so not on the loop
                 await asyncio.to_thread(self.store.create, rec, inputs)
@@ -1253,6 +1255,9 @@ class Service:
                             s.__dict__.pop("names", None)
                     rec.final_batch = {"ran": batch, "seconds": time.monotonic() - t0, "report":
                                        s.pipeline.last_report.to_dict() if batch and s.pipeline.last_report else None}
+                    check = s.pipeline.scale_check
+                    if check is not None:  # the initial estimate's scale against the people's
+                        rec.scale = {**(rec.scale or {}), "check": check.to_dict(), "summary": check.summary()}
             except Exception as e:
                 log.warning("final batch adjustment of %s failed: %s", rec.id, e)
                 rec.final_batch = {"ran": False, "error": f"{type(e).__name__}: {e}"}

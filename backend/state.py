@@ -122,6 +122,7 @@ class CalibrationState:
     counters: Counters
     last_cycle: CycleReport | None
     clocks: tuple[SensorClock, ...] = ()  # sensor clock offsets (reference: the median sensor)
+    scale_check: dict[str, Any] | None = None  # the initial estimate's scale against the people's (scale_check.py)
 
     def camera(self, name: str) -> CameraState:
         for c in self.cameras:
@@ -148,4 +149,5 @@ class CalibrationState:
             "counters": asdict(self.counters),
             "last_cycle": self.last_cycle.to_dict() if self.last_cycle else None,
             "clocks": {c.sensor: c.to_dict() for c in self.clocks},
+            "scale_check": self.scale_check,
         }

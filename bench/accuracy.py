@@ -227,7 +227,9 @@ def bootstrap_cached(recording: str, intrinsics, cfg, seed: int, cache: Path):
     h = hashlib.sha1()
     for m in _BOOT_SOURCES:
         h.update((REPO / "backend" / f"{m}.py").read_bytes())
-    h.update(repr((cfg.model_dump(), seed)).encode())
+    dump = cfg.model_dump()
+    dump["bootstrap"].pop("initial_scale")  # the scale check after the run: not the bootstrap's
+    h.update(repr((dump, seed)).encode())
     path = cache / f"{Path(recording).name}.boot_{h.hexdigest()[:12]}.npz"
     names = tuple(sorted(intrinsics, key=natural_key))
     if path.is_file():
@@ -254,14 +256,16 @@ def bootstrap_cached(recording: str, intrinsics, cfg, seed: int, cache: Path):
 
 
 def run(spec: Spec, recording: str, overrides: list[str], config: str | None, limit_start: str,
-        limit_budget: int | None = None) -> dict:
+        limit_budget: int | None = None, known_height: bool = False) -> dict:
     """One calibration run of the full pipeline, its history, and its limit.
 
     Figures are over the cameras the data can calibrate: those the limit's solve
     constrained (a camera nobody walks in front of keeps its initial pose in any method,
     and its initial error would swamp the mean); the same figures over all cameras are
-    kept as *_all."""
-    from backend.cameras import CameraSet, load_extrinsics, load_intrinsics
+    kept as *_all. The result is what ``extrcal calibrate`` writes: with the scale check's
+    correction (``bootstrap.initial_scale``; ``known_height``: the walkers' true heights
+    given, as ``--person-height``)."""
+    from backend.cameras import CameraSet, Pose, load_extrinsics, load_intrinsics
     from backend.config import EngineConfig
     from backend.evaluate import evaluate
     from backend.perturb import perturb_extrinsics
@@ -316,9 +320,17 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
                               "initial_std": [cfg.refine.initial_std_translation, cfg.refine.initial_std_rotation]}
 
     t0 = time.perf_counter()
-    p = run_offline(cams, cfg, feed(), seed=spec.seed, progress=progress, start=start)
+    p = run_offline(cams, cfg, feed(), seed=spec.seed, progress=progress, start=start,
+                    scale_heights=HEIGHTS[spec.persons] if known_height else ())
     run_s = time.perf_counter() - t0 - spent[0]
     state = p.state()
+    final_poses = state.poses()
+    check = p.scale_check
+    before_check = final_poses
+    if check is not None and check.corrected:  # the result before the correction, for comparison
+        used = [n for c, n in enumerate(cams.names) if p.refiner.cycles[c] > 0]
+        centre = np.mean([final_poses[n].t for n in used], axis=0)
+        before_check = {n: Pose(q.R, centre + (q.t - centre) / check.factor) for n, q in final_poses.items()}
     online = [h for h in history if not h["final"]]
     final_batch = [h for h in history if h["final"]]
     calibrated = [c.name for c in state.cameras if c.cycles > 0]
@@ -346,10 +358,12 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
         "excluded_cameras": [n for n in names if n not in evaluated],
         "initial": initial,
         "online": {k: v for k, v in (online[-1] if online else initial).items()},
-        "final": acc(state.poses(), per_camera=True),
+        "final": acc(final_poses, per_camera=True),
+        "final_uncorrected": acc(before_check),
+        "scale_check": check.to_dict() if check is not None else None,
         "limit": lim,
         "initial_all": acc(cams.poses(), names),
-        "final_all": acc(state.poses(), names),
+        "final_all": acc(final_poses, names),
         "limit_all": acc(lim_poses, names) if lim_poses is not None else None,
         "history": [{k: h[k] for k in ("t", "cycle", "final", "position", "orientation", "shape_position",
                                        "shape_orientation", "scale", "solve_seconds", "accepted", "hypotheses",
@@ -650,6 +664,8 @@ def main(argv: list[str] | None = None) -> None:
                     help="engine parameter override (repeatable), as for `extrcal calibrate --set`")
     ap.add_argument("--sim", dest="sim_set", action="append", default=[], metavar="KEY=VALUE",
                     help="simulator setting (repeatable), as for `extrcal simulate --set`, e.g. intrinsics_error=0")
+    ap.add_argument("--known-height", action="store_true",
+                    help="the walkers' true heights given to the scale check (as `extrcal calibrate --person-height`)")
     ap.add_argument("--limit-start", choices=("reference", "initial"), default="reference",
                     help="where the limit's solve starts (its prior is always the initial estimate); from "
                          "0.75 m / 20° the solve from the initial estimate can stall, from the reference it finds "
@@ -727,7 +743,7 @@ def main(argv: list[str] | None = None) -> None:
         console.print(f"  {time.perf_counter() - t0:.0f} s")
     runs = []
     work = [(s, str(paths[(s.persons, s.duration, s.seed)]), args.overrides, args.config, args.limit_start,
-             args.limit_hypotheses) for s in specs]
+             args.limit_hypotheses, args.known_height) for s in specs]
     for spec_, r in zip(specs, mapper(_run_job, work)):
         runs.append(r)
         lim = r["limit"] or {}
@@ -736,7 +752,7 @@ def main(argv: list[str] | None = None) -> None:
                       f"| limit {lim.get('position', float('nan')):.4f} m {lim.get('orientation', float('nan')):.3f}° "
                       f"shape {lim.get('shape_position', float('nan')):.4f} m | {r['cycles']} cycles, "
                       f"{r['data_seconds'] / r['run_seconds']:.1f}x real time"
-                      + _worst(r) + _start(r)
+                      + _worst(r) + _start(r) + _scale(r)
                       + (" | ARCHIVE FULL: the limit saw fewer frames" if r["frames_archive_full"] else ""))
         if args.out is not None:  # a partial file survives an interrupted run
             _write(args.out, args, runs, None)
@@ -747,6 +763,18 @@ def main(argv: list[str] | None = None) -> None:
     if args.out is not None:
         _write(args.out, args, runs, summary)
         console.print(f"\nwrote {args.out}")
+
+
+def _scale(r: dict) -> str:
+    sc = r.get("scale_check")
+    if not sc:
+        return ""
+    people = sc["people"]
+    if sc["factor"] == 1.0:
+        return f" | scale kept ({sc['mode']}; people {people['factor']:.4f} ± {100 * people['rel_std']:.1f} %)"
+    u = r["final_uncorrected"]
+    return (f" | scale x {sc['factor']:.4f} ({sc['mode']}, {people['method']}): rigid {u['position']:.4f} m before, "
+            f"scale {u['scale']:.4f} -> {r['final']['scale']:.4f}")
 
 
 def _start(r: dict) -> str:

@@ -41,8 +41,9 @@ class SessionCreate(BaseModel):
     seed: int = Field(0, ge=0, le=2**32 - 1, description="seed of the hypothesis selection")
     person_height: list[Annotated[float, Field(ge=0.5, le=2.8)]] | None = Field(
         None, min_length=1, max_length=50, description="known height(s) of the walkers in m, e.g. [1.85] or [1.96, "
-        "1.70]: the bootstrap's metric scale from them (else from a population prior of adult height); only for a "
-        "session that bootstraps")
+        "1.70]: the bootstrap's metric scale from them (else from a population prior of adult height); with an "
+        "initial estimate, its scale is checked against them when the session stops and corrected as "
+        "`bootstrap.initial_scale` says (`scale` in the session)")
     distrust_initial: bool = Field(False, description="bootstrap from the people although an initial estimate is "
                                    "given, then align the data's shape onto it (its frame and scale kept; "
                                    "`bootstrap.with_initial` decides per camera, as `extrcal calibrate`)")
@@ -148,6 +149,11 @@ class SessionDetail(SessionSummary):
     counters: dict[str, Any] | None
     last_cycle: dict[str, Any] | None
     bootstrap: BootstrapInfo | None = Field(None, description="a session that bootstraps: phase, progress, result")
+    scale: dict[str, Any] | None = Field(None, description="a session with an initial estimate: person_height as "
+                                         "given; once stopped, check: the initial estimate's scale against the "
+                                         "people's (people: factor = true metres per metre of the estimate, rel_std, "
+                                         "method; initial_rel_std; sigmas apart; mode; factor applied, 1 = kept; "
+                                         "refused) and its summary")
 
 
 class CalibrationCamera(BaseModel):

@@ -88,7 +88,6 @@ def test_state_changing_endpoints_need_the_token(client, lab_body):
     # without an initial estimate the session bootstraps (tests/backend/test_live_bootstrap.py)
     ({"person_height": [3.5]}, 422, "person_height"),
     ({"person_height": []}, 422, "person_height"),
-    ({"person_height": [1.8]}, 422, "only a session that bootstraps"),  # with an initial estimate
 ])
 def test_bad_session_bodies_are_4xx_with_a_reason(client, lab_body, patch, status, needle):
     body = {**lab_body, **patch}

@@ -199,3 +199,31 @@ def test_without_an_initial_estimate_too_little_data_is_a_clear_error(cli, files
     for bad in ("tall", "0.2", "1.85,3.5", ","):
         r = CliRunner().invoke(cli, [*args, "--person-height", bad])
         assert r.exit_code == 2 and "--person-height" in r.output, (bad, r.output)
+
+
+@pytest.mark.parametrize("mode", ["people", "keep"])
+def test_a_floor_plan_6_percent_too_large_is_put_right_by_walkers_of_known_height(cli, files, tmp_path, mode):
+    d = files
+    init = load_extrinsics(d / "initial.yaml")
+    c = np.mean([e.pose.t for e in init.values()], axis=0)
+    big = {n: Extrinsics(type(e.pose)(e.pose.R, c + 1.06 * (e.pose.t - c)), e.resolution) for n, e in init.items()}
+    save_extrinsics(tmp_path / "big.yaml", big)
+    out = tmp_path / "out.yaml"
+    r = _invoke(cli, "--intrinsics", d / "intrinsics.yaml", "--initial", tmp_path / "big.yaml", "--recording",
+                d / "rec.jsonl.gz", "--output", out, "--person-height", "1.9,1.75", *_configured(d),
+                "--set", f"bootstrap.initial_scale={mode}")
+    assert r.exit_code == 0, r.output
+    ref = load_extrinsics(d / "reference.yaml")
+    got = load_extrinsics(out)
+    names = [n for n in WEST if n in got]
+    scale = evaluate({n: got[n].pose for n in names}, {n: ref[n].pose for n in names}).scale
+    head = out.read_text().split("\ncam_")[0]
+    assert "scale check" in head and "known height" in head
+    if mode == "people":
+        # the result's scale is the people's (10 s of two walkers: a few % off), within its reported std
+        std = float(re.search(r"± ([0-9.]+) % now", head).group(1)) / 100
+        assert abs(np.log(scale)) < 2 * std, (scale, head)
+        assert abs(scale - 1) < 0.6 * abs(1 / 1.06 - 1), (scale, head)
+    else:
+        assert "scale kept" in head
+        assert abs(scale - 1 / 1.06) < 0.01, scale  # the floor plan's

@@ -110,6 +110,10 @@ def test_live_session_converges_stops_and_has_a_result(tmp_path, lab_dir):
         assert after.shape_position.mean < before.shape_position.mean
         assert after.shape_orientation.mean < before.shape_orientation.mean
         assert all(e.std_translation is not None for e in result.values())
+        # the initial estimate's scale checked against the people's (heights unknown: reported, kept)
+        check = stopped["scale"]["check"]
+        assert stopped["scale"]["person_height"] is None and check["people"]["method"] == "population prior"
+        assert check["mode"] == "keep" and check["factor"] == 1.0 and "scale kept" in stopped["scale"]["summary"]
 
         history = client.get(f"/sessions/{sid}/history").json()
         assert len(history) >= 3 and [h["cycle"] for h in history] == sorted(h["cycle"] for h in history)
