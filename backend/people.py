@@ -191,6 +191,9 @@ class ScaleEstimate:
                 f"({self.persons} person{'s' if self.persons != 1 else ''}: {hs} m)")
 
 
+_MIN_PERSON_SHARE = 0.2  # of the largest group's hypotheses: less is not a person (``_label``)
+
+
 def label_persons(seg: Segments, *, count: int | None = None, min_track: int = 3) -> np.ndarray:
     """(N,) person label of each hypothesis (0 .. K-1, -1 = none): tracks (``tracks``),
     each summarised by its median chain (shank + thigh + torso), grouped by chain length
@@ -229,6 +232,20 @@ def _label(seg: Segments, count: int | None, min_track: int) -> tuple[np.ndarray
     chains = np.log([c for c, _, _ in tr])
     w = np.array([n for _, n, _ in tr], dtype=np.float64)
     cluster = _kmeans_1d(chains, w, min(count, len(tr)))
+    # A few tracks far from everyone (hypotheses that joined two persons' views) can take a
+    # person's place in the clustering and merge the real persons into one: measured in a
+    # 4-camera room, 20 such hypotheses against 400 made two walkers of 1.80 and 1.65 m
+    # "1.96 and 1.52 m" and the scale 12 % off. A group with less than a fifth of the
+    # largest one's hypotheses is left out and the others are grouped again.
+    for _ in range(count):
+        size = np.bincount(cluster, weights=w)
+        small = size < _MIN_PERSON_SHARE * size.max()
+        if not small.any():
+            break
+        keep = ~small[cluster]
+        tr = [x for x, k in zip(tr, keep) if k]
+        chains, w = chains[keep], w[keep]
+        cluster = _kmeans_1d(chains, w, min(count, len(tr)))
     for (_, _, m), k in zip(tr, cluster):
         labels[idx[m]] = k
     return labels, track_of

@@ -7,6 +7,11 @@ own persons, and nothing in one pair's images fixes the scale of the next pair: 
 layout that tests whether the people's constant size carries scale along a chain
 (docs/bones.md).
 
+``room``: a rectangular room with cameras high in its corners (and, beyond four, along
+its walls), each looking at the room's centre through a wide, distorted lens: the common
+small installation, and a layout the lab does not have (every camera sees most of the
+floor; baselines across the room; no camera looks the same way as another).
+
 ``write_scene`` writes a scene as a camera directory (intrinsics.yaml, reference.yaml,
 room.yaml, floorplan.pgm) that ``Scene.load``, ``extrcal simulate --cameras`` and
 ``extrcal calibrate`` read like the lab's.
@@ -26,7 +31,7 @@ from backend.cameras import Extrinsics, Intrinsics, Pose, dump_extrinsics, dump_
 from .area import CELL, fov_limit, in_fov, wall_map
 from .scene import Floor, FloorPlan, Scene
 
-SCENES = ("corridor",)
+SCENES = ("corridor", "room")
 
 _MPP = 0.05  # m per floor plan pixel
 _WALL = 0.2  # m wall thickness in the plan
@@ -76,10 +81,58 @@ def corridor(cameras: int = 6, *, spacing: float = 3.5, width: float = 2.5, heig
     return Scene(names, intr, poses, floor, plan)
 
 
+def _look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """world_R_cam of a camera at ``centre`` looking at ``target``, image rows horizontal."""
+    z = target - centre
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x = x / np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def room(cameras: int = 4, *, width: float = 7.0, depth: float = 5.0, height: float = 2.5, aim: float = 0.8,
+         resolution: tuple[int, int] = (640, 480), hfov: float = 100.0, k1: float = -0.28) -> Scene:
+    """A ``width`` x ``depth`` m room (floor x along the width, y along the depth, z up, the
+    origin in a corner) with ``cameras`` cameras ``height`` m high: the first four in its
+    corners (0.3 m in from the walls), the next ones at the middles of the walls, each
+    looking at the point ``aim`` m above the room's centre (a wall camera a little off it,
+    so that no two cameras' views are symmetric). Lens: ``resolution``, ``hfov`` deg wide,
+    barrel distortion ``k1`` (k2 = k1²/3), the principal point 1 % off the image centre."""
+    if not 2 <= cameras <= 8:
+        raise ValueError(f"a room takes 2 to 8 cameras, got {cameras}")
+    if not (width > 1.5 and depth > 1.5 and height > 1.8 and 0 < hfov < 150):
+        raise ValueError("room: width and depth > 1.5 m, height > 1.8 m, 0 < hfov < 150 deg expected")
+    m = 0.3
+    spots = [(m, m), (width - m, depth - m), (width - m, m), (m, depth - m),
+             (width / 2, m), (width / 2, depth - m), (m, depth / 2), (width - m, depth / 2)]
+    w, h = resolution
+    f = (w / 2) / math.tan(math.radians(hfov) / 2)
+    names = tuple(f"cam_{i}" for i in range(cameras))
+    intr, poses = {}, {}
+    centre = np.array([width / 2, depth / 2, aim])
+    for i, n in enumerate(names):
+        c = np.array([*spots[i], height])
+        target = centre + (np.array([0.4 * (-1) ** i, 0.3, 0.0]) if i >= 4 else 0.0)
+        poses[n] = Pose(_look_at(c, target), c)
+        intr[n] = Intrinsics(n, f, f * 1.002, w / 2 + 0.01 * w, h / 2 - 0.01 * h,
+                             np.array([k1, k1 * k1 / 3, 0.0, 0.0, 0.0]), (w, h))
+    lo = np.array([-_WALL, -_WALL])
+    W = int(round((width + 2 * _WALL) / _MPP))
+    H = int(round((depth + 2 * _WALL) / _MPP))
+    free = np.zeros((H, W), bool)
+    k = int(round(_WALL / _MPP))
+    free[k:H - k, k:W - k] = True
+    plan = FloorPlan(occupied=~free, free=free, metres_per_pixel=_MPP, map_R=np.eye(2), map_t=lo)
+    floor = Floor.make(np.zeros(3), [1.0, 0, 0], [0, 0, 1.0])
+    return Scene(names, intr, poses, floor, plan)
+
+
 def make(name: str, **kw) -> Scene:
     """A generated scene by name (``SCENES``)."""
     if name == "corridor":
         return corridor(**kw)
+    if name == "room":
+        return room(**kw)
     raise ValueError(f"unknown scene {name!r} (known: {', '.join(SCENES)})")
 
 

@@ -145,17 +145,19 @@ def test_scale_from_a_known_height_and_from_the_prior():
         estimate_scale([])
 
 
-def test_tracks_and_persons_tell_two_walkers_apart():
-    rng = RNG(3)
+def _walkers(walkers, rng) -> tuple[list, np.ndarray, np.ndarray]:
+    """Hypotheses of persons (height m, y m, instants) walking along x, seen by two cameras
+    at 10 Hz; returns (hypotheses, R, t)."""
     from backend.associate import Hypothesis
 
-    # two persons of 1.96 m and 1.70 m walking 3 m apart, seen by two cameras, 10 Hz, 30 s
     Rc = [_look_at(np.array([-5.0, -5.0, 2.6]), np.zeros(3)), _look_at(np.array([5.0, -5.0, 2.6]), np.zeros(3))]
     tc = [np.array([-5.0, -5.0, 2.6]), np.array([5.0, -5.0, 2.6])]
     R, t = np.array(Rc), np.array(tc)
     hyps = []
-    for k in range(300):
-        for who, (H, y0) in enumerate(((1.96, 0.0), (1.70, 3.0))):
+    for k in range(max(max(ks) for _, _, ks in walkers) + 1):
+        for H, y0, ks in walkers:
+            if k not in ks:
+                continue
             x = -3 + 0.02 * k
             X = np.zeros((17, 3))
             # ankle, knee, hip, shoulder heights of Drillis & Contini, at the person's place
@@ -167,6 +169,12 @@ def test_tracks_and_persons_tell_two_walkers_apart():
             X[:5] = [x, y0, 0.93 * H]
             xy = np.stack([_project(R[c], t[c], X) for c in range(2)]) + rng.normal(0, 0.5 / 600, (2, 17, 2))
             hyps.append(Hypothesis(0.1 * k, np.array([0, 1]), xy, np.full((2, 17), 1 / 600), X[11:13].mean(0)))
+    return hyps, R, t
+
+
+def test_tracks_and_persons_tell_two_walkers_apart():
+    # two persons of 1.96 m and 1.70 m walking 3 m apart, seen by two cameras, 10 Hz, 30 s
+    hyps, R, t = _walkers(((1.96, 0.0, range(300)), (1.70, 3.0, range(300))), RNG(3))
     seg = segments(hyps, R, t)
     ids = tracks(seg.time, seg.com)
     assert len(np.unique(ids)) == 2
@@ -175,6 +183,15 @@ def test_tracks_and_persons_tell_two_walkers_apart():
     assert ppl[0].chain / chain_ratio() == pytest.approx(1.96, rel=0.01)
     assert ppl[1].chain / chain_ratio() == pytest.approx(1.70, rel=0.01)
     assert estimate_scale(ppl, heights=[1.96, 1.70]).factor == pytest.approx(1.0, rel=0.005)
+
+
+def test_a_few_hypotheses_of_nobody_do_not_merge_two_walkers():
+    # two walkers of 1.80 and 1.65 m, and 2 s of a "person" of 2.23 m (hypotheses that
+    # joined two persons' views): k-means into two groups put it apart and merged the walkers
+    hyps, R, t = _walkers(((1.80, 0.0, range(200)), (1.65, 3.0, range(200)), (2.23, 6.0, range(100, 120))), RNG(4))
+    ppl = persons(segments(hyps, R, t))
+    assert [round(p.chain / chain_ratio(), 2) for p in ppl] == pytest.approx([1.80, 1.65], abs=0.01)
+    assert estimate_scale(ppl, heights=[1.80, 1.65]).factor == pytest.approx(1.0, rel=0.005)
 
 
 def test_bootstrap_refuses_too_little_data():

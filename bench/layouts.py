@@ -1,0 +1,169 @@
+"""Other camera layouts than the lab: does `extrcal calibrate` hold where nothing was tuned?
+
+Generated rooms (``edge_clients.sim.scenes.room``: 4 or 8 cameras high in the corners and
+along the walls of a 7 x 5 m room, all looking at its centre through 100° lenses with
+strong barrel distortion, 640 x 480) and, for comparison, the corridor; people walking
+(``--persons``, heights 1.80 / 1.65 m). Each case runs the command a user runs,
+``extrcal calibrate`` in a subprocess, from a perturbed initial estimate (the paper's
+protocol, ``--starts`` m/deg) or from none (``none``: bootstrap, metric scale from the
+population prior; ``height``: from the walkers' known heights), and prints the errors
+against the truth (FORMATS.md: rigid, shape, orientation, scale; over all cameras).
+
+    python bench/layouts.py                                   # room4, room8; 3 seeds; ~10 min
+    python bench/layouts.py --layouts room4 --starts none,height --seeds 5 --jobs 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+HEIGHTS = (1.80, 1.65)
+LAYOUTS = {"room4": ("room", {"cameras": 4}), "room8": ("room", {"cameras": 8}), "corridor": ("corridor", {})}
+
+
+def simulate(layout: str, persons: int, duration: float, seed: int, cache: Path) -> Path:
+    """The recording of one layout and seed (its truth sidecar, its camera directory), cached."""
+    from edge_clients.sim import SimConfig, Simulator, Truth
+    from edge_clients.sim.scenes import make, write_scene
+
+    name, kw = LAYOUTS[layout]
+    h = hashlib.sha1()
+    for f in sorted((REPO / "edge_clients" / "sim").glob("*.py")):
+        h.update(f.read_bytes())
+    h.update(repr((layout, kw, persons, duration, seed, HEIGHTS[:persons])).encode())
+    out = cache / f"{layout}_p{persons}_d{duration:g}_s{seed}_{h.hexdigest()[:10]}.msgpack"
+    if out.is_file() and Truth.sidecar_path(out).is_file():
+        return out
+    cache.mkdir(parents=True, exist_ok=True)
+    scene = make(name, **kw)
+    write_scene(scene, cameras_of(out), f"generated {layout}")
+    tmp = cache / f".{os.getpid()}.{out.name}"
+    heights = tuple((HEIGHTS * persons)[:persons])
+    Simulator(scene, SimConfig(persons=persons, duration=duration, seed=seed, heights=heights)).write(tmp)
+    os.replace(Truth.sidecar_path(tmp), Truth.sidecar_path(out))
+    os.replace(tmp, out)
+    return out
+
+
+def cameras_of(recording: Path) -> Path:
+    return Path(f"{recording}.cameras")
+
+
+def run(recording: Path, start: str, seed: int, persons: int, work: Path) -> dict:
+    """One `extrcal calibrate` of ``recording`` from ``start`` ('T/R' m/deg, 'none' or
+    'height'); its errors against the truth."""
+    from backend.cameras import load_extrinsics, save_extrinsics
+    from backend.evaluate import evaluate
+    from backend.perturb import perturb_extrinsics
+
+    d = cameras_of(recording)
+    ref = load_extrinsics(d / "reference.yaml")
+    tag = f"{recording.stem}_{start.replace('/', '-')}"
+    out = work / f"{tag}.yaml"
+    cmd = [sys.executable, "-m", "backend.cli", "calibrate", "--intrinsics", str(d / "intrinsics.yaml"),
+           "--recording", str(recording), "--output", str(out), "--seed", str(seed), "--quiet"]
+    initial = None
+    if start not in ("none", "height"):
+        t, r = (float(x) for x in start.split("/"))
+        initial = perturb_extrinsics(ref, t, r, seed=seed)
+        save_extrinsics(work / f"{tag}.initial.yaml", initial)
+        cmd += ["--initial", str(work / f"{tag}.initial.yaml")]
+    if start == "height":
+        cmd += ["--person-height", ",".join(f"{h:g}" for h in (HEIGHTS * persons)[:persons])]
+    t0 = time.perf_counter()
+    p = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
+    wall = time.perf_counter() - t0
+    res = {"layout": recording.name.split("_")[0], "start": start, "seed": seed, "wall": wall,
+           "ok": p.returncode == 0}
+    if p.returncode != 0:
+        res["error"] = (p.stderr or p.stdout).strip().splitlines()[-1:] or ["?"]
+        return res
+    got = load_extrinsics(out)
+    header = [ln[2:] for ln in out.read_text().splitlines() if ln.startswith("# ")]
+    res["not_calibrated"] = next((ln.split(": ", 1)[1] for ln in header if ln.startswith("not calibrated")), "")
+    poses = {n: e.pose for n, e in got.items()}
+    truth = {n: e.pose for n, e in ref.items()}
+    a = evaluate(poses, truth)
+    res.update(position=a.position.mean, position_max=a.position.max, shape=a.shape_position.mean,
+               orientation=a.orientation.mean, orientation_max=a.orientation.max, scale=a.scale)
+    if initial is not None:
+        b = evaluate({n: e.pose for n, e in initial.items()}, truth)
+        res["initial_position"] = b.position.mean
+    return res
+
+
+def main(argv: list[str] | None = None) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--layouts", default="room4,room8", help=f"comma separated: {', '.join(LAYOUTS)}")
+    ap.add_argument("--starts", default="0.25/10,0.75/20,none,height", help="m/deg perturbations, none, height")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--persons", type=int, default=2)
+    ap.add_argument("--duration", type=float, default=180.0)
+    ap.add_argument("--jobs", type=int, default=1, help="calibrations in parallel (subprocesses)")
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/extrcal-layouts-cache"))
+    ap.add_argument("--out", type=Path, default=None, help="write every run as JSON")
+    args = ap.parse_args(argv)
+    con = Console()
+    layouts = [x for x in args.layouts.split(",") if x]
+    for x in layouts:
+        if x not in LAYOUTS:
+            raise SystemExit(f"unknown layout {x!r} (known: {', '.join(LAYOUTS)})")
+    starts = [x for x in args.starts.split(",") if x]
+    work = args.cache / "runs"
+    work.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(max(1, args.jobs)) as ex:
+        recs = {(lay, s): ex.submit(simulate, lay, args.persons, args.duration, s, args.cache)
+                for lay in layouts for s in range(args.seeds)}
+        recs = {k: f.result() for k, f in recs.items()}
+        con.print(f"{len(recs)} recording(s) in {time.perf_counter() - t0:.0f} s (cached in {args.cache})")
+        futs = [ex.submit(run, recs[(lay, s)], st, s, args.persons, work)
+                for lay in layouts for st in starts for s in range(args.seeds)]
+        runs = []
+        for f in futs:
+            r = f.result()
+            runs.append(r)
+            con.print(f"  {r['layout']} {r['start']} seed {r['seed']}: " + (
+                f"rigid {r['position']:.4f} m (max {r['position_max']:.3f}), shape {r['shape']:.4f} m, "
+                f"{r['orientation']:.3f}° (max {r['orientation_max']:.2f}), scale {r['scale']:.4f}"
+                + (f", not calibrated: {r['not_calibrated']}" if r['not_calibrated'] else "")
+                if r["ok"] else f"FAILED: {r['error']}") + f" | {r['wall']:.0f} s", highlight=False)
+    t = Table(title=f"extrcal calibrate on generated layouts ({args.persons} persons, {args.duration:g} s, "
+                    f"{args.seeds} seeds; mean over seeds, errors over all cameras)")
+    for col in ("layout", "start", "ok", "rigid pos (m)", "worst camera (m)", "shape pos (m)", "orient (°)",
+                "worst (°)", "scale", "initial (m)", "wall (s)"):
+        t.add_column(col)
+    for lay in layouts:
+        for st in starts:
+            rs = [r for r in runs if r["layout"] == lay and r["start"] == st]
+            ok = [r for r in rs if r["ok"]]
+            m = (lambda k: f"{np.mean([r[k] for r in ok]):.4f}" if ok else "-")  # noqa: E731
+            mx = (lambda k, d: f"{max(r[k] for r in ok):.{d}f}" if ok else "-")  # noqa: E731
+            t.add_row(lay, st, f"{len(ok)}/{len(rs)}", m("position"), mx("position_max", 3), m("shape"),
+                      m("orientation"), mx("orientation_max", 2),
+                      f"{np.mean([r['scale'] for r in ok]):.3f}" if ok else "-",
+                      m("initial_position") if ok and "initial_position" in ok[0] else "-",
+                      f"{np.mean([r['wall'] for r in rs]):.0f}")
+    con.print(t)
+    if args.out is not None:
+        args.out.write_text(json.dumps(runs, indent=1))
+
+
+if __name__ == "__main__":
+    main()
