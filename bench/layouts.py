@@ -11,6 +11,7 @@ against the truth (FORMATS.md: rigid, shape, orientation, scale; over all camera
 
     python bench/layouts.py                                   # room4, room8; 3 seeds; ~10 min
     python bench/layouts.py --layouts room4 --starts none,height --seeds 5 --jobs 2
+    python bench/layouts.py --starts 0.75/20,0.75/20+height --set bootstrap.initial_scale=combine
 """
 
 from __future__ import annotations
@@ -62,16 +63,19 @@ def cameras_of(recording: Path) -> Path:
     return Path(f"{recording}.cameras")
 
 
-def run(recording: Path, start: str, seed: int, persons: int, work: Path) -> dict:
+def run(recording: Path, start: str, seed: int, persons: int, work: Path, overrides: list[str]) -> dict:
     """One `extrcal calibrate` of ``recording`` from ``start`` ('T/R' m/deg, 'none' or
-    'height'); its errors against the truth."""
+    'height'; 'T/R+height': the initial estimate and the walkers' heights) with ``--set``
+    ``overrides``; its errors against the truth."""
     from backend.cameras import load_extrinsics, save_extrinsics
     from backend.evaluate import evaluate
     from backend.perturb import perturb_extrinsics
 
     d = cameras_of(recording)
     ref = load_extrinsics(d / "reference.yaml")
-    tag = f"{recording.stem}_{start.replace('/', '-')}"
+    tag = f"{recording.stem}_{start.replace('/', '-')}_{hashlib.sha1(repr(overrides).encode()).hexdigest()[:6]}"
+    known = start.endswith("height")
+    start = start.removesuffix("+height")
     out = work / f"{tag}.yaml"
     cmd = [sys.executable, "-m", "backend.cli", "calibrate", "--intrinsics", str(d / "intrinsics.yaml"),
            "--recording", str(recording), "--output", str(out), "--seed", str(seed), "--quiet"]
@@ -81,12 +85,15 @@ def run(recording: Path, start: str, seed: int, persons: int, work: Path) -> dic
         initial = perturb_extrinsics(ref, t, r, seed=seed)
         save_extrinsics(work / f"{tag}.initial.yaml", initial)
         cmd += ["--initial", str(work / f"{tag}.initial.yaml")]
-    if start == "height":
+    if known:
         cmd += ["--person-height", ",".join(f"{h:g}" for h in (HEIGHTS * persons)[:persons])]
+    for o in overrides:
+        cmd += ["--set", o]
     t0 = time.perf_counter()
     p = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
     wall = time.perf_counter() - t0
-    res = {"layout": recording.name.split("_")[0], "start": start, "seed": seed, "wall": wall,
+    res = {"layout": recording.name.split("_")[0], "start": f"{start}+height" if known and start != "height" else start,
+           "seed": seed, "wall": wall,
            "ok": p.returncode == 0}
     if p.returncode != 0:
         res["error"] = (p.stderr or p.stdout).strip().splitlines()[-1:] or ["?"]
@@ -105,9 +112,30 @@ def run(recording: Path, start: str, seed: int, persons: int, work: Path) -> dic
     return res
 
 
+def table(runs: list[dict], layouts: list[str], starts: list[str], args) -> str:
+    """Markdown: per layout and start, the mean over seeds (errors over all cameras)."""
+    lines = [f"extrcal calibrate on generated layouts ({args.persons} persons, {args.duration:g} s, {args.seeds} seeds; "
+             f"mean over seeds, errors over all cameras){' --set ' + ' '.join(args.overrides) if args.overrides else ''}",
+             "",
+             "| layout | start | ok | rigid pos (m) | worst camera (m) | shape pos (m) | orient (°) | worst (°) | scale "
+             "| initial rigid (m) | wall (s) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for lay in layouts:
+        for st in starts:
+            rs = [r for r in runs if r["layout"] == lay and r["start"] == st]
+            ok = [r for r in rs if r["ok"]]
+            if not ok:
+                lines.append(f"| {lay} | {st} | 0/{len(rs)} | - | - | - | - | - | - | - | - |")
+                continue
+            m = (lambda k, d=4: f"{np.mean([r[k] for r in ok]):.{d}f}")  # noqa: E731
+            mx = (lambda k, d: f"{max(r[k] for r in ok):.{d}f}")  # noqa: E731
+            lines.append(f"| {lay} | {st} | {len(ok)}/{len(rs)} | {m('position')} | {mx('position_max', 3)} | "
+                         f"{m('shape')} | {m('orientation', 3)} | {mx('orientation_max', 2)} | {m('scale')} | "
+                         f"{m('initial_position', 3) if 'initial_position' in ok[0] else '-'} | {m('wall', 0)} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> None:
     from rich.console import Console
-    from rich.table import Table
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--layouts", default="room4,room8", help=f"comma separated: {', '.join(LAYOUTS)}")
@@ -117,6 +145,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--duration", type=float, default=180.0)
     ap.add_argument("--jobs", type=int, default=1, help="calibrations in parallel (subprocesses)")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/extrcal-layouts-cache"))
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="engine parameter for every run (extrcal calibrate --set)")
     ap.add_argument("--out", type=Path, default=None, help="write every run as JSON")
     args = ap.parse_args(argv)
     con = Console()
@@ -133,7 +163,7 @@ def main(argv: list[str] | None = None) -> None:
                 for lay in layouts for s in range(args.seeds)}
         recs = {k: f.result() for k, f in recs.items()}
         con.print(f"{len(recs)} recording(s) in {time.perf_counter() - t0:.0f} s (cached in {args.cache})")
-        futs = [ex.submit(run, recs[(lay, s)], st, s, args.persons, work)
+        futs = [ex.submit(run, recs[(lay, s)], st, s, args.persons, work, args.overrides)
                 for lay in layouts for st in starts for s in range(args.seeds)]
         runs = []
         for f in futs:
@@ -144,23 +174,7 @@ def main(argv: list[str] | None = None) -> None:
                 f"{r['orientation']:.3f}° (max {r['orientation_max']:.2f}), scale {r['scale']:.4f}"
                 + (f", not calibrated: {r['not_calibrated']}" if r['not_calibrated'] else "")
                 if r["ok"] else f"FAILED: {r['error']}") + f" | {r['wall']:.0f} s", highlight=False)
-    t = Table(title=f"extrcal calibrate on generated layouts ({args.persons} persons, {args.duration:g} s, "
-                    f"{args.seeds} seeds; mean over seeds, errors over all cameras)")
-    for col in ("layout", "start", "ok", "rigid pos (m)", "worst camera (m)", "shape pos (m)", "orient (°)",
-                "worst (°)", "scale", "initial (m)", "wall (s)"):
-        t.add_column(col)
-    for lay in layouts:
-        for st in starts:
-            rs = [r for r in runs if r["layout"] == lay and r["start"] == st]
-            ok = [r for r in rs if r["ok"]]
-            m = (lambda k: f"{np.mean([r[k] for r in ok]):.4f}" if ok else "-")  # noqa: E731
-            mx = (lambda k, d: f"{max(r[k] for r in ok):.{d}f}" if ok else "-")  # noqa: E731
-            t.add_row(lay, st, f"{len(ok)}/{len(rs)}", m("position"), mx("position_max", 3), m("shape"),
-                      m("orientation"), mx("orientation_max", 2),
-                      f"{np.mean([r['scale'] for r in ok]):.3f}" if ok else "-",
-                      m("initial_position") if ok and "initial_position" in ok[0] else "-",
-                      f"{np.mean([r['wall'] for r in rs]):.0f}")
-    con.print(t)
+    con.print(table(runs, layouts, starts, args), highlight=False, soft_wrap=True)
     if args.out is not None:
         args.out.write_text(json.dumps(runs, indent=1))
 
