@@ -68,8 +68,10 @@ def register(app: typer.Typer) -> None:
         cameras: Annotated[Path, typer.Option(help="directory with intrinsics.yaml and reference.yaml "
                                                    "(+ optional room.yaml with a floor plan)")] = LAB,
         scene: Annotated[Optional[str], typer.Option(help="a generated scene instead of --cameras: 'corridor' (6 cameras "
-                                                         "along a corridor, each overlapping only its neighbours); its "
-                                                         "camera files are written to OUT.cameras/")] = None,
+                                                         "along a corridor, each overlapping only its neighbours) or "
+                                                         "'room' (4 cameras in the corners of a 7 x 5 m room, 100° "
+                                                         "distorted lenses); its camera files are written to "
+                                                         "OUT.cameras/")] = None,
         persons: Annotated[int, typer.Option(help="people walking", min=0)] = 2,
         duration: Annotated[float, typer.Option(help="seconds of simulated time", min=0.1)] = 180.0,
         seed: int = 0,

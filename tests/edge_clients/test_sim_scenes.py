@@ -1,4 +1,4 @@
-"""Generated scenes: the corridor's overlap property, its files, the CLI option."""
+"""Generated scenes: the corridor's overlap property, the room's coverage, their files, the CLI option."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 from typer.testing import CliRunner
 
 from edge_clients.sim import Scene, SimConfig, Simulator
-from edge_clients.sim.scenes import corridor, floor_views, make, write_scene
+from edge_clients.sim.scenes import corridor, floor_views, make, room, write_scene
 
 # a standing person's torso as the association needs it (both hips and both shoulders),
 # for statures 1.55-2.0 m: hips 0.53 H, shoulders 0.818 H
@@ -46,6 +46,25 @@ def test_corridor_geometry_and_errors():
         corridor(1)
     with pytest.raises(ValueError, match="unknown scene"):
         make("cathedral")
+
+
+@pytest.mark.parametrize("n", [4, 8])
+def test_room_cameras_look_at_the_room_and_most_of_it_is_seen_by_three(n):
+    s = room(n)
+    c = s.centres()
+    assert len(s.names) == n and np.allclose(c[:, 2], 2.5)
+    assert (c[:, 0] > 0).all() and (c[:, 0] < 7).all() and (c[:, 1] > 0).all() and (c[:, 1] < 5).all()
+    for name in s.names:  # proper rotations, looking down into the room
+        R = s.poses[name].R
+        assert np.allclose(R.T @ R, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0) and R[2, 2] < -0.2
+        i = s.intrinsics[name]
+        assert i.resolution == (640, 480) and i.dist[0] < 0  # wide and barrel-distorted
+    _, seen = floor_views(s)
+    k = seen.sum(0)
+    assert (k >= 2).mean() > 0.95 and (k >= 3).mean() > 0.8
+    with pytest.raises(ValueError, match="2 to 8"):
+        room(9)
+    assert make("room", cameras=4).names == s.names[:4]
 
 
 def test_written_scene_loads_and_simulates(tmp_path):
