@@ -541,8 +541,8 @@ class Pipeline:
             self.batch_adjust()
             if self.cfg.clock.estimate and self._calibrated():  # the offsets as the final poses see them
                 self.clocks.reestimate(self.clock, self.refiner.R, self.refiner.t, P=self.refiner.S)
-        if self.scale_heights is not None and self.frames and self.cycle > 0:
-            self.check_scale()
+        if self.scale_heights is not None and self.scale_check is None and self.frames and self.cycle > 0:
+            self.check_scale()  # once: a second correction would scale the scale
         return self.state()
 
     def check_scale(self) -> ScaleCheck | None:
