@@ -134,6 +134,42 @@ def test_snapshot_and_restore_give_the_same_state(lab, run):
         Pipeline.restore(other, EngineConfig(), snap)
 
 
+def test_the_scale_check_corrects_once_and_survives_a_snapshot(lab, run):
+    import copy
+
+    from backend.evaluate import evaluate
+
+    cams, truth, _ = lab
+    p = copy.deepcopy(run[0])
+    before = p.state().poses()
+    p.scale_heights = (1.96, 1.70)  # as the pipeline of `run_offline(..., scale_heights=...)` has them
+    check = p.check_scale()
+    assert check is not None and check.people.method == "known height" and check.mode == "combine"
+    assert check.corrected and not check.refused
+    after = p.state()
+    assert after.scale_check == check.to_dict()
+    cal = [c.name for c in after.cameras if c.cycles > 0]
+    # the frame is kept: the calibrated cameras' centroid does not move, their shape is scaled
+    c0 = np.mean([before[n].t for n in cal], axis=0)
+    c1 = np.mean([after.camera(n).t for n in cal], axis=0)
+    assert np.linalg.norm(c1 - c0) < 1e-9
+    a, b = cal[0], cal[-1]
+    d0, d1 = (np.linalg.norm(x[a].t - x[b].t) for x in (before, after.poses()))
+    assert d1 / d0 == pytest.approx(check.factor, rel=1e-6)
+    # the scale moved towards the truth's by the share the check gave the people
+    s0 = evaluate({n: before[n] for n in cal}, {n: truth[n] for n in cal}).scale
+    s1 = evaluate({n: after.camera(n).pose for n in cal}, {n: truth[n] for n in cal}).scale
+    assert abs(np.log(s1)) <= abs(np.log(s0)) + 2 * check.people.rel_std
+    # once: finishing again (another final batch) does not scale the initial estimate again
+    t0 = p.refiner.t0.copy()
+    p.finish()
+    assert p.scale_check is check
+    np.testing.assert_array_equal(p.refiner.t0, t0)
+    q = Pipeline.restore(cams, EngineConfig(), json.loads(json.dumps(p.snapshot())))
+    assert q.scale_heights == (1.96, 1.70) and q.state().scale_check == p.state().scale_check
+    np.testing.assert_array_equal(q.refiner.t0, p.refiner.t0)
+
+
 def test_offline_runs_are_deterministic_for_a_seed(lab):
     cams, _, msgs = lab
     part = [m for m in msgs if m.stamp < msgs[0].stamp + 12.0]
