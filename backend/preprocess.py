@@ -52,6 +52,10 @@ class Preprocessor:
         self._scaled: dict[tuple[str, tuple[int, int]], Intrinsics | None] = {}
         self.rejected: Counter = Counter()
         self.accepted = 0
+        # per sensor: torso keypoints detected (confidence > 0) and those of them below the
+        # threshold; a detector whose confidences run lower than the threshold shows here
+        self.torso_seen: Counter = Counter()
+        self.torso_low: Counter = Counter()
 
     def intrinsics_for(self, sensor: str, size: tuple[int, int]) -> Intrinsics | None:
         """The sensor's intrinsics at a message's resolution; None if the aspect differs."""
@@ -81,6 +85,9 @@ class Preprocessor:
             self.rejected["crowded_view"] += P
             return []
         kp = v.kp.copy()
+        torso = kp[:, TORSO, 2]
+        self.torso_seen[v.sensor] += int((torso > 0).sum())
+        self.torso_low[v.sensor] += int(((torso > 0) & (torso < self.cfg.min_confidence)).sum())
         kp[kp[..., 2] < self.cfg.min_confidence, 2] = 0.0
         keep = np.all(kp[:, TORSO, 2] > 0, axis=1)
         self.rejected["no_torso"] += int((~keep).sum())
@@ -101,6 +108,20 @@ class Preprocessor:
         self.accepted += len(idx)
         src = v.index[idx] if v.index is not None else np.full(len(idx), -1)
         return [Detection(cam, xy[k], sigma[k], f, v.seq, int(src[k])) for k in range(len(idx))]
+
+    def confidence_report(self, min_joints: int = 200, warn_share: float = 0.5) -> dict[str, dict]:
+        """Per sensor: torso keypoints seen, the share of them below ``min_confidence``,
+        and a warning when more than ``warn_share`` of at least ``min_joints`` are."""
+        out = {}
+        for sensor, n in self.torso_seen.items():
+            share = self.torso_low[sensor] / n if n else 0.0
+            warn = None
+            if n >= min_joints and share > warn_share:
+                warn = (f"{100 * share:.0f} % of its torso keypoints are below preprocess.min_confidence "
+                        f"({self.cfg.min_confidence:g}) and dropped: few of its detections reach the calibration "
+                        "(a detector whose confidences run lower needs a lower threshold)")
+            out[sensor] = {"torso_keypoints": n, "below_confidence": round(share, 4), "warning": warn}
+        return out
 
     def _too_close(self, kp: np.ndarray, boxes: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         """(P,) True for persons whose box is within the distance limit of another's."""

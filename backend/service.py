@@ -1553,6 +1553,13 @@ class Service:
             for c in s.state.clocks:
                 if c.sensor in sensors:
                     sensors[c.sensor]["time_offset"] = c.to_dict()
+            pre = getattr(s.pipeline, "preprocess", None)
+            for name, rep in (pre.confidence_report() if pre is not None else {}).items():
+                if name in sensors:
+                    warn = rep.pop("warning")
+                    sensors[name]["keypoints"] = rep
+                    if warn:
+                        sensors[name]["warnings"] = [*sensors[name].get("warnings", []), warn]
         return sensors
 
     def status_brief(self) -> dict[str, Any]:

@@ -222,8 +222,12 @@ class SensorOut(BaseModel):
         None, description="the running session's estimate of this sensor's clock offset from the data "
         "(clock.estimate): offset and std s relative to the median sensor, applied s, blocks, drift_warnings, "
         "note (why its last update left the estimate as it was, null when it was updated)")
+    keypoints: dict[str, float | int] | None = Field(
+        None, description="the running session's preprocessing of its detections: torso_keypoints detected, "
+        "below_confidence: the share of them under preprocess.min_confidence (dropped)")
     warnings: list[str] = Field(default_factory=list, description="a clock set apart from the other sensors' by more than "
-                                "the frameset std limit, or messages arriving later than framesets wait")
+                                "the frameset std limit, messages arriving later than framesets wait, or most of its "
+                                "torso keypoints below the confidence threshold")
 
 
 class Status(BaseModel):

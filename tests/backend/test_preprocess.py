@@ -107,6 +107,25 @@ def test_confidence_threshold_drops_joints_and_a_missing_torso_joint_drops_the_p
     assert p.accepted == 1
 
 
+def test_a_sensor_whose_torso_confidences_run_below_the_threshold_is_warned_about(pre, lab_intrinsics):
+    p = pre()
+    intr = lab_intrinsics["cam_4"]
+    uv = _pixels(intr, _body([0.0, 0.0, 4.0]))
+    low = np.full(17, 0.45)  # a detector whose confidences run lower: every person dropped
+    ok = np.full(17, 0.9)
+    ok[[5, 11]] = 0.0  # one side of the torso not detected: missing, not low
+    for _ in range(60):
+        assert p.view(_view("cam_4", [uv], intr.resolution, conf=low)) == []
+        p.view(_view("cam_0", [_pixels(lab_intrinsics["cam_0"], _body([0.0, 0.0, 4.0]))],
+                     lab_intrinsics["cam_0"].resolution, conf=ok))
+    rep = p.confidence_report()
+    assert rep["cam_4"]["torso_keypoints"] == 240 and rep["cam_4"]["below_confidence"] == 1.0
+    assert "below preprocess.min_confidence (0.6)" in rep["cam_4"]["warning"]
+    assert rep["cam_0"]["torso_keypoints"] == 120 and rep["cam_0"]["below_confidence"] == 0.0
+    assert rep["cam_0"]["warning"] is None
+    assert pre().confidence_report() == {}
+
+
 def test_persons_too_close_are_both_dropped(pre, lab_intrinsics):
     p = pre()
     intr = lab_intrinsics["cam_4"]  # 640x480: limit 0.1 * 800 = 80 px between boxes

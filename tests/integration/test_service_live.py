@@ -94,6 +94,8 @@ def test_live_session_converges_stops_and_has_a_result(tmp_path, lab_dir):
         sensors = status["sensors"]
         assert set(sensors) == set(CAMS) and all(x["online"] for x in sensors.values())
         assert all(x["accepted"] > 0 and x["latency"] is not None for x in sensors.values())
+        assert all(x["keypoints"]["torso_keypoints"] > 0 and 0 <= x["keypoints"]["below_confidence"] <= 1
+                   for x in sensors.values())
         assert status["framesets"]["accepted"] > 0 and status["cycles"]["wall_seconds"]["mean"] > 0
         assert status["queues"]["ingest"]["dropped"] == 0
         # the loop's lag is reported; no wall-time bound here (CI machines may be loaded: the
