@@ -246,6 +246,9 @@ def calibrate(
         console.print(ln, highlight=False)
     if not_calibrated:
         console.print(f"[yellow]not calibrated (too few observations, initial pose kept): {', '.join(not_calibrated)}[/]")
+    for name, rep in p.preprocess.confidence_report().items():
+        if rep["warning"]:
+            console.print(f"[yellow]{name}: {rep['warning']}[/]", highlight=False)
     if scale is not None:
         if boot is not None:
             console.print(f"metric {scale.summary()}", highlight=False)
