@@ -69,14 +69,22 @@ def corridor(cameras: int = 6, *, spacing: float = 3.5, width: float = 2.5, heig
         poses[n] = Pose(R, np.array([i * spacing, y, height]))
         intr[n] = Intrinsics(n, 426.0, 426.0, 424.0, 240.0, np.array([-0.054, 0.063, 0.0, 0.0, -0.020]), (848, 480))
     # free floor: from 1 m behind the first camera to 6 m beyond the last one
-    x0, x1 = -1.0, (cameras - 1) * spacing + 6.0
-    lo = np.array([x0 - _WALL, -width / 2 - _WALL])
+    return _walled(names, intr, poses, (-1.0, -width / 2), ((cameras - 1) * spacing + 6.0, width / 2))
+
+
+def _walled(names: tuple[str, ...], intr: dict, poses: dict, lo: tuple[float, float], hi: tuple[float, float]
+            ) -> Scene:
+    """A scene whose floor (world frame = floor frame, z up) is the rectangle ``lo``-``hi``
+    (m) inside walls ``_WALL`` thick."""
+    x0, y0 = lo
+    x1, y1 = hi
     W = int(round((x1 - x0 + 2 * _WALL) / _MPP))
-    H = int(round((width + 2 * _WALL) / _MPP))
+    H = int(round((y1 - y0 + 2 * _WALL) / _MPP))
     free = np.zeros((H, W), bool)
     k = int(round(_WALL / _MPP))
     free[k:H - k, k:W - k] = True
-    plan = FloorPlan(occupied=~free, free=free, metres_per_pixel=_MPP, map_R=np.eye(2), map_t=lo)
+    plan = FloorPlan(occupied=~free, free=free, metres_per_pixel=_MPP, map_R=np.eye(2),
+                     map_t=np.array([x0 - _WALL, y0 - _WALL]))
     floor = Floor.make(np.zeros(3), [1.0, 0, 0], [0, 0, 1.0])
     return Scene(names, intr, poses, floor, plan)
 
@@ -116,15 +124,7 @@ def room(cameras: int = 4, *, width: float = 7.0, depth: float = 5.0, height: fl
         poses[n] = Pose(_look_at(c, target), c)
         intr[n] = Intrinsics(n, f, f * 1.002, w / 2 + 0.01 * w, h / 2 - 0.01 * h,
                              np.array([k1, k1 * k1 / 3, 0.0, 0.0, 0.0]), (w, h))
-    lo = np.array([-_WALL, -_WALL])
-    W = int(round((width + 2 * _WALL) / _MPP))
-    H = int(round((depth + 2 * _WALL) / _MPP))
-    free = np.zeros((H, W), bool)
-    k = int(round(_WALL / _MPP))
-    free[k:H - k, k:W - k] = True
-    plan = FloorPlan(occupied=~free, free=free, metres_per_pixel=_MPP, map_R=np.eye(2), map_t=lo)
-    floor = Floor.make(np.zeros(3), [1.0, 0, 0], [0, 0, 1.0])
-    return Scene(names, intr, poses, floor, plan)
+    return _walled(names, intr, poses, (0.0, 0.0), (width, depth))
 
 
 def make(name: str, **kw) -> Scene:
