@@ -119,7 +119,8 @@ class Preprocessor:
             if n >= min_joints and share > warn_share:
                 warn = (f"{100 * share:.0f} % of its torso keypoints are below preprocess.min_confidence "
                         f"({self.cfg.min_confidence:g}) and dropped: few of its detections reach the calibration "
-                        "(a detector whose confidences run lower needs a lower threshold)")
+                        "(people far, occluded or cut off by the image border; or a detector whose confidences run "
+                        "lower, which needs a lower threshold)")
             out[sensor] = {"torso_keypoints": n, "below_confidence": round(share, 4), "warning": warn}
         return out
 
