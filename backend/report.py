@@ -849,6 +849,9 @@ def render_html(data: SessionData, *, title: str | None = None) -> str:
     for kk in ("stop", "config_overrides", "sources"):
         if isinstance(data.meta.get(kk), dict) and data.meta[kk]:
             settings[kk] = json.dumps(data.meta[kk])
+    scale = data.meta.get("scale")
+    if isinstance(scale, dict) and scale.get("summary"):  # the initial estimate's scale against the people's
+        settings["scale check"] = scale["summary"]
     for kk in ("created_wall", "ended_wall", "first_data"):
         if isinstance(settings.get(kk), (int, float)):
             settings[kk] = datetime.fromtimestamp(settings[kk], timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")

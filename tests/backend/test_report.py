@@ -292,7 +292,9 @@ def test_service_session_layout(tmp_path, lab_dir):
     (d / "history.jsonl").write_text("".join(json.dumps(x) + "\n" for x in lines))
     (d / "session.json").write_text(json.dumps({"id": d.name, "name": "morning run", "state": "stopped",
                                                 "reason": "stopped by request", "stop": {"converged": True},
-                                                "created_wall": 1.7e9, "cycles": 2}))
+                                                "created_wall": 1.7e9, "cycles": 2,
+                                                "scale": {"person_height": None, "check": {"factor": 1.0},
+                                                          "summary": "scale check: 0.4 sigma apart; kept"}}))
     (d / "config.json").write_text(json.dumps({"select": {"scope": 50}, "sync": {"rate": 15.0}}))
     (d / "state.json").write_text(json.dumps({"cycle": 2, "data_time": 7.0, "converged": False, "cameras": [
         {"name": n, "observations": 100 + i, "converged": n != "cam_1", "std_translation": 0.01,
@@ -306,6 +308,7 @@ def test_service_session_layout(tmp_path, lab_dir):
     html = render_html(data)
     assert "19/20" in html and "morning run" in html and "select.scope" in html
     assert "stopped by request" in html and "2023-11-14 22:13:20 UTC" in html
+    assert "scale check: 0.4 sigma apart; kept" in html
 
 
 @pytest.fixture(scope="module")
