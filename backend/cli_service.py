@@ -289,3 +289,6 @@ def _result_table(session: dict, truth: dict, init_err, out) -> None:
     print(f"initial estimate: {init_err.summary()}", file=out)
     print(f"result:           {acc.summary()}", file=out)
     print(f"cycles: {session.get('cycles')}, converged at cycle {session.get('converged_cycle')}", file=out)
+    scale = session.get("scale") or {}
+    if scale.get("summary"):
+        print(scale["summary"], file=out)

@@ -23,3 +23,6 @@ def test_demo_runs_a_session_and_prints_the_result_table(tmp_path):
     assert all(f" cam_{i} " in text for i in range(20))
     assert "initial estimate: position" in text and "result:           position" in text
     assert (tmp_path / "sessions" / session["id"] / "result.yaml").is_file()
+    # the initial estimate's scale against the people's, checked when the session stopped
+    check = session["scale"]["check"]
+    assert check["mode"] == "keep" and check["factor"] == 1.0 and session["scale"]["summary"] in text
