@@ -21,6 +21,7 @@ offsets' estimate (``clock_job``) in a thread.
 
 from __future__ import annotations
 
+import logging
 from collections import Counter, deque
 from dataclasses import replace
 from typing import Callable, Iterable, Sequence
@@ -42,6 +43,8 @@ from .selection import HypothesisQueue
 from .state import CalibrationState, CameraState, Counters, CycleReport
 from .sync import Synchronizer
 
+
+log = logging.getLogger(__name__)
 
 _CLOCK_SAMPLES = 16  # offline: messages held back to find a plausible start of time
 
@@ -542,7 +545,11 @@ class Pipeline:
             if self.cfg.clock.estimate and self._calibrated():  # the offsets as the final poses see them
                 self.clocks.reestimate(self.clock, self.refiner.R, self.refiner.t, P=self.refiner.S)
         if self.scale_heights is not None and self.scale_check is None and self.frames and self.cycle > 0:
-            self.check_scale()  # once: a second correction would scale the scale
+            try:
+                self.check_scale()  # once: a second correction would scale the scale
+            except (ValueError, ArithmeticError, np.linalg.LinAlgError) as e:
+                # a report on top of the result: its failure must not cost the final batch
+                log.warning("the scale check failed, the initial estimate's scale is kept: %s", e)
         return self.state()
 
     def check_scale(self) -> ScaleCheck | None:

@@ -170,6 +170,24 @@ def test_the_scale_check_corrects_once_and_survives_a_snapshot(lab, run):
     np.testing.assert_array_equal(q.refiner.t0, p.refiner.t0)
 
 
+def test_a_failing_scale_check_costs_nothing_but_itself(lab, run, monkeypatch, caplog):
+    import copy
+
+    import backend.pipeline as pl
+
+    def broken(*a, **k):
+        raise ValueError("no person measured")
+
+    p = copy.deepcopy(run[0])
+    p.scale_heights = ()
+    monkeypatch.setattr(pl, "check_run", broken)
+    t0 = p.refiner.t0.copy()
+    state = p.finish()  # the final batch again, then the check, which fails
+    assert p.scale_check is None and state.scale_check is None and state.cycle == run[0].cycle + 1
+    np.testing.assert_array_equal(p.refiner.t0, t0)
+    assert "the scale check failed" in caplog.text
+
+
 def test_offline_runs_are_deterministic_for_a_seed(lab):
     cams, _, msgs = lab
     part = [m for m in msgs if m.stamp < msgs[0].stamp + 12.0]
