@@ -228,6 +228,10 @@ function renderHeader() {
   $("start").disabled = running;
 }
 
+function esc(text) {
+  return String(text).replace(/[&<>"']/g, (ch) => ({"&": "&amp;", "<": "&lt;", ">": "&gt;", "\"": "&quot;", "'": "&#39;"})[ch]);
+}
+
 function renderTable() {
   const tb = $("cameras").tBodies[0];
   const s = S.session;
@@ -241,7 +245,10 @@ function renderTable() {
       `<td>${fmt(c.change_translation === null ? null : c.change_translation * 100, 3)}</td>` +
       `<td class="${c.converged ? "yes" : "no"}">${c.converged ? "yes" : "no"}</td>` +
       `<td class="${ago !== undefined && ago !== null && ago > 5 ? "stale" : ""}">${ago === undefined || ago === null ? "never" : fmt(ago, 1) + " s ago"}</td>` +
-      `<td>${fmt(sen.rate, 1)}</td></tr>`);
+      `<td>${fmt(sen.rate, 1)}</td>` +
+      // the sensor's warnings (clock, latency, keypoint confidences): a mark here, the words on hover
+      `<td class="${(sen.warnings || []).length ? "warn" : ""}" title="${esc((sen.warnings || []).join("\n"))}">` +
+      `${(sen.warnings || []).length ? "\u26a0 " + sen.warnings.length : ""}</td></tr>`);
   }
   tb.innerHTML = rows.join("");
 }

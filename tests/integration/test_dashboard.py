@@ -175,6 +175,17 @@ def test_dashboard_in_chromium_while_a_simulated_session_runs(svc, session_body,
         assert fams["extrcal_cycle"].samples[0].value >= first
         obs = observations()
         _wait(lambda: observations() > obs, 180, "observations to grow")
+
+        # each sensor's warnings from /status are marked in its row, the words on hover
+        def warned_on_page() -> dict:
+            return js("return Object.fromEntries([...document.querySelectorAll('#cameras tbody tr')]"
+                      ".map(tr => [tr.dataset.camera, tr.lastElementChild.title]).filter(e => e[1]))")
+
+        def warned_in_status() -> dict:
+            sensors = client.get("/status").json()["sensors"]
+            return {n: "\n".join(x["warnings"]) for n, x in sensors.items() if x["warnings"]}
+
+        _wait(lambda: warned_on_page() == warned_in_status(), 30, "the page's warnings to be the status'")
         assert driver.find_element(by.ID, "session-state").text in ("calibrating", "converged")
         shot = tmp_path / "dashboard.png"
         assert driver.save_screenshot(str(shot)) and shot.stat().st_size > 20_000
