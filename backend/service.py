@@ -43,6 +43,7 @@ from typing import TYPE_CHECKING, Any, AsyncIterator, Callable
 import numpy as np
 
 from proto import MessageError, decode, keys
+from proto.transport import free_port  # noqa: F401  (the demo's, the benches' and the tests' ports)
 from proto.keys import sensor_of
 
 from .cameras import dump_extrinsics, parse_extrinsics, parse_intrinsics
@@ -1925,10 +1926,3 @@ class ServiceThread:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago (for Zenoh endpoints in tests)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]

@@ -8,6 +8,7 @@ by default: sensors find the backend (or a router) through explicit endpoints.
 from __future__ import annotations
 
 import json
+import socket
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,3 +49,36 @@ def open_session(settings: ZenohSettings):
     import zenoh
 
     return zenoh.open(settings.to_config())
+
+
+def _ephemeral_ports() -> tuple[int, int]:
+    """The kernel's range of ports for outgoing connections (Linux; else IANA's)."""
+    try:
+        with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
+            lo, hi = (int(x) for x in f.read().split())
+        return lo, hi
+    except (OSError, ValueError):
+        return 49152, 65535
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (for Zenoh endpoints in tests and
+    the demo), below the kernel's ephemeral range when there is room: a port the kernel hands
+    out for bind(0) is one any outgoing connection may take before the listener binds it
+    (seen in CI: a Zenoh TLS listener's "address already in use")."""
+    import random
+
+    lo, _ = _ephemeral_ports()
+    if lo - 1024 >= 4096:
+        rng = random.Random()
+        for _ in range(100):
+            port = rng.randrange(max(1024, lo - 16384), lo)
+            with socket.socket() as s:
+                try:
+                    s.bind(("127.0.0.1", port))
+                except OSError:
+                    continue
+                return port
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

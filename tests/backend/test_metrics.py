@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 
@@ -13,6 +12,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from backend.metrics import Metrics, asgi_app, mount, observe_cycle, update_from_state
 from backend.state import CalibrationState, CameraState, Counters, CycleReport
+from proto.transport import free_port
 
 
 def _report(cycle: int, solve: float = 0.04) -> CycleReport:
@@ -127,12 +127,6 @@ def test_registries_are_per_app_and_bad_numbers_are_ignored():
     assert _value(a, "extrcal_cycle_seconds_count") == 0
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_metrics_endpoint_on_a_real_server():
     import uvicorn
     from fastapi import FastAPI
@@ -147,7 +141,7 @@ def test_metrics_endpoint_on_a_real_server():
     app = FastAPI()
     mount(app, m, refresh)
     app.mount("/plain", asgi_app(m))
-    port = _free_port()
+    port = free_port()
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="off"))
     th = threading.Thread(target=server.run, daemon=True)
     th.start()

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import queue
-import socket
 import time
 
 import numpy as np
@@ -12,7 +11,7 @@ from typer.testing import CliRunner
 
 from edge_clients.detectors import Detection, DetectorError, load_detector, to_person
 from proto import decode, keys
-from proto.transport import ZenohSettings, open_session
+from proto.transport import ZenohSettings, free_port, open_session
 
 cv2 = pytest.importorskip("cv2")
 
@@ -60,12 +59,6 @@ def render_video(path) -> None:
             img[y0:y1, x0:x1] = 255
         writer.write(img)
     writer.release()
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_camera_client_publishes_detections_of_a_video_file(tmp_path):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import queue
-import socket
 
 import msgpack
 import numpy as np
@@ -14,13 +13,7 @@ import zenoh
 from edge_clients.cli import DEFAULT_CONNECT, zenoh_settings
 from edge_clients.publisher import RateMeter, SensorPublisher
 from proto import KeypointMessage, Person, decode, keys
-from proto.transport import ZenohSettings, open_session
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from proto.transport import ZenohSettings, free_port, open_session
 
 
 def test_packed_wire_format_and_liveliness_tokens():

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import queue
-import socket
 import time
 from collections import defaultdict
 
@@ -12,15 +11,9 @@ import pytest
 from typer.testing import CliRunner
 
 from proto import decode, keys
-from proto.transport import ZenohSettings, open_session
+from proto.transport import ZenohSettings, free_port, open_session
 
 sim = pytest.importorskip("edge_clients.sim")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def run_cli(args: list[str]):

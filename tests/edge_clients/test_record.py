@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -14,13 +13,7 @@ import numpy as np
 
 from edge_clients.publisher import SensorPublisher
 from proto import KeypointMessage, Person, keys, read_recording
-from proto.transport import ZenohSettings, open_session
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from proto.transport import ZenohSettings, free_port, open_session
 
 
 def msg(seq: int, sensor: str = "cam_0") -> KeypointMessage:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 from collections import defaultdict
@@ -15,7 +14,7 @@ from edge_clients.publisher import SensorPublisher
 from edge_clients.record import Recorder
 from edge_clients.replay import Schedule, planned, run_replay
 from proto import KeypointMessage, Person, read_recording, write_recording
-from proto.transport import ZenohSettings, open_session
+from proto.transport import ZenohSettings, free_port, open_session
 
 
 def f32(a) -> np.ndarray:
@@ -49,12 +48,6 @@ def make_recording(seed: int = 0, seconds: float = 1.5) -> list[KeypointMessage]
             items.append((arrival, make_msg(rng, name, 5 + k, capture + clock_err, int(rng.integers(0, 3)))))
     items.sort(key=lambda x: x[0])
     return [m for _, m in items]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture
