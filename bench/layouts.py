@@ -103,7 +103,11 @@ def run(recording: Path, start: str, seed: int, persons: int, work: Path, overri
     res["not_calibrated"] = next((ln.split(": ", 1)[1] for ln in header if ln.startswith("not calibrated")), "")
     poses = {n: e.pose for n, e in got.items()}
     truth = {n: e.pose for n, e in ref.items()}
-    a = evaluate(poses, truth)
+    try:
+        a = evaluate(poses, truth)
+    except ValueError as e:  # a bootstrap that placed fewer than 3 cameras
+        res.update(ok=False, error=[f"{e} ({len(got)} cameras in the result)"])
+        return res
     res.update(position=a.position.mean, position_max=a.position.max, shape=a.shape_position.mean,
                orientation=a.orientation.mean, orientation_max=a.orientation.max, scale=a.scale)
     if initial is not None:

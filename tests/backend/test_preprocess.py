@@ -128,7 +128,7 @@ def test_a_sensor_whose_torso_confidences_run_below_the_threshold_is_warned_abou
 
 def test_persons_too_close_are_both_dropped(pre, lab_intrinsics):
     p = pre()
-    intr = lab_intrinsics["cam_4"]  # 640x480: limit 0.1 * 800 = 80 px between boxes
+    intr = lab_intrinsics["cam_4"]  # 640x480: limit 0.03 * 800 = 24 px between boxes
     a = _pixels(intr, _body([-0.3, 0.0, 5.0]))
     b = _pixels(intr, _body([0.1, 0.0, 5.0]))  # overlapping a
     far = _pixels(intr, _body([2.2, 0.0, 5.0]))
