@@ -86,10 +86,12 @@ class Preprocessor:
             return []
         kp = v.kp.copy()
         torso = kp[:, TORSO, 2]
-        self.torso_seen[v.sensor] += int((torso > 0).sum())
-        self.torso_low[v.sensor] += int(((torso > 0) & (torso < self.cfg.min_confidence)).sum())
+        detected = torso > 0
+        confident = detected & (torso >= self.cfg.min_confidence)
+        self.torso_seen[v.sensor] += int(detected.sum())
+        self.torso_low[v.sensor] += int((detected & ~confident).sum())
         kp[kp[..., 2] < self.cfg.min_confidence, 2] = 0.0
-        keep = np.all(kp[:, TORSO, 2] > 0, axis=1)
+        keep = np.all(confident, axis=1)
         self.rejected["no_torso"] += int((~keep).sum())
         close = self._too_close(kp, v.boxes, v.size) & keep
         self.rejected["too_close"] += int(close.sum())

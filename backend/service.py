@@ -1554,8 +1554,7 @@ class Service:
             for c in s.state.clocks:
                 if c.sensor in sensors:
                     sensors[c.sensor]["time_offset"] = c.to_dict()
-            pre = getattr(s.pipeline, "preprocess", None)
-            for name, rep in (pre.confidence_report() if pre is not None else {}).items():
+            for name, rep in s.pipeline.preprocess.confidence_report().items():  # a Collector's too
                 if name in sensors:
                     warn = rep.pop("warning")
                     sensors[name]["keypoints"] = rep

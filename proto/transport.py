@@ -8,6 +8,7 @@ by default: sensors find the backend (or a router) through explicit endpoints.
 from __future__ import annotations
 
 import json
+import random
 import socket
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,14 +52,13 @@ def open_session(settings: ZenohSettings):
     return zenoh.open(settings.to_config())
 
 
-def _ephemeral_ports() -> tuple[int, int]:
-    """The kernel's range of ports for outgoing connections (Linux; else IANA's)."""
+def _ephemeral_low() -> int:
+    """The lowest port the kernel gives outgoing connections (Linux; else IANA's)."""
     try:
         with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
-            lo, hi = (int(x) for x in f.read().split())
-        return lo, hi
-    except (OSError, ValueError):
-        return 49152, 65535
+            return int(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 49152
 
 
 def free_port() -> int:
@@ -66,13 +66,10 @@ def free_port() -> int:
     the demo), below the kernel's ephemeral range when there is room: a port the kernel hands
     out for bind(0) is one any outgoing connection may take before the listener binds it
     (seen in CI: a Zenoh TLS listener's "address already in use")."""
-    import random
-
-    lo, _ = _ephemeral_ports()
+    lo = _ephemeral_low()
     if lo - 1024 >= 4096:
-        rng = random.Random()
         for _ in range(100):
-            port = rng.randrange(max(1024, lo - 16384), lo)
+            port = random.randrange(max(1024, lo - 16384), lo)
             with socket.socket() as s:
                 try:
                     s.bind(("127.0.0.1", port))
