@@ -78,6 +78,10 @@ class SelectConfig(_Section):
     first_wait: float = Field(20.0, ge=0, description="s of data time after the first hypothesis that the first cycle waits at most")
     first_passes: int = Field(2, ge=1, description="passes of the first adjustment, each re-associating every frame so far "
                               "with the last pass's estimate")
+    first_gate: float = Field(40.0, ge=0, description="χ² (6 dof, ~6 σ): a camera a pass of the first adjustment puts "
+                              "further than this from its prior (the initial estimate and its std) keeps its start: "
+                              "wrong associations of a rough start, not the data, move a camera that far; unless most "
+                              "cameras went that far (then the stated std is wrong). 0: off")
 
 
 class OptimizeConfig(_Section):

@@ -197,14 +197,16 @@ def _gauss_newton(R, t, X, xy, sig, Xcov, huber, iterations):
 
 
 def correspondences(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, trusted: np.ndarray,
-                    focal: np.ndarray, min_angle_deg: float, max_px: float) -> dict[int, list[Correspondences]]:
+                    focal: np.ndarray, min_angle_deg: float, max_px: float, first_view: int = 0
+                    ) -> dict[int, list[Correspondences]]:
     """Per camera, its joints in ``hyps`` against the points the other trusted cameras
     triangulate (trusted (C,) bool, or (C, C) bool: row c, the cameras camera c's points
     may come from; at least two of them in the hypothesis). Left out:
     points whose rays meet at less than ``min_angle_deg`` (their depth is unknown) and
     points that reproject further than ``max_px`` from a view they were triangulated from
     (a view of another person, a wrong detection: the point is not the person's joint).
-    Each point comes with its covariance from its rays and their keypoints' std."""
+    Each point comes with its covariance from its rays and their keypoints' std; its view
+    id is ``first_view`` + the hypothesis' index (distinct over calls when the caller counts)."""
     out: dict[int, list[Correspondences]] = {}
     C = len(R)
     trust = np.broadcast_to(trusted, (C, C)) & ~np.eye(C, dtype=bool)
@@ -259,7 +261,7 @@ def correspondences(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray, tr
         if m.sum() < 4:
             continue
         out.setdefault(c, []).append(Correspondences(time, Xw[i, m], own_xy[m], own_sig[m],
-                                                     np.full(int(m.sum()), k, np.int64), Xcov[i, m]))
+                                                     np.full(int(m.sum()), first_view + k, np.int64), Xcov[i, m]))
     return out
 
 
@@ -317,6 +319,7 @@ class Monitor:
         self.pending: list[Hypothesis] = []  # hypotheses not yet turned into correspondences
         # the hypotheses of the test's window, for testing a camera again without another
         self.recent: deque[Hypothesis] = deque()
+        self._views = 0  # person views numbered so far
         r = np.radians(cfg.model_std_rotation)
         self.floor = np.diag([r * r] * 3 + [cfg.model_std_translation ** 2] * 3)
         r = np.radians(cfg.bin_std_rotation)
@@ -345,7 +348,11 @@ class Monitor:
                 trust[c] = trusted
             elif watched[c]:
                 trust[c] = trusted if k.trust is None else trusted & k.trust
-        for c, items in correspondences(hyps, R, t, trust, self.focal, self.min_angle, self.outlier_px).items():
+        # view ids distinct over calls: a bin's resection drops wrong person views by their
+        # median residual, and two views with one id would be judged as one
+        found = correspondences(hyps, R, t, trust, self.focal, self.min_angle, self.outlier_px, self._views)
+        self._views += len(hyps)
+        for c, items in found.items():
             self.cams[c].data.extend(items)
 
     def evaluate(self, now: float, watched: np.ndarray, R: np.ndarray, t: np.ndarray

@@ -37,6 +37,7 @@ from .config import EngineConfig
 from .monitor import Alarm, Monitor
 from .optimize import Problem, Solution, solve
 from .preprocess import Detection, Preprocessor
+from .geometry import pose_local
 from .refine import Refiner
 from .scale_check import ScaleCheck, check_run
 from .selection import HypothesisQueue
@@ -97,6 +98,7 @@ class Pipeline:
         self.associated_multi = np.zeros(C, dtype=np.int64)  # ... in hypotheses of >= min_views_unsettled views
         self.last_lost_check: float | None = None
         self.first_passes = 0  # passes of the first adjustment done (select.first_scope)
+        self.first_gated: list[str] = []  # cameras a first pass put implausibly far, kept at their start
         self.relocalized: list[str] = []
         self.final_batch_start: str | None = None  # the final batch kept: from the "estimate" or the "start"
         self.scale_heights = None if scale_heights is None else tuple(float(h) for h in scale_heights)
@@ -446,14 +448,15 @@ class Pipeline:
             change_t = float(upd.changed_translation.max())
             change_r = float(upd.changed_rotation.max())
         elif accepted:
-            upd = self.refiner.update(solution.active, solution.R, solution.t, solution.cov, posterior=batch or first,
+            active = solution.active & ~self._beyond_prior(problem, solution) if first else solution.active
+            upd = self.refiner.update(active, solution.R, solution.t, solution.cov, posterior=batch or first,
                                       cov_shape=solution.cov_shape, final=batch)
             change_t = float(upd.changed_translation.max())
             change_r = float(upd.changed_rotation.max())
             if batch:
                 self.observations_batch = solution.obs_per_camera.copy()
             else:
-                self.observations += solution.obs_per_camera
+                self.observations += np.where(active, solution.obs_per_camera, 0)
             if problem.kind == "cycle" and self.cfg.monitor.enabled:
                 alarms = self._monitor()
         else:
@@ -479,6 +482,36 @@ class Pipeline:
         )
         self.last_report = report
         return report
+
+    def _beyond_prior(self, problem: Problem, solution: Solution) -> np.ndarray:
+        """(C,) bool the cameras a pass of the first adjustment put further from their
+        prior than ``select.first_gate`` (Mahalanobis χ², 6 dof), when they are a minority
+        of the cameras it moved: from a rough start a handful of consistently wrong
+        associations (a camera that sees one walker while the others see the other) can
+        outvote a camera's prior and put it metres off with a small std, and the cycles
+        after it then associate to the wrong pose. Left at its start, the next pass, with
+        the others about right, associates it again."""
+        gate = self.cfg.select.first_gate
+        far = np.zeros(len(self.names), bool)
+        if gate <= 0:
+            return far
+        idx = np.flatnonzero(solution.active)
+        d2 = np.full(len(self.names), np.nan)
+        for c in idx:
+            delta = pose_local(problem.prior_R[c], problem.prior_t[c], solution.R[c], solution.t[c])
+            try:
+                d2[c] = float(delta @ np.linalg.solve(problem.prior_cov[c], delta))
+            except np.linalg.LinAlgError:
+                continue
+        far[idx] = d2[idx] > gate
+        if far.sum() * 2 > len(idx):  # most cameras that far: the stated std is wrong, not the data
+            return np.zeros(len(self.names), bool)
+        for c in np.flatnonzero(far):
+            moved = float(np.linalg.norm(solution.t[c] - problem.prior_t[c]))
+            log.warning("the first adjustment put %s %.2f m from its initial estimate (χ² %.0f against its stated "
+                        "std): kept at its start, the next cycles associate it again", self.names[c], moved, d2[c])
+            self.first_gated.append(self.names[c])
+        return far
 
     def _monitor(self) -> list[str]:
         """The monitor's turn after a cycle: watch the converged cameras, flag moved ones

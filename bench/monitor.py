@@ -55,7 +55,7 @@ def _aligned_error(poses: dict, truth: dict, bumped: str) -> tuple[float, float]
 
 
 def run(seed: int, bump: tuple[float, float] | None, camera: str, bump_time: float, duration: float,
-        cache: Path, calibrate: float = 180.0) -> dict:
+        cache: Path, calibrate: float = 180.0, overrides: tuple[str, ...] = ()) -> dict:
     from backend.cameras import CameraSet, load_extrinsics, load_intrinsics
     from backend.config import EngineConfig
     from backend.perturb import perturb_extrinsics
@@ -69,7 +69,8 @@ def run(seed: int, bump: tuple[float, float] | None, camera: str, bump_time: flo
     lab = lab_dir()
     ref = load_extrinsics(lab / "reference.yaml")
     cams = CameraSet.combine(load_intrinsics(lab / "intrinsics.yaml"), perturb_extrinsics(ref, 0.10, 5.0, seed=seed))
-    cfg = EngineConfig().merged({"refine": {"final_batch": False}, "monitor": {"enabled": True}})
+    base = EngineConfig.load(None, list(overrides))
+    cfg = base.merged({"refine": {"final_batch": False}, "monitor": {"enabled": True}})
     names = list(cams.names)
     t0 = float(truth.start_time)
     messages = iter(read_recording(rec))
@@ -79,7 +80,7 @@ def run(seed: int, bump: tuple[float, float] | None, camera: str, bump_time: flo
         # the session: the first `calibrate` s calibrated as `extrcal calibrate` does (final
         # batch included); its result is what the monitoring session starts from (restored
         # from its snapshot, as the service resumes a session)
-        p = Pipeline(cams, EngineConfig(), seed=seed)
+        p = Pipeline(cams, base, seed=seed)
         for m in messages:
             p.push(m)
             if p.clock is None:
@@ -213,12 +214,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--quiet-seed", type=int, default=100, help="seed of the first run without bumps (the next ones follow)")
     ap.add_argument("--jobs", type=int, default=1, help="runs in parallel (processes)")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/extrcal-accuracy-cache"))
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="engine parameter override (repeatable), as for `extrcal calibrate --set`, "
+                         "e.g. monitor.reference=places")
     args = ap.parse_args(argv)
+    from backend.config import EngineConfig
+    EngineConfig.load(None, args.overrides)  # a bad override fails here, not in every job
     con = Console()
     bumps = [tuple(float(x) for x in b.split("/")) for b in args.bumps.split(",") if b]
-    jobs = [(seed, b, args.camera, args.bump_time, args.bump_time + args.after, args.cache, args.calibrate)
+    sets = tuple(args.overrides)
+    jobs = [(seed, b, args.camera, args.bump_time, args.bump_time + args.after, args.cache, args.calibrate, sets)
             for seed in range(args.seeds) for b in bumps]
-    jobs += [(args.quiet_seed + k, None, args.camera, 0.0, args.quiet_duration, args.cache, args.calibrate)
+    jobs += [(args.quiet_seed + k, None, args.camera, 0.0, args.quiet_duration, args.cache, args.calibrate, sets)
              for k in range(args.quiet_runs)]
     wall = time.perf_counter()
     results = []

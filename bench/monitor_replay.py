@@ -3,11 +3,14 @@ diagnose its alarms, or try a change of its evidence or test without re-running 
 pipeline; exact as long as no alarm changed the pipeline's estimate).
 
     python bench/monitor_replay.py record --seed 101 --duration 600 --out /tmp/q101.pkl [--calibrate 180]
+    python bench/monitor_replay.py record --seed 1 --duration 360 --calibrate 120 --bump 0.03/0 --bump-time 240 --out /tmp/b1.pkl
     python bench/monitor_replay.py replay /tmp/q101.pkl ['{"chi2": 30}']
 
 ``record``: the monitor's hypotheses and every ``evaluate`` call's inputs (data time,
-watched cameras, the estimate) of a run without bumps, set up as bench/monitor.py does
-(``--calibrate 0``: the online estimate watched as it converges). ``replay``: the
+watched cameras, the estimate) of a run, set up as bench/monitor.py does
+(``--calibrate 0``: the online estimate watched as it converges); ``--bump M/DEG`` moves
+``--camera`` at ``--bump-time`` (a replay is exact up to the first alarm: after it the
+recorded estimate is the recalibrating one). ``replay``: the
 monitor (config overrides as JSON) over a recording: its alarms and the largest test
 statistic of each test, whatever the thresholds.
 """
@@ -29,7 +32,8 @@ sys.path.insert(0, str(REPO / "bench"))
 from accuracy import lab_dir, simulate  # noqa: E402
 
 
-def record(seed: int, duration: float, out: Path, calibrate: float, cache: Path) -> None:
+def record(seed: int, duration: float, out: Path, calibrate: float, cache: Path,
+           bump: tuple[float, float, str, float] | None = None) -> None:
     from backend.cameras import CameraSet, load_extrinsics, load_intrinsics
     from backend.config import EngineConfig
     from backend.perturb import perturb_extrinsics
@@ -37,7 +41,8 @@ def record(seed: int, duration: float, out: Path, calibrate: float, cache: Path)
     from edge_clients.sim import Truth
     from proto import read_recording
 
-    rec = simulate(2, duration, seed, cache, {})
+    sim_set = {"bumps": ((bump[2], bump[3], bump[0], bump[1]),)} if bump else {}
+    rec = simulate(2, duration, seed, cache, sim_set)
     t0 = Truth.load(Truth.sidecar_path(rec)).start_time
     lab = lab_dir()
     ref = load_extrinsics(lab / "reference.yaml")
@@ -76,7 +81,7 @@ def record(seed: int, duration: float, out: Path, calibrate: float, cache: Path)
         if p.clock is not None:
             p.step(p.clock)
     with open(out, "wb") as f:
-        pickle.dump({"rec": str(rec), "t0": t0, "names": list(cams.names), "focal": p.focal, "hyps": hyps,
+        pickle.dump({"rec": str(rec), "t0": t0, "bump": bump, "names": list(cams.names), "focal": p.focal, "hyps": hyps,
                      "evals": evals}, f)
     print(f"{len(hyps)} hypotheses, {len(evals)} evaluations, alarms "
           f"{[(round(a.time - t0, 1), cams.names[a.cam]) for a in p.monitor.alarms]}")
@@ -124,12 +129,19 @@ def main(argv: list[str] | None = None) -> None:
     r.add_argument("--calibrate", type=float, default=180.0)
     r.add_argument("--out", type=Path, required=True)
     r.add_argument("--cache", type=Path, default=Path("/tmp/extrcal-accuracy-cache"))
+    r.add_argument("--bump", default=None, help="M/DEG: move --camera by M metres and DEG degrees")
+    r.add_argument("--camera", default="cam_8")
+    r.add_argument("--bump-time", type=float, default=240.0)
     p = sub.add_parser("replay")
     p.add_argument("recording", type=Path)
     p.add_argument("overrides", nargs="?", default="{}", help="monitor config overrides, JSON")
     args = ap.parse_args(argv)
     if args.cmd == "record":
-        record(args.seed, args.duration, args.out, args.calibrate, args.cache)
+        bump = None
+        if args.bump:
+            m, deg = (float(v) for v in args.bump.split("/"))
+            bump = (m, deg, args.bump_time, args.camera)
+        record(args.seed, args.duration, args.out, args.calibrate, args.cache, bump)
     else:
         replay(args.recording, json.loads(args.overrides))
 
