@@ -205,8 +205,13 @@ def calibrate(
     check = p.scale_check  # the initial estimate's scale against the people's (backend/scale_check.py)
     comment = (f"extrcal calibrate of {recording}: {state.cycle} cycles, "
                f"converged: {sum(c.converged for c in state.cameras)}/{len(state.cameras)}")
+    far = p.far_from_start()
+    far_line = ("far beyond the stated std of where they started (check their initial pose, or their data): "
+                + ", ".join(f"{n} {m:.2f} m / {d:.1f}° (χ² {x:.0f})" for n, m, d, x in far)) if far else ""
     if not_calibrated:
         comment += f"\nnot calibrated (kept initial pose): {', '.join(not_calibrated)}"
+    if far_line:
+        comment += f"\n{far_line}"
     if only_bootstrap:
         comment += f"\nnot calibrated online (kept the bootstrap's pose): {', '.join(only_bootstrap)}"
     if rec is not None:
@@ -246,6 +251,8 @@ def calibrate(
         console.print(ln, highlight=False)
     if not_calibrated:
         console.print(f"[yellow]not calibrated (too few observations, initial pose kept): {', '.join(not_calibrated)}[/]")
+    if far_line:
+        console.print(f"[yellow]{far_line}[/]", highlight=False)
     for name, rep in p.preprocess.confidence_report().items():
         if rep["warning"]:
             console.print(f"[yellow]{name}: {rep['warning']}[/]", highlight=False)

@@ -209,6 +209,9 @@ class JoiningPipeline(Pipeline):
     def snapshot(self) -> dict:
         return self.joined.snapshot() if self.joined is not None else super().snapshot()
 
+    def far_from_start(self) -> list[tuple[str, float, float, float]]:
+        return self.joined.far_from_start() if self.joined is not None else super().far_from_start()
+
     def _join(self) -> None:
         """Resect the unplaced cameras against the online estimate over the archived
         framesets; build ``joined`` when any passes the guards."""

@@ -585,6 +585,27 @@ class Pipeline:
                 log.warning("the scale check failed, the initial estimate's scale is kept: %s", e)
         return self.state()
 
+    def far_from_start(self) -> list[tuple[str, float, float, float]]:
+        """The calibrated cameras whose estimate lies beyond ``select.first_gate`` (χ², 6
+        dof) of where they started (the initial estimate with its stated std, or the
+        bootstrap's poses with the hand-over std): (name, m, deg, χ²). Either the start
+        was that wrong for them (a swapped or mislabelled camera), or the data put them
+        there wrongly; a user should look at them."""
+        gate, rf = self.cfg.select.first_gate, self.refiner
+        out = []
+        if gate <= 0:
+            return out
+        for c in np.flatnonzero(rf.cycles > 0):
+            delta = pose_local(rf.prior_R[c], rf.prior_t[c], rf.R[c], rf.t[c])
+            try:
+                chi2 = float(delta @ np.linalg.solve(rf.P0[c], delta))
+            except np.linalg.LinAlgError:
+                continue
+            if chi2 > gate:
+                out.append((self.names[c], float(np.linalg.norm(delta[3:])), float(np.degrees(np.linalg.norm(delta[:3]))),
+                            chi2))
+        return out
+
     def check_scale(self) -> ScaleCheck | None:
         """The initial estimate's scale against the people's on the archived frames, and
         the correction ``bootstrap.initial_scale`` asks for made to the frame the estimate

@@ -1255,7 +1255,10 @@ class Service:
                             s.inputs = replace(s.inputs, cameras=s.pipeline.joined.cameras)
                             s.__dict__.pop("names", None)
                     rec.final_batch = {"ran": batch, "seconds": time.monotonic() - t0, "report":
-                                       s.pipeline.last_report.to_dict() if batch and s.pipeline.last_report else None}
+                                       s.pipeline.last_report.to_dict() if batch and s.pipeline.last_report else None,
+                                       # cameras far beyond the stated std of their start: a user should look
+                                       "far_from_start": [{"camera": n, "translation": m, "rotation": d, "chi2": x}
+                                                          for n, m, d, x in s.pipeline.far_from_start()]}
                     check = s.pipeline.scale_check
                     if check is not None:  # the initial estimate's scale against the people's
                         rec.scale = {**(rec.scale or {}), "check": check.to_dict(), "summary": check.summary()}

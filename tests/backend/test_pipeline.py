@@ -390,6 +390,26 @@ def test_the_first_gate_trusts_the_data_when_most_cameras_go_that_far(lab):
     assert p.first_gated == [cams.names[1]]
 
 
+def test_the_result_names_cameras_that_ended_far_beyond_their_stated_std(lab):
+    """A camera calibrated 2 m from its start (8 std of the default 0.25 m) is named,
+    with how far; one 0.3 m off, or one never calibrated, is not."""
+    cams, _, _ = lab
+    p = Pipeline(cams, EngineConfig(), seed=0)
+    rf = p.refiner
+    rf.cycles[:] = 1
+    rf.cycles[2] = 0
+    rf.t[0] = rf.t[0] + np.array([0.0, 2.0, 0.0])
+    rf.t[1] = rf.t[1] + np.array([0.3, 0.0, 0.0])
+    rf.t[2] = rf.t[2] + np.array([5.0, 0.0, 0.0])
+    far = p.far_from_start()
+    assert [f[0] for f in far] == [cams.names[0]]
+    assert far[0][1] == pytest.approx(2.0) and far[0][2] == pytest.approx(0.0, abs=1e-9) and far[0][3] > 60
+    off = Pipeline(cams, EngineConfig().merged({"select": {"first_gate": 0}}), seed=0)
+    off.refiner.cycles[:] = 1
+    off.refiner.t[0] += 2.0
+    assert off.far_from_start() == []
+
+
 # convergence made easy: 30 s of data must get the watch going
 _EASY = {"converged_cycles": 3, "converged_translation": 1.0, "converged_rotation": 30.0,
          "converged_std_translation": 1.0, "converged_std_rotation": 30.0}
