@@ -282,10 +282,10 @@ def lab20_rough(lab_dir):
     return cams, dict(scene.poses), msgs
 
 
-def _first_adjustment(cams, msgs, cfg):
+def _first_adjustment(cams, msgs, cfg, seed=0):
     """The pipeline up to its first cycle (the first_scope adjustment's two passes, or
-    the paper's first cycle): (problems, reports, state)."""
-    p = Pipeline(cams, cfg, seed=0)
+    the paper's first cycle): (problems, reports, pipeline)."""
+    p = Pipeline(cams, cfg, seed=seed)
     probs, reports = [], []
     for m in msgs:
         p.push(m)
@@ -302,7 +302,7 @@ def _first_adjustment(cams, msgs, cfg):
         if prob.kind != "first":
             break
     assert reports, "no cycle in the data"
-    return probs, reports, p.state()
+    return probs, reports, p
 
 
 @pytest.mark.parametrize("first_scope", [150, 0])
@@ -313,7 +313,8 @@ def test_first_adjustment_from_a_rough_start_pulls_no_camera_off(lab20_rough, fi
     is closer to the truth than any camera was at the start."""
     cams, truth, msgs = lab20_rough
     cfg = EngineConfig().merged({"select": {"first_scope": first_scope}})
-    probs, reports, state = _first_adjustment(cams, msgs, cfg)
+    probs, reports, p = _first_adjustment(cams, msgs, cfg)
+    state = p.state()
     assert all(r.accepted for r in reports), [r.reason for r in reports]
     active = [n for n in cams.names if n in reports[-1].cameras]
     before = evaluate(cams.poses(), truth, active)
@@ -349,19 +350,8 @@ def test_a_camera_the_first_adjustment_puts_metres_off_keeps_its_start(lab20_see
     made it 5 m off with a 2 cm std; with it, cam_1 keeps its start and every camera
     ends the first adjustment within 0.3 m of the truth."""
     cams, truth, msgs = lab20_seed157
-    p = Pipeline(cams, EngineConfig().merged({"select": {"first_gate": gate}}), seed=157)
-    for m in msgs:
-        p.push(m)
-        if p.clock is None:
-            continue
-        p.advance(p.clock)
-        prob = p.next_problem(p.clock)
-        if prob is None:
-            continue
-        if prob.kind != "first":
-            break
-        assert p.apply(prob, solve(prob)).accepted
-    assert p.first_passes == 2
+    _, reports, p = _first_adjustment(cams, msgs, EngineConfig().merged({"select": {"first_gate": gate}}), seed=157)
+    assert all(r.accepted for r in reports) and p.first_passes == 2
     off = {n: float(np.linalg.norm(p.refiner.t[c] - truth[n].t)) for c, n in enumerate(cams.names)}
     if gate:
         assert p.first_gated == ["cam_1", "cam_1"]
