@@ -271,15 +271,21 @@ def test_skeletons_are_the_newest_persons_triangulated_near_the_truth(lab):
         assert np.ptp(pts, axis=0).max() < 2.2
 
 
-@pytest.fixture(scope="module")
-def lab20_rough(lab_dir):
-    """25 s of two walkers in the 20-camera lab, every camera 0.25 m / 10° off."""
+def _lab20(lab_dir, seed: int, translation: float, rotation: float):
+    """25 s of two walkers in the 20-camera lab (simulator seed ``seed``), every camera
+    perturbed by translation m / rotation deg: (cameras, true poses, messages)."""
     scene = Scene.load(lab_dir)
-    sim = Simulator(scene, SimConfig(persons=2, duration=25.0, seed=0, heights=(1.96, 1.70)))
+    sim = Simulator(scene, SimConfig(persons=2, duration=25.0, seed=seed, heights=(1.96, 1.70)))
     msgs = [m for _, m in sim.messages()]
     ref = {n: Extrinsics(scene.poses[n], scene.intrinsics[n].resolution) for n in scene.poses}
-    cams = CameraSet.combine(dict(scene.intrinsics), perturb_extrinsics(ref, 0.25, 10.0, seed=0))
+    cams = CameraSet.combine(dict(scene.intrinsics), perturb_extrinsics(ref, translation, rotation, seed=seed))
     return cams, dict(scene.poses), msgs
+
+
+@pytest.fixture(scope="module")
+def lab20_rough(lab_dir):
+    """Every camera 0.25 m / 10° off."""
+    return _lab20(lab_dir, 0, 0.25, 10.0)
 
 
 def _first_adjustment(cams, msgs, cfg, seed=0):
@@ -333,14 +339,9 @@ def test_first_adjustment_from_a_rough_start_pulls_no_camera_off(lab20_rough, fi
 
 @pytest.fixture(scope="module")
 def lab20_seed157(lab_dir):
-    """25 s of the lab's seed 157 (found by bench/monitor.py's quiet runs), every camera
-    0.10 m / 5° off: the first adjustment's association puts cam_1 metres off."""
-    scene = Scene.load(lab_dir)
-    sim = Simulator(scene, SimConfig(persons=2, duration=25.0, seed=157, heights=(1.96, 1.70)))
-    msgs = [m for _, m in sim.messages()]
-    ref = {n: Extrinsics(scene.poses[n], scene.intrinsics[n].resolution) for n in scene.poses}
-    cams = CameraSet.combine(dict(scene.intrinsics), perturb_extrinsics(ref, 0.10, 5.0, seed=157))
-    return cams, dict(scene.poses), msgs
+    """The lab's seed 157 (found by bench/monitor.py's quiet runs), every camera 0.10 m /
+    5° off: the first adjustment's association puts cam_1 metres off."""
+    return _lab20(lab_dir, 157, 0.10, 5.0)
 
 
 @pytest.mark.parametrize("gate", [40.0, 0.0])
