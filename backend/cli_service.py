@@ -160,7 +160,8 @@ def run_demo(*, speed: float, duration: float, http: str, persons: int, translat
     from .cameras import dump_extrinsics, load_extrinsics
     from .evaluate import evaluate
     from .perturb import perturb_extrinsics
-    from .service import ServiceThread, free_port
+    from .service import ServiceThread
+    from proto.transport import free_port
     from .settings import ServiceSettings, parse_hostport
 
     out = out or sys.stdout

@@ -34,10 +34,10 @@ from .associate import Associator
 from .cameras import CameraSet
 from .clock_offsets import ClockJob, ClockOffsetEstimator, ClockResult
 from .config import EngineConfig
+from .geometry import pose_local
 from .monitor import Alarm, Monitor
 from .optimize import Problem, Solution, solve
 from .preprocess import Detection, Preprocessor
-from .geometry import pose_local
 from .refine import Refiner
 from .scale_check import ScaleCheck, check_run
 from .selection import HypothesisQueue
@@ -48,6 +48,19 @@ from .sync import Synchronizer
 log = logging.getLogger(__name__)
 
 _CLOCK_SAMPLES = 16  # offline: messages held back to find a plausible start of time
+
+
+def _from_prior(R0: np.ndarray, t0: np.ndarray, P: np.ndarray, R: np.ndarray, t: np.ndarray
+                ) -> tuple[float, float, float]:
+    """How far pose R (3, 3), t (3,) lies from the prior pose R0, t0 with tangent
+    covariance P (6, 6): (m between the centres, deg, Mahalanobis χ² with 6 dof; NaN for
+    a singular P)."""
+    delta = pose_local(R0, t0, R, t)
+    try:
+        chi2 = float(delta @ np.linalg.solve(P, delta))
+    except np.linalg.LinAlgError:
+        chi2 = float("nan")
+    return float(np.linalg.norm(t - t0)), float(np.degrees(np.linalg.norm(delta[:3]))), chi2
 
 
 class Pipeline:
@@ -496,20 +509,15 @@ class Pipeline:
         if gate <= 0:
             return far
         idx = np.flatnonzero(solution.active)
-        d2 = np.full(len(self.names), np.nan)
-        for c in idx:
-            delta = pose_local(problem.prior_R[c], problem.prior_t[c], solution.R[c], solution.t[c])
-            try:
-                d2[c] = float(delta @ np.linalg.solve(problem.prior_cov[c], delta))
-            except np.linalg.LinAlgError:
-                continue
-        far[idx] = d2[idx] > gate
+        moves = {c: _from_prior(problem.prior_R[c], problem.prior_t[c], problem.prior_cov[c], solution.R[c],
+                                solution.t[c]) for c in idx}
+        far[idx] = [moves[c][2] > gate for c in idx]  # NaN (a singular prior) is not far
         if far.sum() * 2 > len(idx):  # most cameras that far: the stated std is wrong, not the data
             return np.zeros(len(self.names), bool)
         for c in np.flatnonzero(far):
-            moved = float(np.linalg.norm(solution.t[c] - problem.prior_t[c]))
             log.warning("the first adjustment put %s %.2f m from its initial estimate (χ² %.0f against its stated "
-                        "std): kept at its start, the next cycles associate it again", self.names[c], moved, d2[c])
+                        "std): kept at its start, the next cycles associate it again", self.names[c], moves[c][0],
+                        moves[c][2])
             self.first_gated.append(self.names[c])
         return far
 
@@ -596,14 +604,9 @@ class Pipeline:
         if gate <= 0:
             return out
         for c in np.flatnonzero(rf.cycles > 0):
-            delta = pose_local(rf.prior_R[c], rf.prior_t[c], rf.R[c], rf.t[c])
-            try:
-                chi2 = float(delta @ np.linalg.solve(rf.P0[c], delta))
-            except np.linalg.LinAlgError:
-                continue
-            if chi2 > gate:
-                out.append((self.names[c], float(np.linalg.norm(delta[3:])), float(np.degrees(np.linalg.norm(delta[:3]))),
-                            chi2))
+            move = _from_prior(rf.prior_R[c], rf.prior_t[c], rf.P0[c], rf.R[c], rf.t[c])
+            if move[2] > gate:
+                out.append((self.names[c], *move))
         return out
 
     def check_scale(self) -> ScaleCheck | None:

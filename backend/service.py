@@ -43,7 +43,6 @@ from typing import TYPE_CHECKING, Any, AsyncIterator, Callable
 import numpy as np
 
 from proto import MessageError, decode, keys
-from proto.transport import free_port  # noqa: F401  (the demo's, the benches' and the tests' ports)
 from proto.keys import sensor_of
 
 from .cameras import dump_extrinsics, parse_extrinsics, parse_intrinsics

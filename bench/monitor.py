@@ -216,7 +216,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/extrcal-accuracy-cache"))
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="engine parameter override (repeatable), as for `extrcal calibrate --set`, "
-                         "e.g. monitor.reference=places")
+                         "e.g. monitor.chi2=30")
     args = ap.parse_args(argv)
     from backend.config import EngineConfig
     EngineConfig.load(None, args.overrides)  # a bad override fails here, not in every job

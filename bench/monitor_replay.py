@@ -33,7 +33,7 @@ from accuracy import lab_dir, simulate  # noqa: E402
 
 
 def record(seed: int, duration: float, out: Path, calibrate: float, cache: Path,
-           bump: tuple[float, float, str, float] | None = None) -> None:
+           bump: tuple[float, str, float, float] | None = None) -> None:
     from backend.cameras import CameraSet, load_extrinsics, load_intrinsics
     from backend.config import EngineConfig
     from backend.perturb import perturb_extrinsics
@@ -41,7 +41,7 @@ def record(seed: int, duration: float, out: Path, calibrate: float, cache: Path,
     from edge_clients.sim import Truth
     from proto import read_recording
 
-    sim_set = {"bumps": ((bump[2], bump[3], bump[0], bump[1]),)} if bump else {}
+    sim_set = {"bumps": (bump,)} if bump else {}  # (time s, camera, m, deg), as SimConfig.bumps
     rec = simulate(2, duration, seed, cache, sim_set)
     t0 = Truth.load(Truth.sidecar_path(rec)).start_time
     lab = lab_dir()
@@ -140,7 +140,7 @@ def main(argv: list[str] | None = None) -> None:
         bump = None
         if args.bump:
             m, deg = (float(v) for v in args.bump.split("/"))
-            bump = (m, deg, args.bump_time, args.camera)
+            bump = (args.bump_time, args.camera, m, deg)
         record(args.seed, args.duration, args.out, args.calibrate, args.cache, bump)
     else:
         replay(args.recording, json.loads(args.overrides))

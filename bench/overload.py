@@ -131,7 +131,7 @@ def main() -> int:
 
     from backend.cameras import dump_extrinsics, load_extrinsics
     from backend.perturb import perturb_extrinsics
-    from backend.service import free_port
+    from proto.transport import free_port
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=60.0, help="wall seconds of overload")

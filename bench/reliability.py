@@ -63,7 +63,8 @@ def fuzz(payloads: int, batch: int) -> dict:
     from hypothesis import strategies as st
 
     from backend.cameras import dump_extrinsics, load_extrinsics
-    from backend.service import ServiceThread, free_port
+    from backend.service import ServiceThread
+    from proto.transport import free_port
     from backend.settings import ServiceSettings
 
     fz = _load("tests/backend/test_fuzz_ingest.py", "fuzz_strategies")
@@ -222,7 +223,7 @@ def crash(kills: int, seed: int = 0, state: Path | None = None, out=print) -> li
     """kill -9 the daemon ``kills`` times at random moments; returns one row per kill."""
     import httpx
 
-    from backend.service import free_port
+    from proto.transport import free_port
 
     live = _load("tests/integration/test_service_live.py", "live_helpers")
     rnd = random.Random(seed)

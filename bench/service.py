@@ -44,7 +44,7 @@ sys.path.insert(0, str(REPO))
 
 from backend.cameras import Extrinsics, Intrinsics, Pose, dump_extrinsics, load_extrinsics, load_intrinsics  # noqa: E402
 from backend.perturb import perturb_extrinsics  # noqa: E402
-from backend.service import free_port  # noqa: E402
+from proto.transport import free_port  # noqa: E402
 
 LAB = REPO / "edge_clients" / "data" / "ais_lab20"
 

@@ -14,7 +14,8 @@ import pytest
 import yaml
 
 from backend.cameras import parse_extrinsics
-from backend.service import ServiceThread, free_port
+from backend.service import ServiceThread
+from proto.transport import free_port
 from backend.settings import ServiceSettings
 from proto import KeypointMessage, Person, encode, keys
 from proto.transport import ZenohSettings, open_session

@@ -11,7 +11,8 @@ import time
 import httpx
 import pytest
 
-from backend.service import ServiceThread, bind_socket, free_port
+from backend.service import ServiceThread, bind_socket
+from proto.transport import free_port
 from backend.settings import ServiceSettings
 
 BLOCK = 3.0  # s the test keeps the service's loop busy

@@ -13,7 +13,8 @@ import pytest
 import yaml
 
 from backend.api import create_app
-from backend.service import ServiceThread, free_port
+from backend.service import ServiceThread
+from proto.transport import free_port
 from backend.settings import ServiceSettings
 
 TOKEN = "acl-token"

@@ -309,7 +309,7 @@ def test_handover_with_a_distrusted_initial_estimate_reconciles(collected):
 
 
 def _settings(state_dir):
-    from backend.service import free_port
+    from proto.transport import free_port
     from backend.settings import ServiceSettings
 
     return ServiceSettings.load(None, http={"host": "127.0.0.1", "port": 0},

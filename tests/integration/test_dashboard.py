@@ -18,7 +18,8 @@ import pytest
 
 from backend.cameras import dump_extrinsics, load_extrinsics
 from backend.perturb import perturb_extrinsics
-from backend.service import ServiceThread, free_port
+from backend.service import ServiceThread
+from proto.transport import free_port
 from backend.settings import ServiceSettings
 
 TOKEN = "dash-token"

@@ -17,7 +17,8 @@ import pytest
 import yaml
 
 from backend.cameras import parse_extrinsics
-from backend.service import ServiceThread, free_port
+from backend.service import ServiceThread
+from proto.transport import free_port
 from backend.settings import ServiceSettings
 from test_faults_live import _live
 

@@ -14,7 +14,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from backend.service import ServiceThread, free_port
+from backend.service import ServiceThread
+from proto.transport import free_port
 from backend.settings import ServiceSettings
 
 pytestmark = pytest.mark.slow

@@ -15,7 +15,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from backend.service import ServiceThread, free_port
+from backend.service import ServiceThread
+from proto.transport import free_port
 from backend.settings import ServiceSettings
 from test_faults_live import _live
 

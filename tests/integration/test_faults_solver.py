@@ -10,7 +10,8 @@ import time
 import httpx
 import pytest
 
-from backend.service import ServiceThread, free_port
+from backend.service import ServiceThread
+from proto.transport import free_port
 from backend.settings import ServiceSettings
 from solver_faults import faulty_solve
 from test_faults_live import _live

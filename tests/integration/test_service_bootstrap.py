@@ -23,7 +23,8 @@ import yaml
 
 from backend.cameras import dump_extrinsics, load_extrinsics, parse_extrinsics
 from backend.evaluate import evaluate
-from backend.service import ServiceThread, free_port
+from backend.service import ServiceThread
+from proto.transport import free_port
 from backend.settings import ServiceSettings
 from live_sim import SensorProcess, publish_room
 from live_sim import poll as _poll
