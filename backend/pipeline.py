@@ -39,6 +39,7 @@ from .monitor import Alarm, Monitor
 from .optimize import Problem, Solution, solve
 from .preprocess import Detection, Preprocessor
 from .refine import Refiner
+from .retime import RawArchive
 from .scale_check import ScaleCheck, check_run
 from .selection import HypothesisQueue
 from .state import CalibrationState, CameraState, Counters, CycleReport
@@ -99,6 +100,10 @@ class Pipeline:
                                            self.cfg.preprocess.min_confidence)
         # per camera: (frameset time from which, offset applied), to know how archived views were timed
         self._offset_history: list[list[tuple[float, float]]] = [[] for _ in self.names]
+        # raw messages, to time the archived views again with the final offsets (backend/retime.py)
+        self.raw = (RawArchive(self.names, self.cfg.clock.retime_seconds)
+                    if self.cfg.clock.estimate and self.cfg.clock.retime_seconds > 0 else None)
+        self.retimed: dict[str, int] = {}  # sensor -> archived views timed again at the end
         # preprocessed framesets, re-associated with a better estimate by warm-up and final batch
         self.frames: deque[tuple[float, tuple[tuple[Detection, ...], ...]]] = deque(
             maxlen=self.cfg.refine.archive_frames)
@@ -151,6 +156,8 @@ class Pipeline:
             return reason
         if self.cfg.clock.estimate:
             self.clocks.push(msg)
+            if self.raw is not None:
+                self.raw.push(msg)
         self.last_seen[msg.sensor] = msg.stamp
         stamp = msg.stamp - self.sync.offset(msg.sensor)
         if arrival is None and (self.clock is None or stamp > self.clock):
@@ -280,6 +287,50 @@ class Pipeline:
                 if st is None or not st[1][np.searchsorted(st[0], T, side="right") - 1]:
                     keep.append(v)
             out.append((T, tuple(keep)))
+        return out
+
+    def retime_archive(self) -> dict[str, int]:
+        """Interpolate the archived views of every sensor whose offset changed again at
+        its current offset, from the raw messages kept (``clock.retime_seconds``), so the
+        batch adjustments have all of its data rather than the views timed with the final
+        offset only; frames older than the raw messages kept stay as ``_timed_frames``
+        leaves them. Returns (and adds to ``retimed``) the views timed again per sensor."""
+        if self.raw is None or not self.frames:
+            return {}
+        tol = self.cfg.clock.retime_tolerance
+        pre = None  # its own preprocessor: the session's counts are of the live data
+        frames = list(self.frames)
+        out: dict[str, int] = {}
+        for c, hist in enumerate(self._offset_history):
+            name = self.names[c]
+            span = self.raw.span(name)
+            if not hist or span is None:
+                continue
+            current = hist[-1][1]
+            old = [0.0] + [h[1] for h in hist]
+            if all(abs(o - current) <= tol for o in old):
+                continue
+            cut = span[0] - current + self.cfg.sync.max_offset  # earlier frames lack a bracketing message
+            idx = [k for k, (T, _) in enumerate(frames) if T >= cut]
+            if not idx:
+                continue
+            pre = pre or Preprocessor(self.cfg.preprocess, self.names, self.cameras.intrinsics)
+            views = self.raw.views(name, current, [frames[k][0] for k in idx], self.cfg.sync)
+            n = 0
+            for k, v in zip(idx, views):
+                T, old_views = frames[k]
+                dets = tuple(pre.view(v)) if v is not None else ()
+                n += len(dets)
+                keep = [w for w in old_views if w[0].cam != c] + ([dets] if dets else [])
+                frames[k] = (T, tuple(sorted(keep, key=lambda w: w[0].cam)))
+            # from the cut on, every view of this sensor is timed with the current offset
+            self._offset_history[c] = [h for h in hist if h[0] < cut] + [(frames[idx[0]][0], current)]
+            out[name] = n
+            log.info("%s: %d archived views timed again with its offset of %+.1f ms", name, n, 1000 * current)
+        if out:
+            self.frames = deque(frames, maxlen=self.frames.maxlen)
+        for k, n in out.items():
+            self.retimed[k] = self.retimed.get(k, 0) + n
         return out
 
     def _calibrated(self) -> bool:
@@ -574,6 +625,7 @@ class Pipeline:
             if self.cfg.clock.estimate and self._calibrated():
                 self._retime(self.clocks.update(self.clock, self.refiner.R, self.refiner.t, flush=True,
                                                 P=self.refiner.S))
+            self.retime_archive()
         lost = np.flatnonzero(self._never_associated()) if self.cfg.associate.relocalize else []
         if len(lost) and self.frames and self._inflight is None:
             # one more try with the final estimate of the others, before the batch needs them

@@ -321,21 +321,28 @@ class Synchronizer:
         return Frameset(float(T), tuple(views))
 
     def _view(self, s: str, T: float) -> View | None:
-        stamps, msgs = self._stamps[s], self._msgs[s]
-        i = bisect.bisect_right(stamps, T)
-        m0 = msgs[i - 1] if i > 0 else None
-        m1 = msgs[i] if i < len(msgs) else None
-        if (m0 is None or not len(m0.kp)) and (m1 is None or not len(m1.kp)):
-            return None  # nobody seen: nothing to add
-        if m0 is not None and m0.stamp == T:
-            return _single(m0, T)
-        if (
-            self.cfg.interpolate and m0 is not None and m1 is not None
-            and m1.stamp - m0.stamp <= 2 * self.cfg.max_offset + 1e-9
-            and m0.msg.size == m1.msg.size
-        ):
-            return _interpolate(m0, m1, T, self._pairs)
-        best = min((m for m in (m0, m1) if m is not None), key=lambda m: abs(m.stamp - T), default=None)
-        if best is None or abs(best.stamp - T) > self.cfg.max_offset:
-            return None
-        return _single(best, T)
+        return view_at(self._stamps[s], self._msgs[s], T, self.cfg, self._pairs)
+
+
+def view_at(stamps: list[float], msgs: list[_Entry], T: float, cfg: SyncConfig, cache: dict) -> View | None:
+    """One sensor's view at frameset time T from its messages (``stamps`` sorted, on the
+    synchronised clock): interpolated between the two that bracket T, else the nearest
+    within ``max_offset``; None when it saw nobody there. ``cache``: person matches of
+    message pairs, shared between calls."""
+    i = bisect.bisect_right(stamps, T)
+    m0 = msgs[i - 1] if i > 0 else None
+    m1 = msgs[i] if i < len(msgs) else None
+    if (m0 is None or not len(m0.kp)) and (m1 is None or not len(m1.kp)):
+        return None  # nobody seen: nothing to add
+    if m0 is not None and m0.stamp == T:
+        return _single(m0, T)
+    if (
+        cfg.interpolate and m0 is not None and m1 is not None
+        and m1.stamp - m0.stamp <= 2 * cfg.max_offset + 1e-9
+        and m0.msg.size == m1.msg.size
+    ):
+        return _interpolate(m0, m1, T, cache)
+    best = min((m for m in (m0, m1) if m is not None), key=lambda m: abs(m.stamp - T), default=None)
+    if best is None or abs(best.stamp - T) > cfg.max_offset:
+        return None
+    return _single(best, T)
