@@ -290,6 +290,8 @@ class JoiningPipeline(Pipeline):
         # the front end's counters are this pipeline's (nothing is pushed to the joined one)
         p.sync, p.preprocess, p.associate, p.queue = self.sync, self.preprocess, self.associate, self.queue
         p._offset_history = [list(self._offset_history[old[n]]) if n in old else [] for n in names]
+        if self.raw is not None and p.raw is not None:  # the late cameras' start empty: no offset of theirs applied
+            p.raw = self.raw.keep(names)
         new = {n: k for k, n in enumerate(names)}
         from_all = {c: new[n] for c, n in enumerate(self.all_names) if n in new}
         from_placed = {c: new[n] for c, n in enumerate(self.names)}

@@ -264,67 +264,63 @@ class Pipeline:
             self.sync.set_offset(name, new)
             self._offset_history[c].append((start, new))
 
+    def _stale(self, c: int, times: np.ndarray) -> np.ndarray:
+        """(N,) bool: camera c's views at frameset ``times`` were timed with an offset
+        more than ``clock.retime_tolerance`` from its current one."""
+        hist = self._offset_history[c]  # (start, offset): from which frameset time on each was used; 0 before
+        if not hist:
+            return np.zeros(len(times), bool)
+        starts = np.array([-np.inf] + [h[0] for h in hist])
+        offsets = np.array([0.0] + [h[1] for h in hist])
+        used = offsets[np.searchsorted(starts, times, side="right") - 1]
+        return np.abs(used - hist[-1][1]) > self.cfg.clock.retime_tolerance
+
     def _timed_frames(self, frames: Iterable[tuple[float, tuple]] | None = None) -> list[tuple[float, tuple]]:
         """The archived frames (or ``frames``) without the views timed with an offset
         more than ``clock.retime_tolerance`` from their sensor's current one (the
         batch adjustments must not use them)."""
         frames = list(self.frames if frames is None else frames)
-        tol = self.cfg.clock.retime_tolerance
-        stale = {}
-        for c, hist in enumerate(self._offset_history):
-            if hist:  # (start, offset) from which frameset time on each offset was used; 0 before the first
-                starts = np.array([-np.inf] + [h[0] for h in hist])
-                bad = np.abs(np.array([0.0] + [h[1] for h in hist]) - hist[-1][1]) > tol
-                if bad.any():
-                    stale[c] = (starts, bad)
+        times = np.array([T for T, _ in frames])
+        stale = {c: self._stale(c, times) for c in range(len(self.names)) if self._offset_history[c]}
+        stale = {c: s for c, s in stale.items() if s.any()}
         if not stale:
             return frames
-        out = []
-        for T, views in frames:
-            keep = []
-            for v in views:
-                st = stale.get(v[0].cam)
-                if st is None or not st[1][np.searchsorted(st[0], T, side="right") - 1]:
-                    keep.append(v)
-            out.append((T, tuple(keep)))
-        return out
+        return [(T, tuple(v for v in views if not (v[0].cam in stale and stale[v[0].cam][k])))
+                for k, (T, views) in enumerate(frames)]
 
     def retime_archive(self) -> dict[str, int]:
-        """Interpolate the archived views of every sensor whose offset changed again at
-        its current offset, from the raw messages kept (``clock.retime_seconds``), so the
-        batch adjustments have all of its data rather than the views timed with the final
-        offset only; frames older than the raw messages kept stay as ``_timed_frames``
-        leaves them. Returns (and adds to ``retimed``) the views timed again per sensor."""
+        """Interpolate the archived views of every sensor that were timed with another
+        offset than its current one again, at the current one, from the raw messages kept
+        (``clock.retime_seconds``): the batch adjustments then have all of its data, not
+        only the views timed since its offset was last changed. Frames older than the raw
+        messages kept stay as ``_timed_frames`` leaves them. Returns (and adds to
+        ``retimed``) the views timed again per sensor."""
         if self.raw is None or not self.frames:
             return {}
-        tol = self.cfg.clock.retime_tolerance
         pre = None  # its own preprocessor: the session's counts are of the live data
         frames = list(self.frames)
+        times = np.array([T for T, _ in frames])
         out: dict[str, int] = {}
         for c, hist in enumerate(self._offset_history):
-            name = self.names[c]
-            span = self.raw.span(name)
-            if not hist or span is None:
+            name, span = self.names[c], self.raw.span(self.names[c])
+            if span is None:
                 continue
-            current = hist[-1][1]
-            old = [0.0] + [h[1] for h in hist]
-            if all(abs(o - current) <= tol for o in old):
-                continue
+            current = hist[-1][1] if hist else 0.0
             cut = span[0] - current + self.cfg.sync.max_offset  # earlier frames lack a bracketing message
-            idx = [k for k, (T, _) in enumerate(frames) if T >= cut]
-            if not idx:
+            idx = np.flatnonzero(self._stale(c, times) & (times >= cut))
+            if not len(idx):
                 continue
             pre = pre or Preprocessor(self.cfg.preprocess, self.names, self.cameras.intrinsics)
-            views = self.raw.views(name, current, [frames[k][0] for k in idx], self.cfg.sync)
             n = 0
-            for k, v in zip(idx, views):
-                T, old_views = frames[k]
+            for k, v in zip(idx, self.raw.views(name, current, times[idx], self.cfg.sync)):
+                T, old = frames[k]
                 dets = tuple(pre.view(v)) if v is not None else ()
                 n += len(dets)
-                keep = [w for w in old_views if w[0].cam != c] + ([dets] if dets else [])
+                keep = [w for w in old if w[0].cam != c] + ([dets] if dets else [])
                 frames[k] = (T, tuple(sorted(keep, key=lambda w: w[0].cam)))
             # from the cut on, every view of this sensor is timed with the current offset
-            self._offset_history[c] = [h for h in hist if h[0] < cut] + [(frames[idx[0]][0], current)]
+            first = float(times[times >= cut][0])
+            self._offset_history[c] = [h for h in hist if h[0] < first] + [(first, current)]
             out[name] = n
             log.info("%s: %d archived views timed again with its offset of %+.1f ms", name, n, 1000 * current)
         if out:

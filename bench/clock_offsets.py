@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import pickle
 import sys
 import time
 from pathlib import Path
@@ -59,7 +60,9 @@ def run(recording: Path, seed: int, estimate: bool, start: tuple[float, float]) 
     seconds = time.perf_counter() - t0
     state = p.state()
     acc = evaluate(state.poses(), ref)
-    return {"seconds": seconds, "accuracy": acc.to_dict(), "clocks": {c.sensor: c.to_dict() for c in state.clocks}}
+    raw = (len(p.raw), len(pickle.dumps(p.raw)) / 1e6) if p.raw is not None else (0, 0.0)
+    return {"seconds": seconds, "accuracy": acc.to_dict(), "clocks": {c.sensor: c.to_dict() for c in state.clocks},
+            "retimed": dict(p.retimed), "raw_messages": raw[0], "raw_mb": raw[1]}
 
 
 def table(name: str, est: dict, true: dict[str, float], offsets: dict[str, float], a) -> None:
@@ -125,15 +128,17 @@ def main() -> None:
         if name in runs:
             table(name, runs[name]["clocks"], tr_all, off, a)
     print()
-    print("| run | rigid position (m) | orientation (°) | shape position (m) | offset sensors: position (m) / orientation (°) | wall s |")
-    print("|---|---|---|---|---|---|")
+    print("| run | rigid position (m) | orientation (°) | shape position (m) | offset sensors: position (m) / orientation (°) "
+          "| views timed again | raw messages kept (MB pickled) | wall s |")
+    print("|---|---|---|---|---|---|---|---|")
     for name, r in runs.items():
         acc = r["accuracy"]
         pc = acc["per_camera"]
         po = np.mean([pc[n]["position"] for n in offsets])
         oo = np.mean([pc[n]["orientation"] for n in offsets])
         print(f"| {name} | {acc['position']['mean']:.4f} | {acc['orientation']['mean']:.3f} | "
-              f"{acc['shape_position']['mean']:.4f} | {po:.4f} / {oo:.3f} | {r['seconds']:.0f} |")
+              f"{acc['shape_position']['mean']:.4f} | {po:.4f} / {oo:.3f} | {sum(r['retimed'].values())} | "
+              f"{r['raw_messages']} ({r['raw_mb']:.0f}) | {r['seconds']:.0f} |")
     if a.json:
         a.json.write_text(json.dumps({"true": true, "runs": runs}, indent=1))
 

@@ -321,6 +321,35 @@ def _estimator_with(raw_ms: list[float], std_ms: float) -> ClockOffsetEstimator:
     return est
 
 
+def _fake_profile(true: float, coarse: float):
+    """A profile whose fine cost has its minimum at ``true`` and whose coarse search
+    (the pose held) finds ``coarse`` instead: a pose fitted to mistimed views."""
+    def fake(samples, grid, R, t, *a, nuisance="pose", **k):
+        at = coarse if nuisance == "fixed" else true
+        rng = np.random.default_rng(0)
+        cost = (grid[None, :] - at) ** 2 * 1e4 + 1.0 + 0.01 * rng.random((8, len(grid)))
+        return cost, 8, 2.0, 500, (R, t)
+    return fake
+
+
+@pytest.mark.parametrize("true, coarse, found", [(0.119, 0.050, True), (0.119, 0.119, True), (0.30, 0.100, False)])
+def test_the_fine_search_walks_to_a_minimum_the_coarse_search_missed(monkeypatch, true, coarse, found):
+    """Seed 3's cam_13 (+119 ms): the coarse search with its pose held found +70 ms, the
+    fine one walked +90, +110, +126 and was cut off after three grids on every update for
+    90 s. It walks as far as it needs within the searched range."""
+    import backend.clock_offsets as co
+
+    est = _estimator_with([0.0], 1.0)
+    est.raw[:] = est.std[:] = np.nan
+    monkeypatch.setattr(co, "profile", _fake_profile(true, coarse))
+    monkeypatch.setattr(est, "_samples", lambda *a, **k: object())
+    why = est._estimate_sensor_why(0, [], [], np.eye(3)[None], np.zeros((1, 3)))
+    if found:
+        assert why is None and est.raw[0] == pytest.approx(true, abs=0.002)
+    else:  # the minimum lies beyond clock.max_offset: no estimate, the next update searches the range again
+        assert why is not None and "beyond" in why and np.isnan(est.center[0]) and np.isnan(est.raw[0])
+
+
 def test_offsets_within_ntp_spread_are_not_applied():
     """An estimate below clock.min_apply (what NTP keeps clocks within) changes nothing,
     however confident: applying it would drop the sensor's archived views for a timing
