@@ -212,6 +212,9 @@ def calibrate(
         comment += f"\nnot calibrated (kept initial pose): {', '.join(not_calibrated)}"
     if far_line:
         comment += f"\n{far_line}"
+    if p.retimed:  # offsets found during the run: the final batch had the views from before, too
+        comment += ("\narchived views timed again with the final clock offsets: "
+                    + ", ".join(f"{n} {k}" for n, k in p.retimed.items()))
     if only_bootstrap:
         comment += f"\nnot calibrated online (kept the bootstrap's pose): {', '.join(only_bootstrap)}"
     if rec is not None:

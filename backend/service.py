@@ -1257,7 +1257,9 @@ class Service:
                                        s.pipeline.last_report.to_dict() if batch and s.pipeline.last_report else None,
                                        # cameras far beyond the stated std of their start: a user should look
                                        "far_from_start": [{"camera": n, "translation": m, "rotation": d, "chi2": x}
-                                                          for n, m, d, x in s.pipeline.far_from_start()]}
+                                                          for n, m, d, x in s.pipeline.far_from_start()],
+                                       # per sensor: archived views timed again with its final clock offset
+                                       "retimed": dict(s.pipeline.retimed)}
                     check = s.pipeline.scale_check
                     if check is not None:  # the initial estimate's scale against the people's
                         rec.scale = {**(rec.scale or {}), "check": check.to_dict(), "summary": check.summary()}

@@ -96,6 +96,7 @@ def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, la
     assert "floor" in boot["frame"] and boot["scale"]["method"] == "known height"
     assert stopped["state"] == "stopped" and stopped["final_batch"]["ran"]
     assert stopped["final_batch"]["far_from_start"] == []  # every camera where its data put it, within its std
+    assert stopped["final_batch"]["retimed"] == {}  # no clock offsets estimated: no view timed again
 
     # the result: the placed cameras, the floor's frame and the people's scale in its header
     result = parse_extrinsics(result_text)
