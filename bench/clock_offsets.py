@@ -41,7 +41,7 @@ from bench.accuracy import lab_dir, simulate  # noqa: E402
 DEFAULT_OFFSETS = {"cam_2": -0.200, "cam_5": -0.100, "cam_9": 0.050, "cam_13": 0.120, "cam_17": 0.200}
 
 
-def run(recording: Path, seed: int, estimate: bool, start: tuple[float, float]) -> dict:
+def run(recording: Path, seed: int, estimate: bool, start: tuple[float, float], overrides: list[str] = ()) -> dict:
     from backend.cameras import CameraSet, load_extrinsics, load_intrinsics
     from backend.config import EngineConfig
     from backend.evaluate import evaluate
@@ -54,7 +54,7 @@ def run(recording: Path, seed: int, estimate: bool, start: tuple[float, float]) 
     ref = {n: e.pose for n, e in ref_ext.items()}
     init = perturb_extrinsics(ref_ext, start[0], start[1], seed=seed)
     cams = CameraSet.combine(load_intrinsics(lab / "intrinsics.yaml"), init)
-    cfg = EngineConfig.from_dict({"clock": {"estimate": estimate}})
+    cfg = EngineConfig.load(None, [f"clock.estimate={str(estimate).lower()}", *overrides])
     t0 = time.perf_counter()
     p = run_offline(cams, cfg, read_recording(recording), seed=seed)
     seconds = time.perf_counter() - t0
@@ -101,13 +101,16 @@ def main() -> None:
     ap.add_argument("--offsets", default=",".join(f"{k}={v}" for k, v in DEFAULT_OFFSETS.items()),
                     help="sensor=seconds,... (default: 5 of the 20)")
     ap.add_argument("--start", default="0.25/10", help="initial error m/deg")
+    ap.add_argument("--drifts", default="", help="sensor=s/s,... clock rate errors of sensors (1e-4 = 100 ppm: 18 ms in 180 s)")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="engine setting (repeatable)")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/extrcal-accuracy-cache"))
     ap.add_argument("--json", type=Path)
     ap.add_argument("--runs", default="all", help="the runs to make, ';'-separated names as printed (default all)")
     a = ap.parse_args()
     offsets = {k: float(v) for k, v in (x.split("=") for x in a.offsets.split(","))}
     start = tuple(float(x) for x in a.start.split("/"))
-    rec_off = simulate(2, a.duration, a.seed, a.cache, {"clock_offsets": offsets})
+    drifts = {k: float(v) for k, v in (x.split("=") for x in a.drifts.split(",") if x)}
+    rec_off = simulate(2, a.duration, a.seed, a.cache, {"clock_offsets": offsets, **({"clock_drifts": drifts} if drifts else {})})
     rec_sync = simulate(2, a.duration, a.seed, a.cache, {})
     from edge_clients.sim import Truth
 
@@ -122,7 +125,7 @@ def main() -> None:
         "offsets, not estimated": (rec_off, False),
     }
     keep = [k for k in plan if a.runs == "all" or k in a.runs.split(";")]
-    runs = {k: run(plan[k][0], a.seed, plan[k][1], start) for k in keep}
+    runs = {k: run(plan[k][0], a.seed, plan[k][1], start, a.set) for k in keep}
     for name, tr_all, off in (("offsets, estimated", true, offsets),
                               ("synchronised clocks, estimated", true_sync, {})):
         if name in runs:
