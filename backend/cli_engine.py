@@ -195,9 +195,9 @@ def calibrate(
     if joining is not None:
         from .late_join import late_comment
 
+        joining = p  # the pipeline the run ended with: cameras may have joined it while it ran
         late_lines = late_comment(joining)
-        if joining.joined is not None:
-            cams = joining.joined.cameras
+        cams = joining.joined.cameras if joining.joined is not None else joining.cameras
     started = {n for n, u in zip(rec.names, rec.from_bootstrap) if u} if rec is not None else set()
     not_calibrated = [c.name for c in state.cameras if c.cycles == 0 and c.name not in started]
     only_bootstrap = [c.name for c in state.cameras if c.cycles == 0 and c.name in started]

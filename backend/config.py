@@ -196,7 +196,10 @@ class BootstrapConfig(_Section):
                                     "this share of the frames the best one agrees in")
     late: bool = Field(True, description="cameras the bootstrap did not place are resected again (same guards) against "
                        "the online estimate over all data when the run ends, and join its final batch adjustment "
-                       "(backend/late_join.py)")
+                       "(backend/late_join.py) ...")
+    late_join_interval: float = Field(30.0, ge=0, description="... and while it runs, every this many s of data (after the "
+                                      "first adjustment, when they have new framesets): a camera placed joins the "
+                                      "running pipeline, whose cycles then calibrate it (0: only when the run ends)")
     batch_rounds: int = Field(3, ge=1, description="bundle adjustments, each re-associating all frames with the previous result")
     batch_hypotheses: int = Field(800, ge=10, description="most hypotheses per bundle adjustment")
     prior_std_translation: float = Field(1.0, gt=0, description="m: the weak prior of the bundle adjustment (a gauge, not information)")

@@ -62,6 +62,7 @@ class Joined:
     std_translation: float
     std_rotation: float
     adjusted: bool = False  # the final batch took it (else its resected pose is its result)
+    live: bool = False  # it joined while the run went on (its cycles calibrated it), not when it ended
 
     def summary(self) -> str:
         return later_summary(self.to_dict())
@@ -72,7 +73,8 @@ class Joined:
                 "spread": round(r.spread, 3), "residual_px": round(r.residual_px, 2),
                 "std_translation": self.std_translation, "std_rotation": self.std_rotation,
                 # the resected pose (translation, rotation quaternion x, y, z, w, as in the extrinsics YAML)
-                "translation": r.t.tolist(), "rotation": R_to_quat(r.R).tolist(), "adjusted": self.adjusted}
+                "translation": r.t.tolist(), "rotation": R_to_quat(r.R).tolist(), "adjusted": self.adjusted,
+                "live": self.live}
 
 
 class JoiningPipeline(Pipeline):
@@ -100,6 +102,8 @@ class JoiningPipeline(Pipeline):
         self.joined: Pipeline | None = None
         self.late: list[Joined] = []
         self.late_notes: list[str] = []
+        self._late_tried: float | None = None  # data time of the last resection while running
+        self._late_seen = 0  # late framesets archived then
 
     # ------------------------------------------------------------ the second front end
 
@@ -112,7 +116,7 @@ class JoiningPipeline(Pipeline):
             reason = None
         else:
             reason = super().push(msg, arrival)
-        if not self._releasing:  # the held-back messages re-enter push: they are in _late_pending already
+        if not self._releasing and self.unplaced:  # the held-back messages re-enter push: in _late_pending already
             self._late_push(msg, arrival)
         return reason
 
@@ -136,7 +140,7 @@ class JoiningPipeline(Pipeline):
 
     def advance(self, now: float | None, *, clock_offsets: bool = True) -> int:
         new = super().advance(now, clock_offsets=clock_offsets)
-        if now is not None:
+        if now is not None and self.unplaced:
             self._late_advance(now)
         return new
 
@@ -174,6 +178,13 @@ class JoiningPipeline(Pipeline):
     def finish(self):
         """As ``Pipeline.finish``; before the final batch the unplaced cameras are resected
         against the final online estimate, and those placed join it (``joined``)."""
+        state = self._finish()
+        final = self.joined if self.joined is not None else self
+        self.late = [replace(x, adjusted=bool(final.refiner.cycles[final.names.index(x.name)] > 0))
+                     if x.name in final.names else x for x in self.late]
+        return state
+
+    def _finish(self):
         cfg = self.cfg
         if not (cfg.refine.final_batch and self.unplaced):
             return super().finish()
@@ -188,7 +199,6 @@ class JoiningPipeline(Pipeline):
             j = self.joined
             if j.frames:
                 j.batch_adjust()
-            self.late = [replace(x, adjusted=bool(j.refiner.cycles[j.names.index(x.name)] > 0)) for x in self.late]
             self.final_batch_start, self.cycle, self.last_report = j.final_batch_start, j.cycle, j.last_report
             return j.state()
         if self.frames:
@@ -215,6 +225,13 @@ class JoiningPipeline(Pipeline):
     def _join(self) -> None:
         """Resect the unplaced cameras against the online estimate over the archived
         framesets; build ``joined`` when any passes the guards."""
+        job = self._late_job()
+        if self._accept(job, job.run()):
+            self.joined = self._joined_pipeline()
+
+    def _late_job(self) -> "LateJob":
+        """The resection of the unplaced cameras against the current estimate, over the
+        archived framesets in which they see somebody (a job for another process)."""
         names, C = self.all_names, len(self.all_names)
         idx = {n: k for k, n in enumerate(self.names)}
         rf = self.refiner
@@ -225,28 +242,88 @@ class JoiningPipeline(Pipeline):
             if n in idx:
                 R[c], t[c], located[c] = rf.R[idx[n]], rf.t[idx[n]], True
         focal = np.array([0.5 * (self.all_intrinsics[n].fx + self.all_intrinsics[n].fy) for n in names])
-        frames = list(self.late_frames)
-        _, _, now_located, found = resect_unplaced(frames, R, t, located, focal, view_box(frames, C),
-                                                   self.cfg.associate, self.cfg.bootstrap, seed=self.cycle)
-        self.late_notes = [r.summary(names[r.cam]) for r in found]
-        ok = [r for r in found if r.accepted and now_located[r.cam]]
+        frames = tuple(self.late_frames)
+        return LateJob(frames, R, t, located, focal, self.cfg.associate, self.cfg.bootstrap, self.cycle)
+
+    def _accept(self, job: "LateJob", found: "LateResult", live: bool = False) -> list[Joined]:
+        """The cameras a resection placed (``late``, ``late_notes``); returns the new ones."""
+        names = self.all_names
+        self.late_notes = [r.summary(names[r.cam]) for r in found.resections]
+        ok = [r for r in found.resections if r.accepted and found.located[r.cam] and names[r.cam] in self.unplaced]
         if not ok:
-            return
+            return []
+        frames = job.frames
         times = [f[0] for f in (frames[0], frames[-1], *(self.frames[k] for k in (0, -1) if self.frames))]
         seconds = max(times) - min(times)
         st0, sr0 = self.cfg.refine.initial_std_translation, self.cfg.refine.initial_std_rotation
+        new = []
         for r in ok:
             cov = r.cov if r.cov is not None and np.all(np.isfinite(r.cov)) else None
             st = max(st0, STD_FACTOR * float(np.sqrt(np.trace(cov[3:, 3:]) / 3))) if cov is not None else st0
             sr = max(sr0, STD_FACTOR * float(np.degrees(np.sqrt(np.trace(cov[:3, :3]) / 3)))) if cov is not None else sr0
-            self.late.append(Joined(names[r.cam], r, float(seconds), st, sr))
-        self.joined = self._joined_pipeline()
+            new.append(Joined(names[r.cam], r, float(seconds), st, sr, live=live))
+        self.late += new
+        return new
 
-    def _joined_pipeline(self) -> Pipeline:
-        """A pipeline of the placed cameras and those placed late: the placed cameras'
-        state carried over (snapshot), the new ones at their resected pose with their
-        prior std (``Joined``), the archived framesets of both front ends merged."""
-        late = {j.name: j for j in self.late}
+    # ------------------------------------------------------------ joining while the run goes on
+
+    def late_join_due(self, now: float | None) -> bool:
+        """A resection of the unplaced cameras is due while the run goes on: every
+        ``bootstrap.late_join_interval`` s of data after the first adjustment, when they
+        have new framesets, no cycle in flight."""
+        iv = self.cfg.bootstrap.late_join_interval
+        if iv <= 0 or now is None or not self.unplaced or self._inflight is not None or not self._calibrated():
+            return False
+        if self._late_tried is None:
+            self._late_tried = now  # the first an interval after the first adjustment: the others settle
+        return now - self._late_tried >= iv and len(self.late_frames) > self._late_seen
+
+    def late_job(self, now: float) -> "LateJob":
+        """The job of a due resection (``LateJob.run`` in another process; its result to
+        ``join_live``)."""
+        self._late_tried, self._late_seen = now, len(self.late_frames)
+        return self._late_job()
+
+    def join_live(self, job: "LateJob", found: "LateResult") -> "JoiningPipeline | None":
+        """The cameras the job placed join: returns the pipeline to go on with (this one's
+        estimate, archive, clock and counters, the new cameras at their resected pose with
+        the prior std ``Joined`` says, the front end taken over), or None when none was
+        placed. The caller swaps it in for this one; nothing may be in flight. What it
+        starts afresh: the hypothesis queue (the archive has their data), the clock
+        offsets' samples (the offsets applied are kept) and the monitor's watch."""
+        assert self._inflight is None, "a camera joins between cycles"
+        new = self._accept(job, found, live=True)
+        if not new:
+            return None
+        cams, snap = self._grown()
+        names = cams.names
+        q = JoiningPipeline(cams, self.cfg, intrinsics=self.all_intrinsics, names=self.all_names)
+        q._load(snap)
+        q.rng, q.clock, q.last_cycle_time = self.rng, self.clock, self.last_cycle_time
+        q.messages, q.rejected, q.last_seen = self.messages, self.rejected, self.last_seen
+        q.relocalized, q.first_gated = self.relocalized, self.first_gated
+        old = {n: k for k, n in enumerate(self.names)}
+        q.sync.take_over(self.sync)
+        q.sync.take_buffers(self.late_sync, [j.name for j in new])
+        for k in ("accepted", "rejected", "torso_seen", "torso_low"):  # the session's counts go on
+            setattr(q.preprocess, k, getattr(self.preprocess, k))
+        q.associate = self.associate
+        q._offset_history = [list(self._offset_history[old[n]]) if n in old else [] for n in names]
+        if self.raw is not None and q.raw is not None:
+            q.raw = self.raw.keep(names)
+        q._recalibrate_due = [(due, names.index(self.names[c]), since) for due, c, since in self._recalibrate_due]
+        q.frames = self._merged_frames(names)
+        q.late_sync.take_over(self.late_sync)
+        q.late_preprocess, q.late_frames, q._late_pending = self.late_preprocess, self.late_frames, self._late_pending
+        q.late, q.late_notes = self.late, self.late_notes
+        q._late_tried, q._late_seen = self._late_tried, self._late_seen
+        return q
+
+    def _grown(self) -> tuple[CameraSet, dict]:
+        """The camera set and snapshot of this pipeline's cameras and those placed late
+        that it does not have: its cameras' state carried over, the new ones at their
+        resected pose with their prior std (``Joined``)."""
+        late = {j.name: j for j in self.late if j.name not in self.names}
         names = tuple(n for n in self.all_names if n in self.names or n in late)
         old = {n: k for k, n in enumerate(self.names)}
         ext = dict(self.cameras.extrinsics)
@@ -256,7 +333,7 @@ class JoiningPipeline(Pipeline):
                                 j.std_rotation)
         cams = CameraSet.combine({n: self.all_intrinsics[n] for n in names}, {n: ext[n] for n in names})
         assert cams.names == names
-        snap = self.snapshot()
+        snap = Pipeline.snapshot(self)  # this pipeline's own, not a joined one's
         rf = self.refiner
 
         def grow(arr: np.ndarray, new) -> list:
@@ -282,6 +359,27 @@ class JoiningPipeline(Pipeline):
             "observations": [int(self.observations[old[n]]) if n in old else 0 for n in names],
             "observations_batch": [int(self.observations_batch[old[n]]) if n in old else 0 for n in names],
         })
+        return cams, snap
+
+    def _merged_frames(self, names: tuple[str, ...]) -> deque:
+        """The archived framesets of both front ends, re-indexed to ``names``."""
+        new = {n: k for k, n in enumerate(names)}
+        from_all = {c: new[n] for c, n in enumerate(self.all_names) if n in new}
+        from_placed = {c: new[n] for c, n in enumerate(self.names)}
+        rate = self.cfg.sync.rate
+        merged: dict[int, Frame] = {}
+        for T, views in remap(list(self.frames), from_placed):
+            merged[round(T * rate)] = (T, views)
+        for T, views in remap(list(self.late_frames), from_all):  # the same instant with the late camera's view
+            merged[round(T * rate)] = (T, views)
+        return deque((merged[k] for k in sorted(merged)), maxlen=max(self.cfg.refine.archive_frames, len(merged)))
+
+    def _joined_pipeline(self) -> Pipeline:
+        """A pipeline of this one's cameras and those placed late (``_grown``), with the
+        archived framesets of both front ends merged: the final batch's."""
+        cams, snap = self._grown()
+        names = cams.names
+        old = {n: k for k, n in enumerate(self.names)}
         p = Pipeline.restore(cams, self.cfg, snap)
         p.rng = self.rng  # the batch draws its selection seed as this pipeline's would have
         p.clock = self.clock
@@ -292,17 +390,45 @@ class JoiningPipeline(Pipeline):
         p._offset_history = [list(self._offset_history[old[n]]) if n in old else [] for n in names]
         if self.raw is not None and p.raw is not None:  # the late cameras' start empty: no offset of theirs applied
             p.raw = self.raw.keep(names)
-        new = {n: k for k, n in enumerate(names)}
-        from_all = {c: new[n] for c, n in enumerate(self.all_names) if n in new}
-        from_placed = {c: new[n] for c, n in enumerate(self.names)}
-        rate = self.cfg.sync.rate
-        merged: dict[int, Frame] = {}
-        for T, views in remap(list(self.frames), from_placed):
-            merged[round(T * rate)] = (T, views)
-        for T, views in remap(list(self.late_frames), from_all):  # the same instant with the late camera's view
-            merged[round(T * rate)] = (T, views)
-        p.frames = deque((merged[k] for k in sorted(merged)), maxlen=max(self.cfg.refine.archive_frames, len(merged)))
+        p.frames = self._merged_frames(names)
         return p
+
+
+@dataclass(frozen=True)
+class LateResult:
+    """What a ``LateJob`` found: per camera tried its resection; (C,) bool the cameras of
+    ``all_names`` located after it."""
+
+    resections: tuple[Resection, ...]
+    located: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class LateJob:
+    """A resection of the unplaced cameras (``resect_unplaced``) with what it reads: the
+    late framesets (camera indices of all cameras), every camera's pose (C, 3, 3), (C, 3)
+    where ``located`` (C,) bool, focal lengths (C,) px, the configs and a seed."""
+
+    frames: tuple[Frame, ...]
+    R: np.ndarray
+    t: np.ndarray
+    located: np.ndarray
+    focal: np.ndarray
+    associate: Any
+    bootstrap: Any
+    seed: int
+
+    def run(self) -> LateResult:
+        frames = list(self.frames)
+        C = len(self.located)
+        _, _, located, found = resect_unplaced(frames, self.R, self.t, self.located, self.focal, view_box(frames, C),
+                                               self.associate, self.bootstrap, seed=self.seed)
+        return LateResult(tuple(found), located)
+
+
+def run_late_job(job: LateJob) -> LateResult:
+    """``job.run()``, for a worker process."""
+    return job.run()
 
 
 def later_summary(j: Mapping[str, Any]) -> str:
@@ -311,7 +437,9 @@ def later_summary(j: Mapping[str, Any]) -> str:
     return (f"{j['name']} placed after the bootstrap: resected against the online estimate over "
             f"{j['data_seconds']:.0f} s of data (agrees in {j['frames']}/{j['seen']} framesets, spread "
             f"{j['spread']:.2f} m, {j['residual_px']:.1f} px), "
-            + ("then adjusted by the final batch adjustment with the others from a prior std of "
+            + ("joined the running calibration (its cycles and the final batch adjusted it) from a prior std of "
+               f"{j['std_translation']:.3f} m / {j['std_rotation']:.2f}°" if j.get("live") else
+               "then adjusted by the final batch adjustment with the others from a prior std of "
                f"{j['std_translation']:.3f} m / {j['std_rotation']:.2f}°" if j.get("adjusted") else
                "not adjusted (the final batch adjustment was not taken: its resected pose is its result)"))
 

@@ -489,24 +489,25 @@ def result_comment(bootstrap_record: dict[str, Any] | None) -> str:
     return "\n".join(lines)
 
 
-def late_record(pipeline: Any) -> dict[str, Any] | None:
+def late_record(pipeline: Any, final: bool = True) -> dict[str, Any] | None:
     """After the final batch of a session whose bootstrap left cameras out (a
-    ``JoiningPipeline``): what the session record's ``bootstrap`` says of them now
-    (``placed_later``, ``late_resections``, the cameras still ``not_placed``); None for
+    ``JoiningPipeline``), or (``final`` False) when cameras joined it while it runs: what
+    the session record's ``bootstrap`` says of them now (``placed_later``,
+    ``late_resections``, the cameras still ``not_placed``, ``late_final``); None for
     another pipeline."""
     from .late_join import JoiningPipeline
 
     if not isinstance(pipeline, JoiningPipeline):
         return None
     return {"placed_later": [j.to_dict() for j in pipeline.late], "late_resections": list(pipeline.late_notes),
-            "not_placed": pipeline.not_placed}
+            "not_placed": pipeline.not_placed, "late_final": final}
 
 
 def reason_suffix(bootstrap_record: dict[str, Any] | None) -> str:
     """What a calibrating session's reason adds: the cameras the bootstrap did not place."""
     b = bootstrap_record or {}
     if b.get("phase") == "done" and b.get("not_placed"):
-        later = " (their data are kept: resected when the session stops)" if b.get("late") and \
-            b.get("placed_later") is None else ""
+        later = " (their data are kept: resected while it runs and when it stops)" if b.get("late") and \
+            not b.get("late_final") else ""
         return f"; not placed by the bootstrap: {', '.join(b['not_placed'])}{later}"
     return ""

@@ -10,7 +10,8 @@
             ─► optimize    GTSAM factor graph → poses + marginals   (pure function, any process)
             ─► refine      Kalman update on SE(3), scale kept from the initial estimate
             ─► monitor     converged cameras that moved are flagged and calibrated again
-  at the end   final batch, then the initial estimate's scale checked against the people's
+  at the end   archive timed with the final clock offsets (retime), final batch, then the
+               initial estimate's scale checked against the people's
             ─► state       CalibrationState
 
 The clock is the caller's: offline it is the recording's data time (the newest stamp),
@@ -641,6 +642,11 @@ class Pipeline:
                 log.warning("the scale check failed, the initial estimate's scale is kept: %s", e)
         return self.state()
 
+    def late_join_due(self, now: float | None) -> bool:
+        """Whether cameras without a pose are to be resected now (backend/late_join.py's
+        ``JoiningPipeline``; this pipeline has none)."""
+        return False
+
     def far_from_start(self) -> list[tuple[str, float, float, float]]:
         """The calibrated cameras whose estimate lies beyond ``select.first_gate`` (χ², 6
         dof) of where they started (the initial estimate with its stated std, or the
@@ -771,6 +777,12 @@ class Pipeline:
         if snapshot.get("version") != 2 or list(snapshot.get("names", [])) != list(cameras.names):
             raise ValueError("snapshot does not belong to this camera set")
         p = cls(cameras, config, seed=seed, scale_heights=snapshot.get("scale_heights"))
+        p._load(snapshot)
+        return p
+
+    def _load(self, snapshot: dict) -> None:
+        """The estimate of a ``snapshot`` (of these cameras) into this new pipeline."""
+        p, config = self, self.cfg
         if snapshot.get("scale_check") is not None:
             p.scale_check = ScaleCheck.from_dict(snapshot["scale_check"])
         rf = p.refiner
@@ -799,7 +811,6 @@ class Pipeline:
             p.clocks.set_applied(applied)
             for n, o in applied.items():
                 p.sync.set_offset(n, o)
-        return p
 
 
 def run_offline(cameras: CameraSet, config: EngineConfig, messages: Iterable[KeypointMessage], *, seed: int = 0,
@@ -818,6 +829,9 @@ def run_offline(cameras: CameraSet, config: EngineConfig, messages: Iterable[Key
         report = p.step(p.clock)
         if report is not None and progress is not None:
             progress(p.state(), report)
+        if p.late_join_due(p.clock):  # cameras the bootstrap left out, placed while the run goes on
+            job = p.late_job(p.clock)
+            p = p.join_live(job, job.run()) or p
     if finish:
         before = p.cycle
         p.finish()

@@ -846,6 +846,10 @@ class Service:
             now = self.clock.now()
             if now is None:
                 continue
+            if not isinstance(s.pipeline, Collector) and s.pipeline.late_join_due(now):
+                await self._join_late(s, now)  # between cycles: nothing of the pipeline is in flight
+                if s is not self.active or s.finishing or self._closing or not s.record.state.active:
+                    continue
             with self.work.measure("next_problem"):
                 problem = s.pipeline.next_problem(now)
             if problem is None:
@@ -879,6 +883,39 @@ class Service:
             finally:
                 s.in_cycle = False
                 s.idle.set()
+
+    async def _join_late(self, s: ActiveSession, now: float) -> None:
+        """Cameras the bootstrap left out, resected against the running estimate in the
+        solver process; those placed join the session (backend/late_join.py): the
+        pipeline grown by them is swapped in, its start saved (a resume has them)."""
+        from .late_join import run_late_job
+
+        job = s.pipeline.late_job(now)
+        try:
+            found = await self.solver.run(run_late_job, job)
+        except Exception as e:  # a failed try is tried again an interval later
+            log.warning("session %s: resecting the cameras without a pose failed: %s", s.record.id, e)
+            return
+        if s is not self.active or s.finishing or self._closing or not s.record.state.active:
+            return
+        with self.work.measure("late_join"):
+            q = s.pipeline.join_live(job, found)
+        if q is None:
+            return
+        rec = s.record
+        joined = [j.name for j in q.late if j.live and j.name not in s.names]
+        s.pipeline = q
+        s.inputs = replace(s.inputs, cameras=q.cameras)
+        s.__dict__.pop("names", None)  # the cached camera names: now with the joined ones
+        s.state = q.state()
+        rec.bootstrap = {**(rec.bootstrap or {}), **(late_record(q, final=False) or {})}
+        log.info("session %s: %s placed after the bootstrap, joined the running calibration", rec.id, ", ".join(joined))
+        initial_yaml = dump_extrinsics(dict(q.cameras.extrinsics), comment="the bootstrap's cameras and those placed "
+                                       "after it (their resected pose), the start of a resumed session")
+        self.writer.submit(self.store.save_start, rec.id, initial_yaml, s.inputs.config)
+        self._save_record(s)
+        self.events.publish("session", {"id": rec.id, "state": rec.state.value, "joined": joined,
+                                        "reason": f"placed after the bootstrap: {', '.join(joined)}"})
 
     def _solver_outcome(self, s: ActiveSession, cycle: int, error: str | None) -> None:
         """Track the optimizer's failures (an exception or a dead worker, or a numerical

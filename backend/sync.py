@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import bisect
 from collections import Counter, deque
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -220,6 +221,16 @@ class Synchronizer:
             self._stamps[sensor] = [x + shift for x in self._stamps[sensor]]
             self._msgs[sensor] = [_Entry(replace(e.msg, stamp=e.msg.stamp + shift), e.kp, e.boxes, e.cov)
                                   for e in self._msgs[sensor]]
+
+    def take_buffers(self, other: "Synchronizer", sensors: Iterable[str]) -> None:
+        """The buffered messages of ``sensors`` from ``other`` (which times them with its
+        own offsets), nothing else (a camera joining a running pipeline)."""
+        for s in sensors:
+            shift = other.offset(s) - self.offset(s)
+            self._stamps[s] = [x + shift for x in other._stamps.get(s, [])]
+            self._msgs[s] = [e if not shift else _Entry(replace(e.msg, stamp=e.msg.stamp + shift), e.kp, e.boxes, e.cov)
+                             for e in other._msgs.get(s, [])]
+            self._last_seq[s] = other._last_seq[s].copy() if s in other._last_seq else _Recent(64)
 
     def take_over(self, other: "Synchronizer") -> None:
         """Go on where ``other`` (of the same or more sensors) is: its buffered messages of

@@ -45,12 +45,12 @@ def west(lab_dir, tmp_path_factory):
     return d, intr, {n: full.poses[n] for n in WEST}, msgs
 
 
-def _calibrate(d, out, overrides, recording="rec.msgpack"):
+def _calibrate(d, out, overrides, recording="rec.msgpack", history=None):
     from backend.cli_engine import calibrate
 
     calibrate(intrinsics=d / "intrinsics.yaml", recording=d / recording, output=out, initial=None,
               distrust_initial=False, person_height=None, reference=None, config=None, set_=overrides, seed=0,
-              history=None, skip_bad=False, quiet=True)
+              history=history, skip_bad=False, quiet=True)
 
 
 def test_a_camera_the_bootstrap_left_out_is_placed_later_within_the_bars(west, tmp_path):
@@ -71,6 +71,29 @@ def test_a_camera_the_bootstrap_left_out_is_placed_later_within_the_bars(west, t
     assert f"# {LATE} placed after the bootstrap: resected against the online estimate over" in out.read_text()
     # its std is the final batch's marginal, not the prior it entered with
     assert res[LATE].std_translation < meta["placed_later"][0]["std_translation"]
+
+
+def test_a_camera_placed_while_the_run_goes_on_joins_its_cycles(west, tmp_path):
+    """A resection every 10 s of data (``bootstrap.late_join_interval``): LATE, seen from
+    45 s on, joins the running pipeline; its cycles calibrate it before the final batch
+    does, and it ends within the bars with the others."""
+    import json
+
+    d, _, truth, _ = west
+    out, hist = tmp_path / "out.yaml", tmp_path / "history.jsonl"
+    _calibrate(d, out, BOOT + ["bootstrap.late_join_interval=10"], history=hist)
+    meta = json.loads((tmp_path / "out.yaml.bootstrap.json").read_text())
+    assert [(j["name"], j["live"], j["adjusted"]) for j in meta["placed_later"]] == [(LATE, True, True)]
+    cycles = [json.loads(line) for line in hist.read_text().splitlines()]
+    online = [c for c in cycles[:-1] if any(cam["name"] == LATE for cam in c["cameras"])]
+    assert online
+    assert max(cam["cycles"] for c in online for cam in c["cameras"] if cam["name"] == LATE) >= 2  # its own cycles
+    assert len(online[0]["cameras"]) == len(WEST)  # from then on every camera is in the estimate
+    res = load_extrinsics(out)
+    ev = evaluate({n: e.pose for n, e in res.items()}, truth)
+    for n, (_, _, pos, ori) in ev.per_camera.items():
+        assert pos < 0.05 and ori < 0.5, (n, ev.per_camera)
+    assert "joined the running calibration" in out.read_text()
 
 
 def _run(cams, cfg, msgs, pipeline=None):

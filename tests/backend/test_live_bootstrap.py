@@ -251,7 +251,7 @@ def test_a_camera_the_bootstrap_left_out_is_resected_when_the_session_stops(coll
     n_late = len(p.late_frames)
     assert n_late > 20 and all(any(v[0].cam == 2 for v in views) for _, views in p.late_frames)
     rec = {"phase": "done", **h.meta}
-    assert reason_suffix(rec) == "; not placed by the bootstrap: cam_14 (their data are kept: resected when the session stops)"
+    assert reason_suffix(rec) == "; not placed by the bootstrap: cam_14 (their data are kept: resected while it runs and when it stops)"
     _run(col, msgs[half:half + 200])
     col.advance(msgs[half + 199].stamp)
     h.catch_up(col)
@@ -407,7 +407,7 @@ def test_a_session_places_the_camera_its_bootstrap_left_out_when_it_stops(tmp_pa
             assert time.monotonic() < deadline, s["reason"]
             time.sleep(0.2)
         assert s["bootstrap"]["late"] == ["cam_14"] and s["bootstrap"]["not_placed"] == ["cam_14"]
-        assert "cam_14 (their data are kept: resected when the session stops)" in s["reason"]
+        assert "cam_14 (their data are kept: resected while it runs and when it stops)" in s["reason"]
         assert [cam["name"] for cam in s["cameras"]] == ["cam_11", "cam_12", "cam_15", "cam_16"]
         s = c.post(f"/sessions/{sid}/stop").json()
         assert s["state"] == "stopped" and s["final_batch"]["ran"], s["final_batch"]

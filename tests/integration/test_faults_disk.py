@@ -11,6 +11,7 @@ import errno
 import json
 import os
 import subprocess
+import time
 
 import httpx
 import pytest
@@ -99,7 +100,12 @@ def test_disk_full_is_reported_and_the_last_result_kept(tmp_path, lab_dir, monke
             assert sorted(ext) == sorted(live.CAMS)
             written_cycle = int(kept.split("cycle ")[1].split(",")[0])
             assert written_cycle < s["cycles"]  # not updated while full
-            assert not [p for p in result.parent.iterdir() if p.name.endswith(".tmp")]  # no temp file left behind
+            # no temp file left behind: the writer keeps trying, so one may exist for the
+            # instant between its creation and its removal; a leaked one stays
+            temps = lambda: {p.name for p in result.parent.iterdir() if p.name.endswith(".tmp")}  # noqa: E731
+            first = temps()
+            time.sleep(0.5)
+            assert not first & temps()
             assert c.get("/healthz").json()["ok"] and len(c.get("/calibration").json()["cameras"]) == len(live.CAMS)
             # space is back: writes succeed, the error clears, the result moves on
             if mounted:
