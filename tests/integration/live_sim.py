@@ -9,11 +9,14 @@ from typing import Any, Callable
 
 
 def publish_room(endpoint: str, site: str, cams: tuple[str, ...], persons: int, heights: tuple[float, ...],
-                 duration: float, seed: int, speed: float, lab: str, ready, stop) -> None:
+                 duration: float, seed: int, speed: float, lab: str, ready, stop,
+                 quiet: dict[str, float] | None = None) -> None:
     """``cams`` of the lab as a scene of their own (its room plan: the walkers stay where
     the cameras look), ``persons`` walkers of ``heights``; messages simulated first, then
     published through Zenoh paced at ``speed`` x real time. ``ready``/``stop``:
-    multiprocessing events."""
+    multiprocessing events. ``quiet``: sensor -> s of data in which it sees nobody (a
+    corner people reach later)."""
+    import dataclasses
     import signal
     import time
 
@@ -39,6 +42,8 @@ def publish_room(endpoint: str, site: str, cams: tuple[str, ...], persons: int, 
                 break
             if stop.is_set():
                 break
+            if quiet and m.stamp - s0 < quiet.get(m.sensor, 0.0):
+                m = dataclasses.replace(m, persons=())
             pub.publish(m)
 
 

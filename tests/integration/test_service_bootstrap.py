@@ -39,9 +39,9 @@ BOOT = {"bootstrap": {"live_first": 40.0, "live_interval": 20.0, "max_seconds": 
 
 
 class Sensors(SensorProcess):
-    def __init__(self, endpoint: str, site: str, lab: Path, duration: float):
+    def __init__(self, endpoint: str, site: str, lab: Path, duration: float, quiet: dict[str, float] | None = None):
         super().__init__(publish_room, lambda ready, stop: (
-            endpoint, site, WEST, len(HEIGHTS), HEIGHTS, duration, 0, SPEED, str(lab), ready, stop))
+            endpoint, site, WEST, len(HEIGHTS), HEIGHTS, duration, 0, SPEED, str(lab), ready, stop, quiet))
 
 
 def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, lab_dir):
@@ -108,3 +108,47 @@ def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, la
     assert abs(acc.scale - 1) < 0.02
     # the session's accuracy figures against the reference agree
     assert stopped["accuracy"]["shape_position_mean"] == pytest.approx(acc.shape_position.mean, abs=1e-3)
+
+
+def test_a_camera_the_bootstrap_left_out_joins_the_running_session(tmp_path, lab_dir):
+    """cam_17 sees nobody in the first 45 s of data; the bootstrap (40 s) places the other
+    six. A resection every 10 s of data places it while the session runs: /sessions lists
+    it with cycles of its own before the session stops, and the result has it within the
+    bars (backend/late_join.py)."""
+    late = "cam_17"
+    zport = free_port()
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    site = "bootlate"
+    settings = ServiceSettings.load(None, http={"port": 0}, zenoh={"listen": (endpoint,)}, state_dir=tmp_path,
+                                    site=site, clock="data", speed=SPEED)
+    intr = yaml.safe_load((lab_dir / "intrinsics.yaml").read_text())
+    truth = {k: e for k, e in load_extrinsics(lab_dir / "reference.yaml").items() if k in WEST}
+    config = {"bootstrap": {"live_first": 30.0, "live_interval": 10.0, "max_seconds": 40.0,
+                            "late_join_interval": 10.0}}
+    body = {"intrinsics_yaml": yaml.safe_dump({c: intr[c] for c in WEST}), "reference_yaml": dump_extrinsics(truth),
+            "person_height": list(HEIGHTS), "config": config}
+    seen: list[dict] = []
+    with ServiceThread(settings) as st, httpx.Client(base_url=st.url, timeout=60) as client:
+        with Sensors(endpoint, site, lab_dir, duration=1500.0, quiet={late: 45.0}):
+            sid = client.post("/sessions", json=body).json()["id"]
+            done = _poll(client, f"/sessions/{sid}", lambda s: s["bootstrap"]["phase"] == "done" or s["state"] == "failed",
+                         240, "the bootstrap was not handed over", seen)
+            assert done["state"] != "failed", done["reason"]
+            assert late in done["bootstrap"]["not_placed"], done["bootstrap"]
+            assert "resected while it runs and when it stops" in done["reason"]
+            cams = lambda s: {c["name"]: c for c in s["cameras"]}  # noqa: E731
+            joined = _poll(client, f"/sessions/{sid}", lambda s: late in cams(s) and cams(s)[late]["cycles"] >= 2
+                           or s["state"] == "failed", 240, f"{late} did not join the running session", seen)
+            assert joined["state"] != "failed", joined["reason"]
+            assert set(cams(joined)) == set(WEST) and joined["bootstrap"]["not_placed"] == []
+            assert [(j["name"], j["live"]) for j in joined["bootstrap"]["placed_later"]] == [(late, True)]
+            assert (tmp_path / "sessions" / sid / "initial.yaml").read_text().count(f"{late}:") == 1  # a resume has it
+            stopped = client.post(f"/sessions/{sid}/stop").json()
+        result_text = client.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text
+    assert stopped["state"] == "stopped" and stopped["final_batch"]["ran"]
+    assert [(j["name"], j["live"], j["adjusted"]) for j in stopped["bootstrap"]["placed_later"]] == [(late, True, True)]
+    result = parse_extrinsics(result_text)
+    assert set(result) == set(WEST) and f"# {late} placed after the bootstrap" in result_text
+    acc = evaluate({k: v.pose for k, v in result.items()}, {k: v.pose for k, v in truth.items()})
+    print(acc.summary())
+    assert acc.shape_position.max < 0.05 and acc.shape_orientation.max < 0.5
