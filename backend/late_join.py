@@ -312,6 +312,13 @@ class JoiningPipeline(Pipeline):
         if self.raw is not None and q.raw is not None:
             q.raw = self.raw.keep(names)
         q._recalibrate_due = [(due, names.index(self.names[c]), since) for due, c, since in self._recalibrate_due]
+        for k in ("detected", "associated", "detected_total", "associated_total", "associated_multi"):
+            arr = getattr(self, k)  # what the lost-camera and pairwise-only checks count on
+            setattr(q, k, np.array([arr[old[n]] if n in old else 0 for n in names], dtype=np.int64))
+        q.last_lost_check = self.last_lost_check
+        # the monitor starts afresh: its watch too (the converged are watched again after a cycle)
+        q.watched[:] = False
+        q.refiner.held[:] = False
         q.frames = self._merged_frames(names)
         q.late_sync.take_over(self.late_sync)
         q.late_preprocess, q.late_frames, q._late_pending = self.late_preprocess, self.late_frames, self._late_pending

@@ -24,8 +24,9 @@ recording: the session collects the data first.
 
 Cameras the bootstrap did not place are not in the online pipeline (as offline: a camera
 without a pose would only feed wrong associations); their framesets are archived beside it
-and they are resected when the session stops, joining its final batch when they pass
-(backend/late_join.py, ``late_record``); the session lists them as not placed until then.
+and they are resected while the session runs (``bootstrap.late_join_interval``: one that
+passes joins the running pipeline) and when it stops, joining its final batch when they
+pass (backend/late_join.py, ``late_record``); the session lists them as not placed until then.
 
 Everything here is synchronous and free of asyncio: the service (backend/service.py)
 drives it from its loop.

@@ -205,7 +205,7 @@ def run_calibrate(seed: int, seconds: float, cache: Path, overrides: list[str], 
     out["scale"] = meta["scale"]
     out["bridge_checks"] = meta.get("bridge_checks", [])
     out["resections"] = meta.get("resections", [])
-    out["placed_later"] = meta.get("placed_later", [])  # backend/late_join.py: resected at the end of the run
+    out["placed_later"] = meta.get("placed_later", [])  # backend/late_join.py: resected while the run goes on or at its end
     out["late_resections"] = meta.get("late_resections", [])
     out["final_batch"] = next((ln for ln in res_comment if ln.startswith("final batch adjustment")), None)
     out["bootstrap"] = _shape(evaluate(boot, ref))
@@ -219,7 +219,8 @@ def run_calibrate(seed: int, seconds: float, cache: Path, overrides: list[str], 
         f"bars, final {f['within']}/{f['cameras']}, shape {f['shape_position']:.4f} m (max "
         f"{f['shape_position_max']:.4f}) {f['shape_orientation']:.3f}° (max {f['shape_orientation_max']:.3f}); "
         f"not placed: {', '.join(out['not_placed']) or '-'}; placed later: "
-        f"{', '.join(j['name'] for j in out['placed_later']) or '-'}; {out['wall']:.0f} s")
+        f"{', '.join(j['name'] + (' (joined the running pipeline)' if j.get('live') else '') for j in out['placed_later']) or '-'}; "
+        f"{out['wall']:.0f} s")
     return out
 
 
@@ -258,12 +259,14 @@ def print_calibrate(runs: list[dict]) -> None:
         print(f"- seed {r['seed']}, {r['seconds']:g} s: {lost or 'none'}")
     late = [r for r in runs if r.get("late_resections")]
     if late:
-        print("\nCameras the bootstrap did not place, resected at the end of the run against the online estimate "
-              "(backend/late_join.py; errors in the result, similarity-aligned):\n")
+        print("\nCameras the bootstrap did not place, resected against the online estimate while the run went on "
+              "(\"live\") or at its end (backend/late_join.py; the last resection's notes; errors in the result, "
+              "similarity-aligned):\n")
         for r in late:
             placed = {j["name"] for j in r.get("placed_later", [])}
-            errs = "; ".join(f"{n} {r['final']['per_camera'][n][0]:.3f} m / {r['final']['per_camera'][n][1]:.2f}°"
-                             for n in sorted(placed) if n in r["final"]["per_camera"])
+            live = {j["name"] for j in r.get("placed_later", []) if j.get("live")}
+            errs = "; ".join(f"{n}{' (live)' if n in live else ''} {r['final']['per_camera'][n][0]:.3f} m / "
+                             f"{r['final']['per_camera'][n][1]:.2f}°" for n in sorted(placed) if n in r["final"]["per_camera"])
             print(f"- seed {r['seed']}, {r['seconds']:g} s: {'; '.join(r['late_resections'])}"
                   + (f" → in the result: {errs}" if errs else ""))
     res = [r for r in runs if r.get("resections")]
