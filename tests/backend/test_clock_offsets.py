@@ -206,24 +206,34 @@ def test_set_offset_restamps_buffered_messages_and_keeps_raw_duplicates():
         sync.set_offset("nope", 0.1)
 
 
+SIX = tuple(f"cam_{i}" for i in (1, 2, 8, 9, 10, 14))
+
+
+def six_cameras(duration: float, seed: int, offsets: dict[str, float]):
+    """6 cameras of the lab at their reference poses and what they publish: 2 persons,
+    no detector noise, ``offsets`` (sensor -> s) on their clocks. Returns (cameras,
+    messages)."""
+    from edge_clients.sim import Scene, SimConfig, Simulator
+
+    sim = Simulator(Scene.load(LAB), SimConfig(persons=2, duration=duration, seed=seed, noise=False,
+                                               heights=(1.96, 1.70), clock_offsets=offsets))
+    intr = load_intrinsics(LAB / "intrinsics.yaml")
+    ref = load_extrinsics(LAB / "reference.yaml")
+    return CameraSet.combine({n: intr[n] for n in SIX}, {n: ref[n] for n in SIX}), [m for _, m in sim.messages(SIX)]
+
+
 @pytest.fixture(scope="module")
 def short_run():
     """6 cameras of the lab, 2 persons, 40 s, no detector noise, two sensors 150 ms
     early / 90 ms late; the estimator fed with the reference poses."""
-    from edge_clients.sim import Scene, SimConfig, Simulator
-
-    names = [f"cam_{i}" for i in (1, 2, 8, 9, 10, 14)]
+    names = list(SIX)
     offsets = {"cam_2": -0.15, "cam_9": 0.09}
-    sim = Simulator(Scene.load(LAB), SimConfig(persons=2, duration=40.0, seed=3, noise=False,
-                                               heights=(1.96, 1.70), clock_offsets=offsets))
-    intr = load_intrinsics(LAB / "intrinsics.yaml")
-    ref = load_extrinsics(LAB / "reference.yaml")
-    cams = CameraSet.combine({n: intr[n] for n in names}, {n: ref[n] for n in names})
+    cams, msgs = six_cameras(40.0, 3, offsets)
     cfg = EngineConfig.from_dict({"clock": {"estimate": True}, "refine": {"final_batch": False},
                                   "associate": {"relocalize": False}})
     p = Pipeline(cams, cfg)
     p._calibrated = lambda: True  # the poses are the reference: no adjustment to wait for
-    for _, msg in sim.messages(names):
+    for msg in msgs:
         p.push(msg)
         if p.clock is not None:
             p.advance(p.clock)  # poses stay the reference: the estimator alone is tested
@@ -409,19 +419,11 @@ def test_clock_job_runs_in_a_thread_on_a_snapshot():
     import pickle
     import threading
 
-    from edge_clients.sim import Scene, SimConfig, Simulator
-
-    names = [f"cam_{i}" for i in (1, 2, 8, 9, 10, 14)]
-    sim = Simulator(Scene.load(LAB), SimConfig(persons=2, duration=36.0, seed=4, noise=False,
-                                               heights=(1.96, 1.70), clock_offsets={"cam_9": 0.09}))
-    intr = load_intrinsics(LAB / "intrinsics.yaml")
-    ref = load_extrinsics(LAB / "reference.yaml")
-    cams = CameraSet.combine({n: intr[n] for n in names}, {n: ref[n] for n in names})
+    cams, msgs = six_cameras(36.0, 4, {"cam_9": 0.09})
     cfg = EngineConfig.from_dict({"clock": {"estimate": True}, "refine": {"final_batch": False},
                                   "associate": {"relocalize": False}})
     p = Pipeline(cams, cfg)
     p.cycle, p.first_passes = 1, cfg.select.first_passes  # "calibrated": the poses are the reference
-    msgs = [m for _, m in sim.messages(names)]
     k = 0
     while p.clock is None or p.clock < msgs[0].stamp + 30.0:
         p.push(msgs[k])
@@ -442,7 +444,7 @@ def test_clock_job_runs_in_a_thread_on_a_snapshot():
     assert not np.isfinite(p.clocks.raw).any()  # nothing changed before apply_clock
     p.apply_clock(job, out[0])
     copy_.clocks.update(job.now, job.R, job.t, P=copy_.refiner.S)  # as Pipeline.clock_job begins it
-    assert np.isfinite(p.clocks.raw).sum() >= 2 and np.isfinite(p.clocks.raw[names.index("cam_9")])
+    assert np.isfinite(p.clocks.raw).sum() >= 2 and np.isfinite(p.clocks.raw[SIX.index("cam_9")])
     np.testing.assert_array_equal(p.clocks.raw, copy_.clocks.raw)
     np.testing.assert_array_equal(p.clocks.std, copy_.clocks.std)
     np.testing.assert_array_equal(p.clocks.applied, copy_.clocks.applied)

@@ -12,17 +12,10 @@ from backend.config import EngineConfig, SyncConfig
 from backend.pipeline import Pipeline
 from backend.retime import RawArchive
 from backend.sync import Synchronizer
-from proto import KeypointMessage, Person
+from proto import KeypointMessage
+from test_clock_offsets import _msg, six_cameras  # _msg: one person, 17 joints on a line moving with x
 
 LAB = Path(__file__).resolve().parents[2] / "edge_clients" / "data" / "ais_lab20"
-
-
-def _msg(sensor: str, seq: int, stamp: float, x: float) -> KeypointMessage:
-    kp = np.zeros((17, 3))
-    kp[:, 0] = x + np.arange(17)
-    kp[:, 1] = 200 + 5 * np.arange(17)
-    kp[:, 2] = 0.9
-    return KeypointMessage(sensor, seq, stamp, (848, 480), (Person(kp),))
 
 
 def test_raw_archive_keeps_its_seconds_sorted_and_ignores_duplicates_and_strangers():
@@ -59,15 +52,7 @@ def test_views_at_an_offset_are_those_the_synchroniser_makes_with_it():
 
 @pytest.fixture(scope="module")
 def scene():
-    from edge_clients.sim import Scene, SimConfig, Simulator
-
-    names = [f"cam_{i}" for i in (1, 2, 8, 9, 10, 14)]
-    sim = Simulator(Scene.load(LAB), SimConfig(persons=2, duration=20.0, seed=5, noise=False,
-                                               heights=(1.96, 1.70), clock_offsets={"cam_9": 0.12}))
-    intr = load_intrinsics(LAB / "intrinsics.yaml")
-    ref = load_extrinsics(LAB / "reference.yaml")
-    cams = CameraSet.combine({n: intr[n] for n in names}, {n: ref[n] for n in names})
-    return cams, [m for _, m in sim.messages(names)]
+    return six_cameras(20.0, 5, {"cam_9": 0.12})
 
 
 def _run(cams: CameraSet, msgs: list[KeypointMessage], offset: float | None) -> Pipeline:

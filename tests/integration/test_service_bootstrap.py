@@ -44,16 +44,22 @@ class Sensors(SensorProcess):
             endpoint, site, WEST, len(HEIGHTS), HEIGHTS, duration, 0, SPEED, str(lab), ready, stop, quiet))
 
 
-def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, lab_dir):
-    zport = free_port()
-    endpoint = f"tcp/127.0.0.1:{zport}"
-    site = "boot"
+def _setup(tmp_path: Path, lab_dir: Path, site: str, config: dict) -> tuple[ServiceSettings, str, dict, dict]:
+    """Settings of a service on a free loopback port, its endpoint, the true poses of WEST
+    and a session body without an initial estimate (the walkers' heights known)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     settings = ServiceSettings.load(None, http={"port": 0}, zenoh={"listen": (endpoint,)}, state_dir=tmp_path,
                                     site=site, clock="data", speed=SPEED)
     intr = yaml.safe_load((lab_dir / "intrinsics.yaml").read_text())
     truth = {k: e for k, e in load_extrinsics(lab_dir / "reference.yaml").items() if k in WEST}
     body = {"name": "no initial estimate", "intrinsics_yaml": yaml.safe_dump({c: intr[c] for c in WEST}),
-            "reference_yaml": dump_extrinsics(truth), "person_height": list(HEIGHTS), "config": BOOT}
+            "reference_yaml": dump_extrinsics(truth), "person_height": list(HEIGHTS), "config": config}
+    return settings, endpoint, truth, body
+
+
+def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, lab_dir):
+    site = "boot"
+    settings, endpoint, truth, body = _setup(tmp_path, lab_dir, site, BOOT)
     seen: list[dict] = []
     t0 = time.monotonic()
     with ServiceThread(settings) as st, httpx.Client(base_url=st.url, timeout=60) as client:
@@ -116,17 +122,10 @@ def test_a_camera_the_bootstrap_left_out_joins_the_running_session(tmp_path, lab
     it with cycles of its own before the session stops, and the result has it within the
     bars (backend/late_join.py)."""
     late = "cam_17"
-    zport = free_port()
-    endpoint = f"tcp/127.0.0.1:{zport}"
     site = "bootlate"
-    settings = ServiceSettings.load(None, http={"port": 0}, zenoh={"listen": (endpoint,)}, state_dir=tmp_path,
-                                    site=site, clock="data", speed=SPEED)
-    intr = yaml.safe_load((lab_dir / "intrinsics.yaml").read_text())
-    truth = {k: e for k, e in load_extrinsics(lab_dir / "reference.yaml").items() if k in WEST}
     config = {"bootstrap": {"live_first": 30.0, "live_interval": 10.0, "max_seconds": 40.0,
                             "late_join_interval": 10.0}}
-    body = {"intrinsics_yaml": yaml.safe_dump({c: intr[c] for c in WEST}), "reference_yaml": dump_extrinsics(truth),
-            "person_height": list(HEIGHTS), "config": config}
+    settings, endpoint, truth, body = _setup(tmp_path, lab_dir, site, config)
     seen: list[dict] = []
     with ServiceThread(settings) as st, httpx.Client(base_url=st.url, timeout=60) as client:
         with Sensors(endpoint, site, lab_dir, duration=1500.0, quiet={late: 45.0}):
