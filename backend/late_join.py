@@ -102,8 +102,9 @@ class JoiningPipeline(Pipeline):
         self.joined: Pipeline | None = None
         self.late: list[Joined] = []
         self.late_notes: list[str] = []
+        self.late_archived = 0  # framesets ever archived in late_frames (a full deque stops growing)
         self._late_tried: float | None = None  # data time of the last resection while running
-        self._late_seen = 0  # late framesets archived then
+        self._late_seen = 0  # late_archived then
 
     # ------------------------------------------------------------ the second front end
 
@@ -156,6 +157,7 @@ class JoiningPipeline(Pipeline):
             dets = self.late_preprocess(fs)
             if len(dets) >= 2 and any(v[0].cam in self._unplaced_idx for v in dets):
                 self.late_frames.append((fs.time, tuple(tuple(v) for v in dets)))
+                self.late_archived += 1
 
     def take_late_frames(self, frames: Iterable[Frame]) -> int:
         """Framesets (camera indices of ``all_names``) from before this pipeline existed (the
@@ -166,6 +168,7 @@ class JoiningPipeline(Pipeline):
             if len(views) >= 2 and any(v and v[0].cam in self._unplaced_idx for v in views):
                 self.late_frames.append((T, views))
                 n += 1
+        self.late_archived += n
         return n
 
     def _retime(self, sensors: list[str]) -> None:
@@ -276,12 +279,12 @@ class JoiningPipeline(Pipeline):
             return False
         if self._late_tried is None:
             self._late_tried = now  # the first an interval after the first adjustment: the others settle
-        return now - self._late_tried >= iv and len(self.late_frames) > self._late_seen
+        return now - self._late_tried >= iv and self.late_archived > self._late_seen
 
     def late_job(self, now: float) -> "LateJob":
         """The job of a due resection (``LateJob.run`` in another process; its result to
         ``join_live``)."""
-        self._late_tried, self._late_seen = now, len(self.late_frames)
+        self._late_tried, self._late_seen = now, self.late_archived
         return self._late_job()
 
     def join_live(self, job: "LateJob", found: "LateResult") -> "JoiningPipeline | None":
@@ -322,8 +325,8 @@ class JoiningPipeline(Pipeline):
         q.frames = self._merged_frames(names)
         q.late_sync.take_over(self.late_sync)
         q.late_preprocess, q.late_frames, q._late_pending = self.late_preprocess, self.late_frames, self._late_pending
-        q.late, q.late_notes = self.late, self.late_notes
-        q._late_tried, q._late_seen = self._late_tried, self._late_seen
+        q.late, q.late_notes = list(self.late), list(self.late_notes)
+        q.late_archived, q._late_tried, q._late_seen = self.late_archived, self._late_tried, self._late_seen
         return q
 
     def _grown(self) -> tuple[CameraSet, dict]:
