@@ -380,8 +380,13 @@ class JoiningPipeline(Pipeline):
         merged: dict[int, Frame] = {}
         for T, views in remap(list(self.frames), from_placed):
             merged[round(T * rate)] = (T, views)
-        for T, views in remap(list(self.late_frames), from_all):  # the same instant with the late camera's view
-            merged[round(T * rate)] = (T, views)
+        for T, views in remap(list(self.late_frames), from_all):
+            k = round(T * rate)
+            if k in merged:  # the same instant: the pipeline's views (timed as it timed them) and the late cameras'
+                have = {v[0].cam for v in merged[k][1]}
+                views = tuple(sorted(merged[k][1] + tuple(v for v in views if v[0].cam not in have),
+                                     key=lambda v: v[0].cam))
+            merged[k] = (T, views)
         return deque((merged[k] for k in sorted(merged)), maxlen=max(self.cfg.refine.archive_frames, len(merged)))
 
     def _joined_pipeline(self) -> Pipeline:
