@@ -244,7 +244,7 @@ class BootstrapConfig(_Section):
 class ClockConfig(_Section):
     """Sensor clock offsets estimated from the data (backend/clock_offsets.py, docs/clock_offsets.md)."""
 
-    estimate: bool = Field(False, description="(off by default: not at its 5 ms bar on every seed (14 of 15 on seeds 1-3), and seconds of CPU per "
+    estimate: bool = Field(False, description="(off by default: not at its 5 ms bar on every seed (24 of 25 on seeds 1-5), and seconds of CPU per "
                            "interval, see docs/clock_offsets.md) estimate each sensor's clock offset from its keypoints and "
                            "apply confident ones beyond NTP's spread (the service runs the estimate in a thread)")
     max_offset: float = Field(0.25, gt=0, le=2.0, description="s: largest offset searched (relative to the synchronised clock)")
