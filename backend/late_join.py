@@ -305,6 +305,7 @@ class JoiningPipeline(Pipeline):
         q.rng, q.clock, q.last_cycle_time = self.rng, self.clock, self.last_cycle_time
         q.messages, q.rejected, q.last_seen = self.messages, self.rejected, self.last_seen
         q.relocalized, q.first_gated = self.relocalized, self.first_gated
+        q.cycles_rejected, q.last_report, q.scale_heights = self.cycles_rejected, self.last_report, self.scale_heights
         old = {n: k for k, n in enumerate(self.names)}
         q.sync.take_over(self.sync)
         q.sync.take_buffers(self.late_sync, [j.name for j in new])
