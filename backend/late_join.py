@@ -106,6 +106,18 @@ class JoiningPipeline(Pipeline):
         self._late_tried: float | None = None  # data time of the last resection while running
         self._late_seen = 0  # late_archived then
 
+    @classmethod
+    def resume(cls, cameras: CameraSet, config: EngineConfig, snapshot: dict, *, intrinsics: Mapping[str, Intrinsics],
+               names: Sequence[str], seed: int = 0) -> "JoiningPipeline":
+        """A session's pipeline after a restart (``Pipeline.restore``) that goes on archiving
+        and resecting the cameras of ``names`` without a pose: the framesets archived before
+        the restart are lost, new data may still place them."""
+        if snapshot.get("version") != 2 or list(snapshot.get("names", [])) != list(cameras.names):
+            raise ValueError("snapshot does not belong to this camera set")
+        p = cls(cameras, config, intrinsics=intrinsics, names=names, seed=seed)
+        p._load(snapshot)
+        return p
+
     # ------------------------------------------------------------ the second front end
 
     def push(self, msg: KeypointMessage, arrival: float | None = None) -> str | None:

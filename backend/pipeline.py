@@ -783,6 +783,8 @@ class Pipeline:
     def _load(self, snapshot: dict) -> None:
         """The estimate of a ``snapshot`` (of these cameras) into this new pipeline."""
         p, config = self, self.cfg
+        if snapshot.get("scale_heights") is not None:
+            p.scale_heights = tuple(float(h) for h in snapshot["scale_heights"])
         if snapshot.get("scale_check") is not None:
             p.scale_check = ScaleCheck.from_dict(snapshot["scale_check"])
         rf = p.refiner

@@ -45,7 +45,7 @@ import numpy as np
 from proto import MessageError, decode, keys
 from proto.keys import sensor_of
 
-from .cameras import dump_extrinsics, parse_extrinsics, parse_intrinsics
+from .cameras import dump_extrinsics, natural_key, parse_extrinsics, parse_intrinsics
 from .config import ConfigError, EngineConfig
 from .history import CalibrationHistory
 from .ingest import HandOff, SensorTable, ServiceClock
@@ -343,6 +343,12 @@ class ActiveSession:
         return frozenset(self.inputs.cameras.names)
 
     @property
+    def sensors(self) -> frozenset[str]:
+        """The sensors whose messages it takes: its cameras and those its bootstrap has not
+        placed yet (backend/late_join.py archives them)."""
+        return self.names | frozenset(getattr(self.pipeline, "unplaced", ()))
+
+    @property
     def resolutions(self) -> dict[str, tuple[int, int]]:
         return {n: self.inputs.cameras.extrinsics[n].resolution for n in self.inputs.cameras.names}
 
@@ -411,7 +417,7 @@ class Service:
         self._active = s
         self._changed()
         if self.handoff is not None:  # sensors outside the session are refused on Zenoh's threads
-            self.handoff.accept(None if s is None else s.names)
+            self.handoff.accept(None if s is None else s.sensors)
 
     def _new_clock(self, cfg: EngineConfig) -> ServiceClock:
         return ServiceClock(self.settings.clock, speed=self.settings.speed,
@@ -569,11 +575,20 @@ class Service:
                 pipeline = Collector(inputs.cameras, inputs.config, LiveOptions.from_dict(rec.bootstrap.get("options")),
                                      initial=inputs.initial_yaml is not None, seed=rec.seed + rec.resumed + 1)
                 rec.bootstrap = {**rec.bootstrap, **pipeline.progress()}
-            elif snap is not None:
-                pipeline = Pipeline.restore(inputs.cameras, inputs.config, snap, seed=rec.seed + rec.resumed + 1)
             else:
-                pipeline = Pipeline(inputs.cameras, inputs.config, seed=rec.seed, scale_heights=None if rec.scale is None
-                                    else tuple(rec.scale.get("person_height") or ()))
+                intr = parse_intrinsics(inputs.intrinsics_yaml)
+                if rec.bootstrap is not None and inputs.config.bootstrap.late and set(intr) - set(inputs.cameras.names):
+                    from .late_join import JoiningPipeline  # cameras its bootstrap left out: new data may place them
+
+                    names = tuple(sorted(intr, key=natural_key))
+                    pipeline = (JoiningPipeline.resume(inputs.cameras, inputs.config, snap, intrinsics=intr, names=names,
+                                                       seed=rec.seed + rec.resumed + 1) if snap is not None else
+                                JoiningPipeline(inputs.cameras, inputs.config, intrinsics=intr, names=names, seed=rec.seed))
+                elif snap is not None:
+                    pipeline = Pipeline.restore(inputs.cameras, inputs.config, snap, seed=rec.seed + rec.resumed + 1)
+                else:
+                    pipeline = Pipeline(inputs.cameras, inputs.config, seed=rec.seed, scale_heights=None if rec.scale is None
+                                        else tuple(rec.scale.get("person_height") or ()))
         except Exception as e:  # a snapshot or files that no longer load: say so, keep the files
             rec.state, rec.reason, rec.ended_wall = SessionState.failed, f"could not resume: {e}", time.time()
             self.store.save_record(rec)
@@ -807,7 +822,7 @@ class Service:
                                  s.inputs.reference_yaml, h.cameras, s.inputs.reference, h.config)
         s.__dict__.pop("names", None)  # the cached camera names: now the placed cameras
         if self.handoff is not None:  # and the cameras it did not place, archived for later (backend/late_join.py)
-            self.handoff.accept(s.names | frozenset(getattr(h.pipeline, "unplaced", ())))
+            self.handoff.accept(s.sensors)
         s.state = s.pipeline.state()
         s.last_snapshot = time.monotonic()
         data_time = None if rec.first_data is None or col.clock is None else col.clock - rec.first_data

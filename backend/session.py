@@ -189,13 +189,17 @@ class SessionInputs:
 
     @staticmethod
     def parse(intrinsics_yaml: str, initial_yaml: str | None, reference_yaml: str | None, config: EngineConfig,
-              sources: dict[str, str] | None = None) -> "SessionInputs":
-        """Raises SessionInputError naming the file (as given), line and field."""
+              sources: dict[str, str] | None = None, *, subset: bool = False) -> "SessionInputs":
+        """Raises SessionInputError naming the file (as given), line and field. ``subset``:
+        the initial estimate may hold fewer cameras than the intrinsics (a bootstrap's,
+        which left some out): the session's cameras are its."""
         src = sources or {}
         try:
             intr = parse_intrinsics(intrinsics_yaml, _label(src, "intrinsics"))
             init = parse_extrinsics(initial_yaml, _label(src, "initial")) if initial_yaml is not None else {
                 n: Extrinsics(Pose(np.eye(3), np.zeros(3)), i.resolution) for n, i in intr.items()}
+            if subset:
+                intr = {n: i for n, i in intr.items() if n in init}
             cams = CameraSet.combine(intr, init, _label(src, "intrinsics"), _label(src, "initial"))
             ref = None
             if reference_yaml is not None:
@@ -313,7 +317,11 @@ class SessionStore:
                      ref.read_text() if ref.is_file() else None]
         except OSError as e:
             raise SessionInputError(f"{d}: {e}") from None
-        return SessionInputs.parse(*texts, cfg, {k: f"file:{d / (k + '.yaml')}" for k in ("intrinsics", "initial", "reference")})
+        # a session bootstrapped live saved the cameras its bootstrap placed (and those that
+        # joined later) as its start; the intrinsics keep every camera
+        done = rec.bootstrap is not None and rec.bootstrap.get("phase") == "done"
+        return SessionInputs.parse(*texts, cfg, {k: f"file:{d / (k + '.yaml')}" for k in ("intrinsics", "initial", "reference")},
+                                   subset=done)
 
     def load_snapshot(self, sid: str) -> dict[str, Any] | None:
         path = self.dir(sid) / "snapshot.json"

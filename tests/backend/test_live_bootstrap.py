@@ -419,6 +419,51 @@ def test_a_session_places_the_camera_its_bootstrap_left_out_when_it_stops(tmp_pa
         assert set(parse_extrinsics(text)) == set(WEST)
 
 
+def test_a_session_whose_bootstrap_left_a_camera_out_resumes_after_a_restart(tmp_path, collected):
+    """The session's start holds the placed cameras, its intrinsics all of them: after a
+    restart it resumes with the placed ones and goes on taking the unplaced camera's
+    messages (its archive is lost; new data may still place it)."""
+    import functools
+    import time
+
+    import httpx
+
+    from backend.service import ServiceThread
+
+    full, inputs, cfg, msgs = collected
+    col = Collector(inputs.cameras, cfg, LiveOptions(), initial=False)
+    _run(col, msgs)
+    col.advance(msgs[-1].stamp + 1.0)
+    frames, seen = list(col.frames), col.seen.copy()
+    located = np.array([n != "cam_14" for n in WEST])
+    R, t = np.array([full.poses[n].R for n in WEST]), np.array([full.poses[n].t for n in WEST])
+    body = {"intrinsics_yaml": inputs.intrinsics_yaml,
+            "config": {"bootstrap": {"live_first": 20.0, "max_seconds": 20.0}}}
+    with ServiceThread(_settings(tmp_path)) as st, httpx.Client(base_url=st.url, timeout=60) as c:
+        st.service.bootstrap_fn = functools.partial(truth_job, R, t, located)
+        sid = c.post("/sessions", json=body).json()["id"]
+
+        def put():
+            p = st.service.active.pipeline
+            p.frames.extend(frames)
+            p.first_time = frames[0][0]
+            p.seen[:] = seen
+        st.call(put)
+        deadline = time.monotonic() + 120
+        while (s := c.get(f"/sessions/{sid}").json())["bootstrap"]["phase"] != "done":
+            assert time.monotonic() < deadline, s["reason"]
+            time.sleep(0.2)
+    with ServiceThread(_settings(tmp_path)) as st, httpx.Client(base_url=st.url, timeout=60) as c:
+        s = c.get(f"/sessions/{sid}").json()
+        assert s["resumed"] == 1 and s["state"] not in ("failed", "stopped"), s["reason"]
+        assert [cam["name"] for cam in s["cameras"]] == ["cam_11", "cam_12", "cam_15", "cam_16"]
+        assert s["bootstrap"]["not_placed"] == ["cam_14"]
+        p = st.call(lambda: st.service.active.pipeline)
+        assert p.unplaced == ("cam_14",) and "cam_14" in st.call(lambda: st.service.active.sensors)
+        stopped = c.post(f"/sessions/{sid}/stop").json()
+        assert stopped["state"] == "stopped" and stopped["bootstrap"]["not_placed"] == ["cam_14"]
+
+
 def slow_job(job):
     """A bootstrap attempt that takes minutes (in the solver process)."""
     import time
