@@ -373,15 +373,11 @@ def truth_job(R, t, located, job):
                                    "floor frame: the truth", 6, 10, len(job.frames), job.data_seconds, 1.0), None, 0.0)
 
 
-def test_a_session_places_the_camera_its_bootstrap_left_out_when_it_stops(tmp_path, collected):
-    """The service's side of backend/late_join.py: the session says the camera's data are
-    kept, its final batch places it, the record and the result name it."""
+def _bootstrapped_without_cam_14(st, c, collected) -> tuple[str, dict]:
+    """A session of the collected data whose bootstrap (the true poses) leaves cam_14 out,
+    handed over; returns its id and its record then."""
     import functools
     import time
-
-    import httpx
-
-    from backend.service import ServiceThread
 
     full, inputs, cfg, msgs = collected
     col = Collector(inputs.cameras, cfg, LiveOptions(), initial=False)
@@ -392,20 +388,31 @@ def test_a_session_places_the_camera_its_bootstrap_left_out_when_it_stops(tmp_pa
     R, t = np.array([full.poses[n].R for n in WEST]), np.array([full.poses[n].t for n in WEST])
     body = {"intrinsics_yaml": inputs.intrinsics_yaml,
             "config": {"bootstrap": {"live_first": 20.0, "max_seconds": 20.0}}}
-    with ServiceThread(_settings(tmp_path)) as st, httpx.Client(base_url=st.url, timeout=60) as c:
-        st.service.bootstrap_fn = functools.partial(truth_job, R, t, located)
-        sid = c.post("/sessions", json=body).json()["id"]
+    st.service.bootstrap_fn = functools.partial(truth_job, R, t, located)
+    sid = c.post("/sessions", json=body).json()["id"]
 
-        def put():
-            p = st.service.active.pipeline
-            p.frames.extend(frames)
-            p.first_time = frames[0][0]
-            p.seen[:] = seen
-        st.call(put)
-        deadline = time.monotonic() + 120
-        while (s := c.get(f"/sessions/{sid}").json())["bootstrap"]["phase"] != "done":
-            assert time.monotonic() < deadline, s["reason"]
-            time.sleep(0.2)
+    def put():
+        p = st.service.active.pipeline
+        p.frames.extend(frames)
+        p.first_time = frames[0][0]
+        p.seen[:] = seen
+    st.call(put)
+    deadline = time.monotonic() + 120
+    while (s := c.get(f"/sessions/{sid}").json())["bootstrap"]["phase"] != "done":
+        assert time.monotonic() < deadline, s["reason"]
+        time.sleep(0.2)
+    return sid, s
+
+
+def test_a_session_places_the_camera_its_bootstrap_left_out_when_it_stops(tmp_path, collected):
+    """The service's side of backend/late_join.py: the session says the camera's data are
+    kept, its final batch places it, the record and the result name it."""
+    import httpx
+
+    from backend.service import ServiceThread
+
+    with ServiceThread(_settings(tmp_path)) as st, httpx.Client(base_url=st.url, timeout=60) as c:
+        sid, s = _bootstrapped_without_cam_14(st, c, collected)
         assert s["bootstrap"]["late"] == ["cam_14"] and s["bootstrap"]["not_placed"] == ["cam_14"]
         assert "cam_14 (their data are kept: resected while it runs and when it stops)" in s["reason"]
         assert [cam["name"] for cam in s["cameras"]] == ["cam_11", "cam_12", "cam_15", "cam_16"]
@@ -423,36 +430,12 @@ def test_a_session_whose_bootstrap_left_a_camera_out_resumes_after_a_restart(tmp
     """The session's start holds the placed cameras, its intrinsics all of them: after a
     restart it resumes with the placed ones and goes on taking the unplaced camera's
     messages (its archive is lost; new data may still place it)."""
-    import functools
-    import time
-
     import httpx
 
     from backend.service import ServiceThread
 
-    full, inputs, cfg, msgs = collected
-    col = Collector(inputs.cameras, cfg, LiveOptions(), initial=False)
-    _run(col, msgs)
-    col.advance(msgs[-1].stamp + 1.0)
-    frames, seen = list(col.frames), col.seen.copy()
-    located = np.array([n != "cam_14" for n in WEST])
-    R, t = np.array([full.poses[n].R for n in WEST]), np.array([full.poses[n].t for n in WEST])
-    body = {"intrinsics_yaml": inputs.intrinsics_yaml,
-            "config": {"bootstrap": {"live_first": 20.0, "max_seconds": 20.0}}}
     with ServiceThread(_settings(tmp_path)) as st, httpx.Client(base_url=st.url, timeout=60) as c:
-        st.service.bootstrap_fn = functools.partial(truth_job, R, t, located)
-        sid = c.post("/sessions", json=body).json()["id"]
-
-        def put():
-            p = st.service.active.pipeline
-            p.frames.extend(frames)
-            p.first_time = frames[0][0]
-            p.seen[:] = seen
-        st.call(put)
-        deadline = time.monotonic() + 120
-        while (s := c.get(f"/sessions/{sid}").json())["bootstrap"]["phase"] != "done":
-            assert time.monotonic() < deadline, s["reason"]
-            time.sleep(0.2)
+        sid, _ = _bootstrapped_without_cam_14(st, c, collected)
     with ServiceThread(_settings(tmp_path)) as st, httpx.Client(base_url=st.url, timeout=60) as c:
         s = c.get(f"/sessions/{sid}").json()
         assert s["resumed"] == 1 and s["state"] not in ("failed", "stopped"), s["reason"]
