@@ -24,9 +24,12 @@ from proto import KeypointMessage
 from .config import SyncConfig
 from .sync import View, _Entry, view_at
 
+_PRUNE = 256  # messages past ``seconds`` removed at once
+
 
 class RawArchive:
-    """Per sensor, its messages of the last ``seconds`` (raw sensor stamps, sorted)."""
+    """Per sensor, its messages of the last ``seconds`` (raw sensor stamps, sorted; up to
+    ``_PRUNE`` older ones wait to be removed in one go)."""
 
     def __init__(self, sensors: Iterable[str], seconds: float):
         self.seconds = float(seconds)
@@ -55,7 +58,7 @@ class RawArchive:
         stamps.insert(i, msg.stamp)
         msgs.insert(i, e)
         k = bisect.bisect_left(stamps, stamps[-1] - self.seconds)
-        if k > 0:
+        if k >= _PRUNE or (k and k == len(stamps) - 1):  # in chunks: deleting a list's head moves all of it
             del stamps[:k], msgs[:k]
 
     def span(self, sensor: str) -> tuple[float, float] | None:
