@@ -22,7 +22,7 @@ from dataclasses import replace
 from proto import KeypointMessage
 
 from .config import SyncConfig
-from .sync import View, _Entry, view_at
+from .sync import Buffered, View, view_at
 
 _PRUNE = 256  # messages past ``seconds`` removed at once
 
@@ -34,7 +34,7 @@ class RawArchive:
     def __init__(self, sensors: Iterable[str], seconds: float):
         self.seconds = float(seconds)
         self._stamps: dict[str, list[float]] = {s: [] for s in sensors}
-        self._msgs: dict[str, list[_Entry]] = {s: [] for s in self._stamps}
+        self._msgs: dict[str, list[Buffered]] = {s: [] for s in self._stamps}
 
     def __len__(self) -> int:
         return sum(len(v) for v in self._stamps.values())
@@ -49,9 +49,9 @@ class RawArchive:
         if stamps is None:
             return
         msgs = self._msgs[msg.sensor]
-        e = _Entry.of(msg)
+        e = Buffered.of(msg)
         # the persons are in the entry's arrays: the message itself need not keep them twice
-        e = _Entry(replace(msg, persons=()), e.kp, e.boxes, e.cov)
+        e = Buffered(replace(msg, persons=()), e.kp, e.boxes, e.cov)
         i = bisect.bisect_right(stamps, msg.stamp)
         if i > 0 and stamps[i - 1] == msg.stamp:
             return  # a duplicate (the synchroniser counted it)
@@ -70,7 +70,7 @@ class RawArchive:
         """The sensor's view at each frameset time (synchronised clock) with its stamps
         less ``offset``, exactly as the synchroniser would have made it."""
         stamps = [s - offset for s in self._stamps[sensor]]
-        msgs = [_Entry(replace(e.msg, stamp=e.msg.stamp - offset), e.kp, e.boxes, e.cov)
+        msgs = [Buffered(replace(e.msg, stamp=e.msg.stamp - offset), e.kp, e.boxes, e.cov)
                 for e in self._msgs[sensor]]
         cache: dict = {}
         return [view_at(stamps, msgs, T, cfg, cache) for T in times]

@@ -72,7 +72,7 @@ class Frameset:
 
 
 @dataclass(frozen=True, eq=False)
-class _Entry:
+class Buffered:
     """A buffered message with its arrays stacked once (kp (P, 17, 3), boxes (P, 4))."""
 
     msg: KeypointMessage
@@ -85,12 +85,12 @@ class _Entry:
         return self.msg.stamp
 
     @staticmethod
-    def of(msg: KeypointMessage) -> "_Entry":
+    def of(msg: KeypointMessage) -> "Buffered":
         boxes = np.array([p.bbox if p.bbox is not None else np.full(4, np.nan) for p in msg.persons]).reshape(-1, 4)
         cov = None
         if msg.persons and all(p.cov is not None for p in msg.persons):
             cov = np.stack([p.cov for p in msg.persons])
-        return _Entry(msg, msg.keypoints(), boxes, cov)
+        return Buffered(msg, msg.keypoints(), boxes, cov)
 
 
 class _Recent:
@@ -141,7 +141,7 @@ def _match(a: np.ndarray, b: np.ndarray, max_dist: float) -> list[tuple[int, int
     return pairs
 
 
-def _single(e: _Entry, T: float) -> View:
+def _single(e: Buffered, T: float) -> View:
     m = e.msg
     P = len(e.kp)
     return View(m.sensor, m.stamp, m.stamp - T, m.size, e.kp, e.boxes, e.cov, np.zeros((P, N_J)), False,
@@ -150,10 +150,10 @@ def _single(e: _Entry, T: float) -> View:
 
 def interpolate(m0: KeypointMessage, m1: KeypointMessage, T: float) -> View:
     """Keypoints of the persons seen in both messages, linearly interpolated to T."""
-    return _interpolate(_Entry.of(m0), _Entry.of(m1), T, {})
+    return _interpolate(Buffered.of(m0), Buffered.of(m1), T, {})
 
 
-def _interpolate(e0: _Entry, e1: _Entry, T: float, cache: dict) -> View:
+def _interpolate(e0: Buffered, e1: Buffered, T: float, cache: dict) -> View:
     """Keypoints of persons seen in both messages, linearly interpolated to T.
 
     A joint missing in either message is missing. Persons seen in only one message are
@@ -197,7 +197,7 @@ class Synchronizer:
         self.cfg = config
         self.sensors = tuple(sensors)
         self._stamps: dict[str, list[float]] = {s: [] for s in self.sensors}
-        self._msgs: dict[str, list[_Entry]] = {s: [] for s in self.sensors}
+        self._msgs: dict[str, list[Buffered]] = {s: [] for s in self.sensors}
         self._pairs: dict[tuple[str, float, float], list[tuple[int, int]]] = {}
         self._last_seq: dict[str, _Recent] = {s: _Recent(64) for s in self.sensors}
         self.next_time: float | None = None
@@ -219,7 +219,7 @@ class Synchronizer:
         self.offsets[sensor] = float(offset)
         if shift:
             self._stamps[sensor] = [x + shift for x in self._stamps[sensor]]
-            self._msgs[sensor] = [_Entry(replace(e.msg, stamp=e.msg.stamp + shift), e.kp, e.boxes, e.cov)
+            self._msgs[sensor] = [Buffered(replace(e.msg, stamp=e.msg.stamp + shift), e.kp, e.boxes, e.cov)
                                   for e in self._msgs[sensor]]
 
     def take_buffers(self, other: "Synchronizer", sensors: Iterable[str]) -> None:
@@ -228,7 +228,7 @@ class Synchronizer:
         for s in sensors:
             shift = other.offset(s) - self.offset(s)
             self._stamps[s] = [x + shift for x in other._stamps.get(s, [])]
-            self._msgs[s] = [e if not shift else _Entry(replace(e.msg, stamp=e.msg.stamp + shift), e.kp, e.boxes, e.cov)
+            self._msgs[s] = [e if not shift else Buffered(replace(e.msg, stamp=e.msg.stamp + shift), e.kp, e.boxes, e.cov)
                              for e in other._msgs.get(s, [])]
             self._last_seq[s] = other._last_seq[s].copy() if s in other._last_seq else _Recent(64)
 
@@ -272,7 +272,7 @@ class Synchronizer:
         if i > 0 and stamps[i - 1] == msg.stamp:
             return self._reject("duplicate")
         stamps.insert(i, msg.stamp)
-        msgs.insert(i, _Entry.of(msg))
+        msgs.insert(i, Buffered.of(msg))
         if self.latest_stamp is None or msg.stamp > self.latest_stamp:
             self.latest_stamp = msg.stamp
         if self.next_time is None:
@@ -335,7 +335,7 @@ class Synchronizer:
         return view_at(self._stamps[s], self._msgs[s], T, self.cfg, self._pairs)
 
 
-def view_at(stamps: list[float], msgs: list[_Entry], T: float, cfg: SyncConfig, cache: dict) -> View | None:
+def view_at(stamps: list[float], msgs: list[Buffered], T: float, cfg: SyncConfig, cache: dict) -> View | None:
     """One sensor's view at frameset time T from its messages (``stamps`` sorted, on the
     synchronised clock): interpolated between the two that bracket T, else the nearest
     within ``max_offset``; None when it saw nobody there. ``cache``: person matches of
