@@ -10,12 +10,12 @@ from typing import Any, Callable
 
 def publish_room(endpoint: str, site: str, cams: tuple[str, ...], persons: int, heights: tuple[float, ...],
                  duration: float, seed: int, speed: float, lab: str, ready, stop,
-                 quiet: dict[str, float] | None = None) -> None:
+                 quiet: dict[str, float] | None = None, sim: dict | None = None) -> None:
     """``cams`` of the lab as a scene of their own (its room plan: the walkers stay where
     the cameras look), ``persons`` walkers of ``heights``; messages simulated first, then
     published through Zenoh paced at ``speed`` x real time. ``ready``/``stop``:
     multiprocessing events. ``quiet``: sensor -> s of data in which it sees nobody (a
-    corner people reach later)."""
+    corner people reach later). ``sim``: more ``SimConfig`` fields (e.g. clock offsets)."""
     import dataclasses
     import signal
     import time
@@ -28,7 +28,7 @@ def publish_room(endpoint: str, site: str, cams: tuple[str, ...], persons: int, 
     full = Scene.load(Path(lab))
     scene = Scene.from_cameras({n: full.intrinsics[n] for n in cams}, {n: full.poses[n] for n in cams},
                                Path(lab) / "room.yaml")
-    sim = Simulator(scene, SimConfig(persons=persons, duration=duration, seed=seed, heights=heights))
+    sim = Simulator(scene, SimConfig(persons=persons, duration=duration, seed=seed, heights=heights, **(sim or {})))
     with zenoh_session(ZenohSettings(mode="peer", connect=(endpoint,))) as zs, \
             SensorPublisher(zs, site, block=True) as pub:
         pub.wait_matched(cams, timeout=30.0, stop=stop)
