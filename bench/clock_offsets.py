@@ -103,6 +103,8 @@ def main() -> None:
     ap.add_argument("--start", default="0.25/10", help="initial error m/deg")
     ap.add_argument("--drifts", default="", help="sensor=s/s,... clock rate errors of sensors (1e-4 = 100 ppm: 18 ms in 180 s)")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="engine setting (repeatable)")
+    ap.add_argument("--sim", action="append", default=[], metavar="KEY=VALUE",
+                    help="simulator setting for both recordings (repeatable), e.g. noise_scale=2")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/extrcal-accuracy-cache"))
     ap.add_argument("--json", type=Path)
     ap.add_argument("--runs", default="all", help="the runs to make, ';'-separated names as printed (default all)")
@@ -110,8 +112,10 @@ def main() -> None:
     offsets = {k: float(v) for k, v in (x.split("=") for x in a.offsets.split(","))}
     start = tuple(float(x) for x in a.start.split("/"))
     drifts = {k: float(v) for k, v in (x.split("=") for x in a.drifts.split(",") if x)}
-    rec_off = simulate(2, a.duration, a.seed, a.cache, {"clock_offsets": offsets, **({"clock_drifts": drifts} if drifts else {})})
-    rec_sync = simulate(2, a.duration, a.seed, a.cache, {})
+    sim = {k: float(v) for k, v in (x.split("=", 1) for x in a.sim)}
+    rec_off = simulate(2, a.duration, a.seed, a.cache,
+                       {**sim, "clock_offsets": offsets, **({"clock_drifts": drifts} if drifts else {})})
+    rec_sync = simulate(2, a.duration, a.seed, a.cache, sim)
     from edge_clients.sim import Truth
 
     truth = Truth.load(Truth.sidecar_path(rec_off))
