@@ -297,6 +297,25 @@ def test_reestimate_after_the_final_adjustment_reports_and_applies_nothing(short
     assert again.note == flush.note
 
 
+def test_a_drift_is_warned_of_when_two_fresh_estimates_agree_on_it():
+    """One estimate 40 ms from the anchor is noise until the next fresh one says the same
+    (a noisy detector made 11 such single jumps on synchronised sensors); a stale estimate
+    (the update left the sensor as it was) confirms nothing."""
+    est = _estimator_with([0.0, 0.0, 0.0], 1.0)
+
+    def update(ms: float, now: float, fresh: bool = True) -> int:
+        est.raw[0] = ms / 1000
+        est.note[0] = None if fresh else "no clear minimum (jackknife)"
+        est._apply(now)
+        return int(est.drift_warnings[0])
+
+    assert update(0.0, 10) == 0  # the anchor
+    assert update(40.0, 20) == 0 and update(0.0, 30) == 0  # a single jump, gone again
+    assert update(40.0, 40) == 0 and update(40.0, 50, fresh=False) == 0  # not confirmed by a stale one
+    assert update(41.0, 60) == 1  # confirmed
+    assert update(41.0, 70) == 1 and update(40.5, 80) == 1  # the new anchor: nothing more
+
+
 def test_a_less_certain_reestimate_does_not_replace_an_estimate(monkeypatch):
     """The re-estimate after the final batch replaces a sensor's estimate only when it is
     at least as certain (seed 5 of the bench: +123.7 +- 2.7 ms would have become +132.8 +-
