@@ -16,8 +16,13 @@ estimate, its std, the error and the offset applied; then the calibration error 
 run (``backend.evaluate``: rigid position / orientation, shape position, mean over all 20
 cameras and over the 5 offset ones).
 
-    python bench/clock_offsets.py                       # seed 1, ~10 min on a quiet machine
+    python bench/clock_offsets.py                       # seed 1, all four runs
     python bench/clock_offsets.py --seed 2 --duration 120 --json out.json
+    python bench/clock_offsets.py --runs "offsets, estimated" --drifts cam_5=1e-4   # a drifting clock too
+    python bench/clock_offsets.py --sim noise_scale=2 --set clock.retime_seconds=0  # other detector, other setting
+
+Also printed per run: the archived views timed again with the final offsets
+(backend/retime.py) and the raw messages kept for it (count, MB pickled).
 
 Recordings are cached like bench/accuracy.py does (--cache).
 """
