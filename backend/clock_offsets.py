@@ -1041,10 +1041,10 @@ class ClockOffsetEstimator:
         if not np.isfinite(self.anchor[c]):
             self.anchor[c], self.anchor_std[c] = o, s
             return
-        moved = o - self.anchor[c]
-        beyond = abs(moved) > self.cfg.drift_warning and abs(moved) > 3 * math.hypot(s, self.anchor_std[c])
         if self.note[c] is not None:  # a stale estimate confirms nothing
             return
+        moved = o - self.anchor[c]
+        beyond = abs(moved) > self.cfg.drift_warning and abs(moved) > 3 * math.hypot(s, self.anchor_std[c])
         prev, prev_std = self.drift_candidate[c], self.drift_candidate_std[c]
         self.drift_candidate[c], self.drift_candidate_std[c] = (o, s) if beyond else (np.nan, np.nan)
         if beyond and np.isfinite(prev) and abs(o - prev) <= 3 * math.hypot(s, prev_std):

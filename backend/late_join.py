@@ -112,8 +112,6 @@ class JoiningPipeline(Pipeline):
         """A session's pipeline after a restart (``Pipeline.restore``) that goes on archiving
         and resecting the cameras of ``names`` without a pose: the framesets archived before
         the restart are lost, new data may still place them."""
-        if snapshot.get("version") != 2 or list(snapshot.get("names", [])) != list(cameras.names):
-            raise ValueError("snapshot does not belong to this camera set")
         p = cls(cameras, config, intrinsics=intrinsics, names=names, seed=seed)
         p._load(snapshot)
         return p
@@ -314,19 +312,15 @@ class JoiningPipeline(Pipeline):
         names = cams.names
         q = JoiningPipeline(cams, self.cfg, intrinsics=self.all_intrinsics, names=self.all_names)
         q._load(snap)
-        q.rng, q.clock, q.last_cycle_time = self.rng, self.clock, self.last_cycle_time
-        q.messages, q.rejected, q.last_seen = self.messages, self.rejected, self.last_seen
-        q.relocalized, q.first_gated = self.relocalized, self.first_gated
-        q.cycles_rejected, q.last_report, q.scale_heights = self.cycles_rejected, self.last_report, self.scale_heights
+        self._carry_over(q)
+        q.last_cycle_time, q.first_gated = self.last_cycle_time, self.first_gated
+        q.cycles_rejected, q.last_report = self.cycles_rejected, self.last_report
         old = {n: k for k, n in enumerate(self.names)}
         q.sync.take_over(self.sync)
         q.sync.take_buffers(self.late_sync, [j.name for j in new])
         for k in ("accepted", "rejected", "torso_seen", "torso_low"):  # the session's counts go on
             setattr(q.preprocess, k, getattr(self.preprocess, k))
         q.associate = self.associate
-        q._offset_history = [list(self._offset_history[old[n]]) if n in old else [] for n in names]
-        if self.raw is not None and q.raw is not None:
-            q.raw = self.raw.keep(names)
         q._recalibrate_due = [(due, names.index(self.names[c]), since) for due, c, since in self._recalibrate_due]
         for k in ("detected", "associated", "detected_total", "associated_total", "associated_multi"):
             arr = getattr(self, k)  # what the lost-camera and pairwise-only checks count on
@@ -335,7 +329,6 @@ class JoiningPipeline(Pipeline):
         # the monitor starts afresh: its watch too (the converged are watched again after a cycle)
         q.watched[:] = False
         q.refiner.held[:] = False
-        q.frames = self._merged_frames(names)
         q.late_sync.take_over(self.late_sync)
         q.late_preprocess, q.late_frames, q._late_pending = self.late_preprocess, self.late_frames, self._late_pending
         q.late, q.late_notes = list(self.late), list(self.late_notes)
@@ -406,20 +399,26 @@ class JoiningPipeline(Pipeline):
         """A pipeline of this one's cameras and those placed late (``_grown``), with the
         archived framesets of both front ends merged: the final batch's."""
         cams, snap = self._grown()
-        names = cams.names
-        old = {n: k for k, n in enumerate(self.names)}
         p = Pipeline.restore(cams, self.cfg, snap)
-        p.rng = self.rng  # the batch draws its selection seed as this pipeline's would have
-        p.clock = self.clock
-        p.messages, p.rejected, p.last_seen = self.messages, self.rejected, dict(self.last_seen)
-        p.relocalized = list(self.relocalized)
+        self._carry_over(p)
         # the front end's counters are this pipeline's (nothing is pushed to the joined one)
         p.sync, p.preprocess, p.associate, p.queue = self.sync, self.preprocess, self.associate, self.queue
-        p._offset_history = [list(self._offset_history[old[n]]) if n in old else [] for n in names]
-        if self.raw is not None and p.raw is not None:  # the late cameras' start empty: no offset of theirs applied
-            p.raw = self.raw.keep(names)
-        p.frames = self._merged_frames(names)
         return p
+
+    def _carry_over(self, p: Pipeline) -> None:
+        """What a pipeline grown by cameras placed late (``_grown``, restored) takes from
+        this one besides the estimate: the seed's generator (its batches draw as this
+        one's would), clock and message counts, the offsets' history and raw messages
+        (the late cameras' start empty: no offset of theirs was applied), and the
+        archived framesets of both front ends merged."""
+        old = {n: k for k, n in enumerate(self.names)}
+        p.rng, p.clock = self.rng, self.clock
+        p.messages, p.rejected, p.last_seen = self.messages, self.rejected, dict(self.last_seen)
+        p.relocalized = list(self.relocalized)
+        p._offset_history = [list(self._offset_history[old[n]]) if n in old else [] for n in p.names]
+        if self.raw is not None and p.raw is not None:
+            p.raw = self.raw.keep(p.names)
+        p.frames = self._merged_frames(p.names)
 
 
 @dataclass(frozen=True)

@@ -774,14 +774,14 @@ class Pipeline:
 
     @classmethod
     def restore(cls, cameras: CameraSet, config: EngineConfig, snapshot: dict, *, seed: int = 0) -> "Pipeline":
-        if snapshot.get("version") != 2 or list(snapshot.get("names", [])) != list(cameras.names):
-            raise ValueError("snapshot does not belong to this camera set")
-        p = cls(cameras, config, seed=seed, scale_heights=snapshot.get("scale_heights"))
+        p = cls(cameras, config, seed=seed)
         p._load(snapshot)
         return p
 
     def _load(self, snapshot: dict) -> None:
         """The estimate of a ``snapshot`` (of these cameras) into this new pipeline."""
+        if snapshot.get("version") != 2 or list(snapshot.get("names", [])) != list(self.names):
+            raise ValueError("snapshot does not belong to this camera set")
         p, config = self, self.cfg
         if snapshot.get("scale_heights") is not None:
             p.scale_heights = tuple(float(h) for h in snapshot["scale_heights"])

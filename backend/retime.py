@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import bisect
 from collections.abc import Iterable
-from dataclasses import replace
 
 from proto import KeypointMessage
 
@@ -49,9 +48,8 @@ class RawArchive:
         if stamps is None:
             return
         msgs = self._msgs[msg.sensor]
-        e = Buffered.of(msg)
         # the persons are in the entry's arrays: the message itself need not keep them twice
-        e = Buffered(replace(msg, persons=()), e.kp, e.boxes, e.cov)
+        e = Buffered.of(msg).replaced(persons=())
         i = bisect.bisect_right(stamps, msg.stamp)
         if i > 0 and stamps[i - 1] == msg.stamp:
             return  # a duplicate (the synchroniser counted it)
@@ -70,8 +68,7 @@ class RawArchive:
         """The sensor's view at each frameset time (synchronised clock) with its stamps
         less ``offset``, exactly as the synchroniser would have made it."""
         stamps = [s - offset for s in self._stamps[sensor]]
-        msgs = [Buffered(replace(e.msg, stamp=e.msg.stamp - offset), e.kp, e.boxes, e.cov)
-                for e in self._msgs[sensor]]
+        msgs = [e.replaced(stamp=e.stamp - offset) for e in self._msgs[sensor]]
         cache: dict = {}
         return [view_at(stamps, msgs, T, cfg, cache) for T in times]
 

@@ -92,6 +92,10 @@ class Buffered:
             cov = np.stack([p.cov for p in msg.persons])
         return Buffered(msg, msg.keypoints(), boxes, cov)
 
+    def replaced(self, **changes) -> "Buffered":
+        """The same arrays with the message's fields changed (``stamp=...``)."""
+        return Buffered(replace(self.msg, **changes), self.kp, self.boxes, self.cov)
+
 
 class _Recent:
     """The last ``n`` (seq, stamp) of one sensor, for the duplicate check in O(1): a deque's
@@ -219,8 +223,7 @@ class Synchronizer:
         self.offsets[sensor] = float(offset)
         if shift:
             self._stamps[sensor] = [x + shift for x in self._stamps[sensor]]
-            self._msgs[sensor] = [Buffered(replace(e.msg, stamp=e.msg.stamp + shift), e.kp, e.boxes, e.cov)
-                                  for e in self._msgs[sensor]]
+            self._msgs[sensor] = [e.replaced(stamp=e.stamp + shift) for e in self._msgs[sensor]]
 
     def take_buffers(self, other: "Synchronizer", sensors: Iterable[str]) -> None:
         """The buffered messages of ``sensors`` from ``other`` (which times them with its
@@ -228,8 +231,7 @@ class Synchronizer:
         for s in sensors:
             shift = other.offset(s) - self.offset(s)
             self._stamps[s] = [x + shift for x in other._stamps.get(s, [])]
-            self._msgs[s] = [e if not shift else Buffered(replace(e.msg, stamp=e.msg.stamp + shift), e.kp, e.boxes, e.cov)
-                             for e in other._msgs.get(s, [])]
+            self._msgs[s] = [e.replaced(stamp=e.stamp + shift) if shift else e for e in other._msgs.get(s, [])]
             self._last_seq[s] = other._last_seq[s].copy() if s in other._last_seq else _Recent(64)
 
     def take_over(self, other: "Synchronizer") -> None:
