@@ -74,6 +74,7 @@ def collect_frames(names: Sequence[str], intrinsics: Mapping[str, Intrinsics], c
 
     The clock is the newest plausible stamp, found as the pipeline finds it: the first
     messages are held back and their median decides which stamps are absurd."""
+    config = config.for_images(intrinsics[n].resolution for n in names)
     sync = Synchronizer(config.sync, tuple(names))
     pre = Preprocessor(config.preprocess, tuple(names), intrinsics)
     frames: list[Frame] = []
@@ -878,8 +879,9 @@ def floor_frame(seg: Segments, t: np.ndarray, located: np.ndarray, height: float
 def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, config: EngineConfig, *,
               heights: Sequence[float] = (), seed: int = 0, progress: Progress | None = None) -> BootstrapResult:
     """Camera poses from ``frames`` alone (see the module doc). ``heights``: known heights
-    of the walkers (m); without them the population prior sets the scale. Raises
-    BootstrapError when fewer than 2 cameras can be placed."""
+    of the walkers (m); without them the population prior sets the scale. ``config``: in
+    the cameras' pixels (``EngineConfig.for_images``, as ``bootstrap_messages`` and the
+    pipelines make it). Raises BootstrapError when fewer than 2 cameras can be placed."""
     from .optimize import Problem, solve
     from .relocalize import relocalize
     from .resect import resect_unplaced
@@ -988,7 +990,8 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                     say("cameras no pair placed, resected against the placed cameras' persons: " + "; ".join(resect_notes))
             else:
                 for c in np.flatnonzero(~located):
-                    rl = relocalize(frames, int(c), R, t, float(focal[c]), config.associate, seed=seed)
+                    rl = relocalize(frames, int(c), R, t, float(focal[c]), config.associate,
+                                    reprojection_px=config.associate.relocalize_px, seed=seed)
                     if rl is not None:
                         R[c], t[c], located[c] = rl.R, rl.t, True
                         found += 1
@@ -1029,6 +1032,7 @@ def bootstrap_messages(intrinsics: Mapping[str, Intrinsics], config: EngineConfi
     when 0), for the cameras of ``intrinsics`` in their natural order. Raises
     BootstrapError as ``bootstrap``."""
     names = tuple(sorted(intrinsics, key=natural_key))
+    config = config.for_images(i.resolution for i in intrinsics.values())
     frames = collect_frames(names, intrinsics, config, messages, max_seconds=config.bootstrap.max_seconds,
                             progress=progress)
     focal = np.array([0.5 * (intrinsics[n].fx + intrinsics[n].fy) for n in names])

@@ -70,6 +70,7 @@ def calibrate(
             cams = CameraSet.load(intrinsics, initial)
         ref = {k: v.pose for k, v in load_extrinsics(reference).items()} if reference else None
         intr = load_intrinsics(intrinsics)
+        cfg = cfg.for_images(i.resolution for i in intr.values())
     except (ConfigError, CameraFileError) as e:
         raise fail(str(e))
     if not recording.is_file():

@@ -6,11 +6,14 @@ Loaded from TOML (sections = the stage names below) and overridden from the CLI
 
 from __future__ import annotations
 
+import math
+import statistics
 import tomllib
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, PositiveInt, ValidationError
 
 
 class _Section(BaseModel):
@@ -40,6 +43,11 @@ class PreprocessConfig(_Section):
                                     "(docs/bootstrap.md, Session 7)")
     max_persons: int = Field(10, ge=1)
     pixel_sigma: float = Field(2.0, gt=0, description="px: keypoint noise at confidence 1 when a message has no covariance")
+    pixel_reference: tuple[PositiveInt, PositiveInt] | None = Field(
+        (640, 480), description="image size (width, height) for which every px parameter of the engine is stated "
+        "(PIXEL_FIELDS): each is multiplied by the square root of the cameras' median image area over this one's, "
+        "since a detector's pixel errors grow with the image (a 1920x1080 network: x2.4). The default is VGA, the "
+        "lab's median camera. None: the px values are taken as they are (EngineConfig.for_images)")
 
 
 class AssociateConfig(_Section):
@@ -59,6 +67,7 @@ class AssociateConfig(_Section):
     relocalize: bool = Field(True, description="a camera whose detections stop joining hypotheses is re-localised by PnP "
                              "against persons the others triangulate; a pose beyond 6 sigma of the initial estimate "
                              "(its uncertainty) is refused: a lone detection may be the other person")
+    relocalize_px: float = Field(8.0, gt=0, description="px: a re-localisation's PnP inlier threshold")
     relocalize_interval: float = Field(10.0, gt=0, description="s of data time between checks for lost cameras")
     relocalize_after: int = Field(10, ge=0, description="cycles before the first check: early on every camera associates poorly")
     lost_ratio: float = Field(0.15, ge=0, le=1, description="a camera is lost when less than this share of its detections is associated ...")
@@ -313,6 +322,29 @@ class EngineConfig(_Section):
             apply_override(d, item)
         return EngineConfig.from_dict(d, str(path or "overrides"))
 
+    def pixel_scale(self, sizes: Iterable[tuple[int, int]]) -> float:
+        """The factor ``for_images`` applies for cameras of these image sizes (width, height)."""
+        ref = self.preprocess.pixel_reference
+        areas = [float(w) * float(h) for w, h in sizes]
+        if ref is None or not areas:
+            return 1.0
+        return math.sqrt(statistics.median(areas) / (ref[0] * ref[1]))
+
+    def for_images(self, sizes: Iterable[tuple[int, int]]) -> "EngineConfig":
+        """This config with its px parameters (PIXEL_FIELDS) in the pixels of cameras of
+        these image sizes (``pixel_scale``), and ``preprocess.pixel_reference`` None, so
+        that a config already scaled is returned as it is: every entry point that meets
+        the cameras (the pipeline, the bootstrap) calls it, and nesting them is harmless."""
+        s = self.pixel_scale(sizes)
+        if self.preprocess.pixel_reference is None:
+            return self
+        d = self.model_dump()
+        for section, names in PIXEL_FIELDS.items():
+            for name in names:
+                d[section][name] *= s
+        d["preprocess"]["pixel_reference"] = None
+        return EngineConfig.from_dict(d)
+
     def merged(self, overrides: dict[str, Any]) -> "EngineConfig":
         """A copy with a nested dict of overrides applied (validated)."""
         d = self.model_dump()
@@ -322,6 +354,16 @@ class EngineConfig(_Section):
             else:
                 d[section] = values
         return EngineConfig.from_dict(d)
+
+
+# every parameter in pixels (at ``preprocess.pixel_reference``), by section
+PIXEL_FIELDS: dict[str, tuple[str, ...]] = {
+    "preprocess": ("pixel_sigma",),
+    "associate": ("gate_pixels", "relocalize_px"),
+    "optimize": ("outlier_px",),
+    "bootstrap": ("ransac_px", "frame_px", "check_px", "resect_px"),
+    "clock": ("match_px", "match_max_px", "min_scale_px", "max_scale_px"),
+}
 
 
 class ConfigError(ValueError):

@@ -320,7 +320,8 @@ def _relocalize(p: Problem) -> Solution:
     active = np.zeros(C, bool)
     found = []
     for c in p.lost:
-        r = relocalize(p.frames, c, p.R, p.t, float(p.focal[c]), p.associate, seed=p.seed)
+        r = relocalize(p.frames, c, p.R, p.t, float(p.focal[c]), p.associate,
+                       reprojection_px=p.associate.relocalize_px, seed=p.seed)
         if r is None:
             continue
         # The prior (the initial estimate and its uncertainty) bounds where the camera can

@@ -76,7 +76,7 @@ def correspondences(frames: Sequence[tuple[float, tuple[tuple[Detection, ...], .
 
 
 def relocalize(frames, cam: int, R: np.ndarray, t: np.ndarray, focal: float, cfg: AssociateConfig,
-               *, min_inliers: int = 40, reprojection_px: float = 8.0, seed: int = 0) -> Relocalization | None:
+               *, min_inliers: int = 40, reprojection_px: float, seed: int = 0) -> Relocalization | None:
     """PnP + RANSAC pose of camera ``cam`` from the archived frames, or None."""
     import cv2
 

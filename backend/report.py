@@ -410,8 +410,8 @@ def reprojection_errors(intrinsics: Mapping[str, Intrinsics], extrinsics: Mappin
     from .preprocess import Preprocessor
     from .sync import Synchronizer
 
-    cfg = config or EngineConfig()
     cams = CameraSet.combine(intrinsics, extrinsics)
+    cfg = (config or EngineConfig()).for_images(i.resolution for i in cams.intrinsics.values())
     names = cams.names
     R = np.array([cams.extrinsics[n].pose.R for n in names])
     t = np.array([cams.extrinsics[n].pose.t for n in names])

@@ -50,7 +50,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 LAB_CANDIDATES = (REPO.parent / "shared" / "data" / "ais_lab20", REPO / "edge_clients" / "data" / "ais_lab20")
-HEIGHTS = {1: (1.96,), 2: (1.96, 1.70)}
+HEIGHTS = {1: (1.96,), 2: (1.96, 1.70), 3: (1.96, 1.70, 1.82), 4: (1.96, 1.70, 1.82, 1.62)}
 HEADLINE = (0.25, 10.0)
 STARTS = ((0.10, 5.0), (0.25, 10.0), (0.35, 15.0), (0.50, 20.0), (0.75, 20.0))
 CHECKPOINTS = (15, 30, 60, 90, 120, 180)

@@ -76,7 +76,7 @@ def run_seed(seed: int, checkpoints: list[float], cache: Path, online: bool, say
     ref = {n: e.pose for n, e in load_extrinsics(lab / "reference.yaml").items()}
     names = tuple(sorted(intr, key=natural_key))
     focal = np.array([0.5 * (intr[n].fx + intr[n].fy) for n in names])
-    cfg = EngineConfig()
+    cfg = EngineConfig().for_images(i.resolution for i in intr.values())
     t0 = time.perf_counter()
     frames = collect_frames(names, intr, cfg, read_recording(rec))
     say(f"seed {seed}: {len(frames)} framesets read in {time.perf_counter() - t0:.0f} s")

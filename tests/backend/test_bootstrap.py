@@ -349,3 +349,28 @@ def test_the_final_batch_from_the_bootstrap_is_kept_when_the_online_estimate_was
     assert p.final_batch_start == "start"
     pos, ori = error(p)
     assert pos < 0.05 and ori < 0.5
+
+
+def test_cameras_with_nine_times_the_pixels_bootstrap_as_well(lab_dir):
+    """The west room with 1920x1440 images (the lab's lenses, 3x the pixels each way, so
+    the detector's pixel errors are 3x too): the px parameters follow the image size
+    (``EngineConfig.for_images``). Taken as they are (stated for VGA), no pair passes
+    the RANSAC and frame gates and the bootstrap fails."""
+    from edge_clients.sim import Scene, SimConfig, Simulator
+
+    full = Scene.load(lab_dir)
+    intr = {n: full.intrinsics[n].scaled_to(tuple(3 * v for v in full.intrinsics[n].resolution)) for n in WEST}
+    scene = Scene.from_cameras(intr, {n: full.poses[n] for n in WEST}, lab_dir / "room.yaml")
+    msgs = [m for _, m in Simulator(scene, SimConfig(persons=2, duration=DURATION, seed=SEED,
+                                                     heights=(1.96, 1.70))).messages()]
+    focal = np.array([0.5 * (intr[n].fx + intr[n].fy) for n in WEST])
+    cfg = EngineConfig().for_images(i.resolution for i in intr.values())
+    assert cfg.bootstrap.ransac_px == pytest.approx(9.0)
+    res = bootstrap(collect_frames(WEST, intr, cfg, msgs), WEST, focal, cfg, heights=(1.96, 1.70), seed=SEED)
+    acc = evaluate(res.poses(), {n: full.poses[n] for n in WEST})
+    print(acc.summary())
+    assert res.located.sum() >= 6
+    assert acc.shape_position.max < 0.05 and acc.shape_orientation.max < 0.5
+    as_given = EngineConfig().merged({"preprocess": {"pixel_reference": None}})
+    with pytest.raises(BootstrapError, match="no camera pair"):
+        bootstrap(collect_frames(WEST, intr, as_given, msgs), WEST, focal, as_given, seed=SEED)

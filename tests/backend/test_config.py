@@ -88,3 +88,37 @@ def test_apply_override_builds_nested_dicts():
     apply_override(d, "select.newer_bias=1.5")
     apply_override(d, "optimize.robust=none")
     assert d == {"select": {"scope": 7, "newer_bias": 1.5}, "optimize": {"robust": "none"}}
+
+
+def test_px_parameters_follow_the_image_size_once():
+    from backend.config import PIXEL_FIELDS
+
+    c = EngineConfig()
+    # the lab: 16 VGA cameras and 4 of 848x480, its median is the reference: nothing changes
+    lab = c.for_images([(640, 480)] * 16 + [(848, 480)] * 4)
+    assert lab.preprocess.pixel_reference is None
+    assert lab.model_dump(exclude={"preprocess": {"pixel_reference"}}) == c.model_dump(
+        exclude={"preprocess": {"pixel_reference"}})
+    hd = c.for_images([(1920, 1080)] * 3 + [(640, 480)])
+    s = (1920 * 1080 / (640 * 480)) ** 0.5
+    for section, names in PIXEL_FIELDS.items():
+        for name in names:
+            before, after = getattr(getattr(c, section), name), getattr(getattr(hd, section), name)
+            assert after == pytest.approx(before * s), (section, name)
+    assert hd.for_images([(320, 240)]) is hd  # already in the cameras' pixels: not scaled twice
+    assert c.merged({"preprocess": {"pixel_reference": None}}).for_images([(1920, 1080)]).associate.gate_pixels == 25.0
+    with pytest.raises(ConfigError, match="pixel_reference"):
+        EngineConfig.from_dict({"preprocess": {"pixel_reference": [0, 480]}})
+
+
+def test_every_px_parameter_is_scaled():
+    """A parameter in pixels that ``for_images`` does not know would stay tuned to VGA."""
+    from backend.config import PIXEL_FIELDS
+
+    found = set()
+    for section, field in EngineConfig.model_fields.items():
+        for name, f in field.annotation.model_fields.items():
+            text = (f.description or "").split(":")[0].split(",")[0]
+            if name != "pixel_reference" and ("px" in name or "pixel" in name or text.strip() in ("px", "... up to this (px)")):
+                found.add((section, name))
+    assert found == {(s, n) for s, names in PIXEL_FIELDS.items() for n in names}
