@@ -351,7 +351,7 @@ def view_at(stamps: list[float], msgs: list[Buffered], T: float, cfg: SyncConfig
         return _single(m0, T)
     if (
         cfg.interpolate and m0 is not None and m1 is not None
-        and m1.stamp - m0.stamp <= 2 * cfg.max_offset + 1e-9
+        and m1.stamp - m0.stamp <= cfg.max_gap + 1e-9
         and m0.msg.size == m1.msg.size
     ):
         return _interpolate(m0, m1, T, cache)

@@ -23,10 +23,11 @@ The 20-camera lab (shared/data/ais_lab20), simulated walkers of 1.96 m (and 1.70
     python bench/accuracy.py --persons 2 --seeds 3 --starts none --out a.json
     python bench/accuracy.py --persons none --starts 0.75/20 --seeds 1
     python bench/accuracy.py --quick                    # smoke run: 1 seed, 60 s, 2 persons
+    python bench/accuracy.py --persons 2 --seeds 3 --starts none --pixels 2.25   # HD cameras
     python bench/accuracy.py --report a.json            # the tables of an earlier --out
 
 Simulated recordings are cached (msgpack + truth sidecar) in --cache, keyed by the
-simulator's source, so a change of the simulator re-simulates. No figure is asserted
+simulator's source and the camera files, so a change of either re-simulates. No figure is asserted
 here: tests/backend/test_accuracy.py holds the pass/fail bar.
 """
 
@@ -36,6 +37,7 @@ import argparse
 import hashlib
 import json
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -102,9 +104,33 @@ class Spec:
         return f"{self.persons}p {self.translation:.2f}m/{self.rotation:g}° seed {self.seed}"
 
 
+def scaled_lab(lab: Path, k: float, cache: Path) -> Path:
+    """A copy of the camera directory ``lab`` whose cameras have k times the pixels each
+    way (intrinsics and resolutions scaled; the simulated detector's pixel errors scale
+    with the image): other cameras than the lab's VGA and 848x480 ones."""
+    import yaml
+
+    out = cache / f"{lab.name}_x{k:g}"
+    out.mkdir(parents=True, exist_ok=True)
+    intr = yaml.safe_load((lab / "intrinsics.yaml").read_text())
+    ref = yaml.safe_load((lab / "reference.yaml").read_text())
+    for name, v in intr.items():
+        v["intrinsics"] = [k * x for x in v["intrinsics"]]
+        v["resolution"] = [round(k * x) for x in v["resolution"]]
+        ref[name]["resolution"] = v["resolution"]
+    for f in lab.iterdir():
+        if f.name not in ("intrinsics.yaml", "reference.yaml"):
+            shutil.copy(f, out / f.name)
+    (out / "intrinsics.yaml").write_text(yaml.safe_dump(intr, sort_keys=False))
+    (out / "reference.yaml").write_text(yaml.safe_dump(ref, sort_keys=False))
+    return out
+
+
 def _sim_key(persons: int, duration: float, seed: int, sim_set: dict) -> str:
     h = hashlib.sha1()
     for f in sorted((REPO / "edge_clients" / "sim").glob("*.py")):
+        h.update(f.read_bytes())
+    for f in sorted(lab_dir().glob("*.yaml")):  # another camera directory, another recording
         h.update(f.read_bytes())
     h.update(repr((persons, HEIGHTS[persons], duration, seed, sorted(sim_set.items()))).encode())
     return f"lab20_p{persons}_d{duration:g}_s{seed}_{h.hexdigest()[:10]}.msgpack"
@@ -643,6 +669,9 @@ def main(argv: list[str] | None = None) -> None:
                                  epilog="\n\n".join(__doc__.split("\n\n")[1:]))
     ap.add_argument("--seeds", type=int, default=None, help="seeds per setting (default 5; --quick: 1)")
     ap.add_argument("--first-seed", type=int, default=0, help="seeds are first-seed ... first-seed + seeds - 1")
+    ap.add_argument("--pixels", type=float, default=1.0,
+                    help="the lab's cameras with this many times the pixels each way (e.g. 2.25: 1440x1080 and "
+                         "1908x1080): the engine's px parameters follow (preprocess.pixel_reference)")
     ap.add_argument("--persons", default=None, help="Table A person counts, e.g. 1,2 or none (default 1,2; --quick: 2)")
     ap.add_argument("--duration", type=float, default=None, help="s of simulated data (default 180; --quick: 60)")
     ap.add_argument("--starts", default=None,
@@ -691,6 +720,8 @@ def main(argv: list[str] | None = None) -> None:
 
     if args.lab is not None:  # read by every run, also in worker processes
         os.environ["EXTRCAL_LAB"] = str(args.lab.resolve())
+    if args.pixels != 1:
+        os.environ["EXTRCAL_LAB"] = str(scaled_lab(lab_dir(), args.pixels, args.cache).resolve())
     console.print(f"lab {lab_dir()}")
 
     try:

@@ -125,6 +125,34 @@ def test_nearest_message_within_max_offset_else_the_sensor_sits_out():
         assert [v.sensor for v in fss[t].views] == ["a", "b"]
 
 
+def test_a_slow_sensor_is_interpolated_at_every_frameset_up_to_max_gap():
+    """A 4.5 Hz sensor (a pose detector on a small board) joins every frameset,
+    interpolated; a stall longer than ``max_gap`` is a gap, not interpolated across.
+    With the rule of before (only brackets within 2 x max_offset, 0.1 s) it joined one
+    frameset in five."""
+    msgs = _stream("a", 4.5, 0.01, 3.0) + _stream("b", 20.0, 0.03, 3.0)
+    msgs = [m for m in msgs if not (m.sensor == "a" and 1.5 < m.stamp - T0 < 2.2)]  # a stall of a
+    msgs.sort(key=lambda m: m.stamp)
+    sync = Synchronizer(SyncConfig(), ["a", "b"])
+    for m in msgs:
+        sync.push(m)
+    last = max(m.stamp for m in msgs if m.sensor == "a")
+    fss = [f for f in sync.pop_ready(T0 + 10.0) if f.time <= last]
+    a = {round(f.time - T0, 3): next((v for v in f.views if v.sensor == "a"), None) for f in fss}
+    stall = {t for t in a if 1.34 < t < 2.23}  # between a's last message before the stall and its first after
+    for t, v in a.items():
+        if t in stall:
+            assert v is None or not v.interpolated
+        else:
+            assert v is not None and v.interpolated, t
+            assert np.abs(v.kp[0, :, :2] - _pixels("a", T0 + t)).max() < 1e-6
+    assert len(a) - len(stall) >= 15  # the stall's framesets have b alone: not emitted
+    old = Synchronizer(SyncConfig(max_gap=0.1), ["a", "b"])
+    for m in msgs:
+        old.push(m)
+    assert sum(any(v.sensor == "a" for v in f.views) for f in old.pop_ready(T0 + 10.0) if f.time <= last) < 0.5 * len(a)
+
+
 def test_without_interpolation_the_nearest_message_is_used():
     msgs = _stream("a", 20.0, 0.01, 1.0) + _stream("b", 20.0, 0.03, 1.0)
     msgs.sort(key=lambda m: m.stamp)
