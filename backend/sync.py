@@ -291,9 +291,15 @@ class Synchronizer:
         if self.next_time is None:
             return out
         step = 1.0 / self.cfg.rate
-        # After a long silence do not emit thousands of empty framesets: jump ahead.
+        # After a long silence do not emit thousands of empty framesets: jump ahead, once
+        # the framesets the last messages still cover are out (they were waiting for them).
         if self.latest_stamp is not None and now - self.next_time > 10.0:
-            self.next_time = np.floor((now - self.cfg.wait) / step) * step
+            while self.next_time <= min(now - self.cfg.wait, self.latest_stamp + self.cfg.max_offset):
+                fs = self._build(self.next_time)
+                if fs is not None:
+                    out.append(fs)
+                self.next_time += step
+            self.next_time = max(self.next_time, np.floor((now - self.cfg.wait) / step) * step)
         while self.next_time <= now - self.cfg.wait:
             fs = self._build(self.next_time)
             if fs is not None:

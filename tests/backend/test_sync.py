@@ -104,11 +104,11 @@ def test_interpolate_function_speed_and_provenance():
 
 
 def test_nearest_message_within_max_offset_else_the_sensor_sits_out():
-    """Sensor c sends rarely (no bracketing pair closer than 2 * max_offset): it joins a
+    """Sensor c sends rarely (no bracketing pair closer than max_gap): it joins a
     frameset with its nearest message if that is within max_offset, else sits out."""
     cfg = SyncConfig(max_offset=0.05)
     msgs = _stream("a", 20.0, 0.01, 2.0) + _stream("b", 20.0, 0.03, 2.0)
-    msgs += [_msg("c", 0, T0 + 0.52), _msg("c", 1, T0 + 1.08)]
+    msgs += [_msg("c", 0, T0 + 0.52), _msg("c", 1, T0 + 1.28)]
     msgs.sort(key=lambda m: m.stamp)
     sync = Synchronizer(cfg, ["a", "b", "c"])
     for m in msgs:
@@ -116,41 +116,43 @@ def test_nearest_message_within_max_offset_else_the_sensor_sits_out():
     fss = {round(f.time - T0, 3): f for f in sync.pop_ready(T0 + 10.0)}
     with_c = {t: next(v for v in f.views if v.sensor == "c") for t, f in fss.items()
               if any(v.sensor == "c" for v in f.views)}
-    assert sorted(with_c) == [0.5, 1.1]
+    assert sorted(with_c) == [0.5, 1.3]
     assert with_c[0.5].offset == pytest.approx(0.02) and with_c[0.5].stamp == T0 + 0.52
-    assert with_c[1.1].offset == pytest.approx(-0.02) and with_c[1.1].stamp == T0 + 1.08
+    assert with_c[1.3].offset == pytest.approx(-0.02) and with_c[1.3].stamp == T0 + 1.28
     assert not with_c[0.5].interpolated and with_c[0.5].seq == 0
-    # 0.4, 0.6, 1.0, 1.2 are 0.08-0.12 s from c's messages: c sits out, a and b still make them
-    for t in (0.4, 0.6, 1.0, 1.2):
+    # 0.4, 0.6, 1.2, 1.4 are 0.08-0.12 s from c's messages: c sits out, a and b still make them
+    for t in (0.4, 0.6, 1.2, 1.4):
         assert [v.sensor for v in fss[t].views] == ["a", "b"]
 
 
 def test_a_slow_sensor_is_interpolated_at_every_frameset_up_to_max_gap():
-    """A 4.5 Hz sensor (a pose detector on a small board) joins every frameset,
+    """A 2.2 Hz sensor (a pose detector on a small board) joins every frameset,
     interpolated; a stall longer than ``max_gap`` is a gap, not interpolated across.
-    With the rule of before (only brackets within 2 x max_offset, 0.1 s) it joined one
-    frameset in five."""
-    msgs = _stream("a", 4.5, 0.01, 3.0) + _stream("b", 20.0, 0.03, 3.0)
-    msgs = [m for m in msgs if not (m.sensor == "a" and 1.5 < m.stamp - T0 < 2.2)]  # a stall of a
+    With the rule of before (only brackets within 2 x max_offset, 0.1 s) it joined
+    about one frameset in five."""
+    msgs = _stream("a", 2.2, 0.01, 5.0) + _stream("b", 20.0, 0.03, 5.0) + _stream("c", 15.0, 0.02, 5.0)
+    msgs = [m for m in msgs if not (m.sensor == "a" and 2.0 < m.stamp - T0 < 2.8)]  # a stall of a
     msgs.sort(key=lambda m: m.stamp)
-    sync = Synchronizer(SyncConfig(), ["a", "b"])
+    sync = Synchronizer(SyncConfig(), ["a", "b", "c"])
     for m in msgs:
         sync.push(m)
-    last = max(m.stamp for m in msgs if m.sensor == "a")
-    fss = [f for f in sync.pop_ready(T0 + 10.0) if f.time <= last]
+    a_stamps = [m.stamp - T0 for m in msgs if m.sensor == "a"]
+    before, after = max(t for t in a_stamps if t < 2.0), min(t for t in a_stamps if t > 2.8)
+    fss = [f for f in sync.pop_ready(T0 + 10.0) if f.time <= T0 + max(a_stamps)]
     a = {round(f.time - T0, 3): next((v for v in f.views if v.sensor == "a"), None) for f in fss}
-    stall = {t for t in a if 1.34 < t < 2.23}  # between a's last message before the stall and its first after
     for t, v in a.items():
-        if t in stall:
-            assert v is None or not v.interpolated
+        if before + 0.05 < t < after - 0.05:
+            assert v is None, t  # a sits out: b and c make the frameset
         else:
             assert v is not None and v.interpolated, t
             assert np.abs(v.kp[0, :, :2] - _pixels("a", T0 + t)).max() < 1e-6
-    assert len(a) - len(stall) >= 15  # the stall's framesets have b alone: not emitted
-    old = Synchronizer(SyncConfig(max_gap=0.1), ["a", "b"])
+    assert sum(v is not None for v in a.values()) >= 30
+    assert sum(v is None for v in a.values()) >= 8
+    old = Synchronizer(SyncConfig(max_gap=0.1), ["a", "b", "c"])
     for m in msgs:
         old.push(m)
-    assert sum(any(v.sensor == "a" for v in f.views) for f in old.pop_ready(T0 + 10.0) if f.time <= last) < 0.5 * len(a)
+    joined = sum(any(v.sensor == "a" for v in f.views) for f in old.pop_ready(T0 + 10.0) if f.time <= T0 + max(a_stamps))
+    assert joined < 0.3 * sum(v is not None for v in a.values())
 
 
 def test_without_interpolation_the_nearest_message_is_used():
@@ -208,7 +210,7 @@ def test_bad_messages_are_rejected_with_their_reason():
     assert fresh.push(_msg("b", 4, now - 29.0), now) is None
     # framesets already closed: a message for their time is late
     sync.pop_ready(now + 5.0)
-    assert sync.push(_msg("a", 9, now + 3.0), now + 5.0) == "late"
+    assert sync.push(_msg("a", 9, now + 2.0), now + 5.0) == "late"
     assert dict(sync.rejected) == {"duplicate": 2, "unknown_sensor": 1, "stamp_in_future": 1,
                                    "stamp_too_old": 1, "late": 1}
 
@@ -238,7 +240,10 @@ def test_out_of_order_arrivals_give_the_in_order_framesets():
         assert f.time == g.time and len(f.views) == len(g.views) == 2
         for v, w in zip(f.views, g.views):
             assert v.sensor == w.sensor and np.array_equal(v.kp, w.kp)
-            assert np.abs(v.kp[0, :, :2] - _pixels(v.sensor, f.time)).max() < 1e-6
+            # past a sensor's last message (the end of the data) its nearest one stands in
+            assert v.interpolated or f.time > msgs[-1].stamp - 0.1
+            if v.interpolated:
+                assert np.abs(v.kp[0, :, :2] - _pixels(v.sensor, f.time)).max() < 1e-6
 
 
 def test_buffers_stay_bounded_over_a_long_stream():
@@ -260,9 +265,10 @@ def test_buffers_stay_bounded_over_a_long_stream():
                 assert len(sync._stamps[s]) == len(sync._msgs[s])
                 most[s] = max(most[s], len(sync._stamps[s]))
             assert len(sync._pairs) <= 4097
-    # the buffer holds ~2 s behind the grid plus the wait: ~2.3 s of messages
-    assert most["a"] <= 2.5 * rate_a + 2 and most["b"] <= 2.5 * rate_b + 2
-    assert emitted == sync.framesets >= duration * 10 - 5
+    # the buffer holds ~2 s behind the grid plus the wait
+    hold = 2.0 + sync.cfg.wait + 0.25
+    assert most["a"] <= hold * rate_a + 2 and most["b"] <= hold * rate_b + 2
+    assert emitted == sync.framesets >= (duration - sync.cfg.wait) * 10 - 5
     assert not sync.framesets_rejected and not sync.rejected
 
 
@@ -270,7 +276,7 @@ def test_a_long_silence_does_not_emit_a_backlog():
     sync = Synchronizer(SyncConfig(), ["a", "b"])
     for m in sorted(_stream("a", 20.0, 0.01, 1.0) + _stream("b", 20.0, 0.03, 1.0), key=lambda m: m.stamp):
         sync.push(m)
-    assert len(sync.pop_ready(T0 + 1.0)) >= 5
+    assert len(sync.pop_ready(T0 + 1.0 + sync.cfg.wait - 0.25)) >= 5
     before = sum(sync.framesets_rejected.values())
     sync.pop_ready(T0 + 3600.0)  # an hour without data
     assert sum(sync.framesets_rejected.values()) - before < 200
