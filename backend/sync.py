@@ -294,19 +294,19 @@ class Synchronizer:
         # After a long silence do not emit thousands of empty framesets: jump ahead, once
         # the framesets the last messages still cover are out (they were waiting for them).
         if self.latest_stamp is not None and now - self.next_time > 10.0:
-            while self.next_time <= min(now - self.cfg.wait, self.latest_stamp + self.cfg.max_offset):
-                fs = self._build(self.next_time)
-                if fs is not None:
-                    out.append(fs)
-                self.next_time += step
+            self._emit(min(now - self.cfg.wait, self.latest_stamp + self.cfg.max_offset), step, out)
             self.next_time = max(self.next_time, np.floor((now - self.cfg.wait) / step) * step)
-        while self.next_time <= now - self.cfg.wait:
+        self._emit(now - self.cfg.wait, step, out)
+        return out
+
+    def _emit(self, until: float, step: float, out: list[Frameset]) -> None:
+        """The framesets of the grid up to ``until`` into ``out``."""
+        while self.next_time <= until:
             fs = self._build(self.next_time)
             if fs is not None:
                 out.append(fs)
             self.next_time += step
             self._prune(self.next_time - 2.0)
-        return out
 
     def _prune(self, before: float) -> None:
         for s in self.sensors:

@@ -281,3 +281,14 @@ def test_a_long_silence_does_not_emit_a_backlog():
     sync.pop_ready(T0 + 3600.0)  # an hour without data
     assert sum(sync.framesets_rejected.values()) - before < 200
     assert sync.next_time > T0 + 3599.0
+
+
+def test_the_framesets_before_a_silence_come_out_before_the_jump():
+    """The last second's framesets were waiting for later messages when the sensors went
+    silent; the jump over the silence emits them first (it used to skip them)."""
+    sync = Synchronizer(SyncConfig(), ["a", "b"])
+    for m in sorted(_stream("a", 20.0, 0.01, 1.0) + _stream("b", 20.0, 0.03, 1.0), key=lambda m: m.stamp):
+        sync.push(m)
+    out = sync.pop_ready(T0 + 3600.0)
+    assert len(out) >= 9 and all(len(f.views) == 2 for f in out)
+    assert sync.next_time > T0 + 3599.0
