@@ -65,7 +65,6 @@ log = logging.getLogger(__name__)
 BODY = np.array([5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16])
 _MATCH_DIAG_PER_S = 1.0  # as in sync: persons move less than this many image diagonals per second
 _MATCH_MIN_FRAC = 0.03
-_VIEW_MATCH_PX = 10.0  # a hypothesis' view is a track's detection when they are this close (median, px)
 _STD_FLOOR = 0.0002  # s: the jackknife of few blocks can be optimistic
 _RATIO = 0.5  # a track is the person when it fits at least this much better than any other
 _COARSE_SAMPLES = 400  # samples a coarse search uses (spread over the window)
@@ -629,7 +628,7 @@ class ClockOffsetEstimator:
             rec.tracks = []
             for v, c in enumerate(rec.cams):
                 q = rec.time + rec.applied[c]
-                tol = _VIEW_MATCH_PX / self.focal[c]
+                tol = self.cfg.view_match_px / self.focal[c]
                 rec.tracks.append(self.tracks[c].find(q, rec.xy[v], tol, rec.time - half, rec.time + half))
 
     def update(self, now: float, R: np.ndarray, t: np.ndarray, *, flush: bool = False,

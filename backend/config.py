@@ -277,6 +277,8 @@ class ClockConfig(_Section):
     match_sigmas: float = Field(3.0, ge=0, description="... widened by this many stds of the person's projection under the "
                                 "sensor's pose covariance (a mistimed sensor is also badly calibrated) ...")
     match_max_px: float = Field(120.0, gt=0, description="... up to this (px)")
+    view_match_px: float = Field(10.0, gt=0, description="px: a hypothesis' view is a track's detection when they are "
+                                 "this close (median over joints)")
     min_blocks: int = Field(4, ge=3, description="blocks of data a sensor needs for an estimate")
     min_scale_px: float = Field(0.5, gt=0, description="px: floor of the robust residual scale (median distance) of a sensor's fit")
     max_scale_px: float = Field(12.0, gt=0, description="px: no estimate while a sensor's fit is worse than this (the poses have not settled)")
@@ -368,7 +370,7 @@ PIXEL_FIELDS: dict[str, tuple[str, ...]] = {
     "associate": ("gate_pixels", "relocalize_px"),
     "optimize": ("outlier_px",),
     "bootstrap": ("ransac_px", "frame_px", "check_px", "resect_px"),
-    "clock": ("match_px", "match_max_px", "min_scale_px", "max_scale_px"),
+    "clock": ("match_px", "match_max_px", "view_match_px", "min_scale_px", "max_scale_px"),
 }
 
 
