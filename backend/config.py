@@ -342,10 +342,12 @@ class EngineConfig(_Section):
         """This config with its px parameters (PIXEL_FIELDS) in the pixels of cameras of
         these image sizes (``pixel_scale``), and ``preprocess.pixel_reference`` None, so
         that a config already scaled is returned as it is: every entry point that meets
-        the cameras (the pipeline, the bootstrap) calls it, and nesting them is harmless."""
-        s = self.pixel_scale(sizes)
-        if self.preprocess.pixel_reference is None:
+        the cameras (the pipeline, the bootstrap) calls it, and nesting them is harmless.
+        Without sizes (no cameras) it is returned as it is too."""
+        sizes = list(sizes)
+        if self.preprocess.pixel_reference is None or not sizes:
             return self
+        s = self.pixel_scale(sizes)
         d = self.model_dump()
         for section, names in PIXEL_FIELDS.items():
             for name in names:
