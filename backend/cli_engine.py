@@ -70,7 +70,10 @@ def calibrate(
             cams = CameraSet.load(intrinsics, initial)
         ref = {k: v.pose for k, v in load_extrinsics(reference).items()} if reference else None
         intr = load_intrinsics(intrinsics)
-        cfg = cfg.for_images(i.resolution for i in intr.values())
+        # px parameters in the keypoints' pixels: the initial estimate names the messages' size
+        # (CameraSet.combine takes the intrinsics' where it names none)
+        cfg = cfg.for_images(e.resolution for e in cams.extrinsics.values()) if initial is not None else \
+            cfg.for_images(i.resolution for i in intr.values())
     except (ConfigError, CameraFileError) as e:
         raise fail(str(e))
     if not recording.is_file():

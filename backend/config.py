@@ -51,7 +51,8 @@ class PreprocessConfig(_Section):
     pixel_sigma: float = Field(2.0, gt=0, description="px: keypoint noise at confidence 1 when a message has no covariance")
     pixel_reference: tuple[PositiveInt, PositiveInt] | None = Field(
         (640, 480), description="image size (width, height) for which every px parameter of the engine is stated "
-        "(PIXEL_FIELDS): each is multiplied by the square root of the cameras' median image area over this one's, "
+        "(PIXEL_FIELDS): each is multiplied by the square root of the cameras' median image area (of their keypoint "
+        "messages: the initial estimate's resolution, else the intrinsics') over this one's, "
         "since a detector's pixel errors grow with the image (a 1920x1080 network: x2.4). The default is VGA, the "
         "lab's median camera. None: the px values are taken as they are (EngineConfig.for_images)")
 
@@ -333,7 +334,7 @@ class EngineConfig(_Section):
     def pixel_scale(self, sizes: Iterable[tuple[int, int]]) -> float:
         """The factor ``for_images`` applies for cameras of these image sizes (width, height)."""
         ref = self.preprocess.pixel_reference
-        areas = [float(w) * float(h) for w, h in sizes]
+        areas = [float(w) * float(h) for w, h in sizes if w > 0 and h > 0]
         if ref is None or not areas:
             return 1.0
         return math.sqrt(statistics.median(areas) / (ref[0] * ref[1]))
@@ -344,7 +345,7 @@ class EngineConfig(_Section):
         that a config already scaled is returned as it is: every entry point that meets
         the cameras (the pipeline, the bootstrap) calls it, and nesting them is harmless.
         Without sizes (no cameras) it is returned as it is too."""
-        sizes = list(sizes)
+        sizes = [(w, h) for w, h in sizes if w > 0 and h > 0]
         if self.preprocess.pixel_reference is None or not sizes:
             return self
         s = self.pixel_scale(sizes)

@@ -198,10 +198,10 @@ class SessionInputs:
             intr = parse_intrinsics(intrinsics_yaml, _label(src, "intrinsics"))
             init = parse_extrinsics(initial_yaml, _label(src, "initial")) if initial_yaml is not None else {
                 n: Extrinsics(Pose(np.eye(3), np.zeros(3)), i.resolution) for n, i in intr.items()}
-            config = config.for_images(i.resolution for i in intr.values())
             if subset:
                 intr = {n: i for n, i in intr.items() if n in init}
             cams = CameraSet.combine(intr, init, _label(src, "intrinsics"), _label(src, "initial"))
+            config = config.for_images(e.resolution for e in cams.extrinsics.values())  # the keypoints' pixels
             ref = None
             if reference_yaml is not None:
                 ref_e = parse_extrinsics(reference_yaml, _label(src, "reference"))

@@ -44,6 +44,28 @@ def test_create_load_roundtrip(tmp_path, lab_texts):
         store.dir("../../etc")  # ids are checked before they touch the file system
 
 
+def test_the_px_parameters_are_in_the_keypoints_pixels_and_survive_a_resume(tmp_path, lab_texts):
+    """Intrinsics of 2x the lab's size whose detector publishes at the lab's size (the
+    initial estimate's resolution): the px parameters stay the lab's; without an initial
+    estimate (messages at the intrinsics' size) they double; a resume does not scale again."""
+    import yaml
+
+    intr, ref = lab_texts
+    big = yaml.safe_load(intr)
+    for v in big.values():
+        v["intrinsics"] = [2 * x for x in v["intrinsics"]]
+        v["resolution"] = [2 * x for x in v["resolution"]]
+    big_text = yaml.safe_dump(big)
+    base = EngineConfig().associate.gate_pixels
+    assert SessionInputs.parse(big_text, ref, None, EngineConfig()).config.associate.gate_pixels == base
+    alone = SessionInputs.parse(big_text, None, None, EngineConfig())
+    assert alone.config.associate.gate_pixels == pytest.approx(2 * base)
+    store = SessionStore(tmp_path)
+    rec = _record()
+    store.create(rec, alone)
+    assert store.load_inputs(store.load_record(rec.id)).config.associate.gate_pixels == pytest.approx(2 * base)
+
+
 def test_ids_sort_in_the_order_sessions_were_made_even_within_one_second(tmp_path, lab_texts, monkeypatch):
     """A stop and a start from a script make two sessions in one second; the list and the
     report take "newest" from the order of ids, so the random suffix must not decide it."""
