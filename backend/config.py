@@ -29,11 +29,9 @@ class SyncConfig(_Section):
     max_std: float = Field(0.025, gt=0, description="s: reject a frameset whose stamp std is larger (paper: 25 ms)")
     interpolate: bool = Field(True, description="interpolate each sensor's keypoints to the frameset time from its two bracketing messages")
     max_gap: float = Field(0.6, gt=0, description="s: longest interval between a sensor's two bracketing messages that is "
-                           "interpolated across when it is the sensor's own pace (at most 1.5 times its typical interval: "
-                           "a slow sensor, down to 2 Hz); within 2 x max_offset always. A fast sensor's stall or dropped "
-                           "frames are a gap, where it sits out. Before, 2 x max_offset was the only rule: sensors below "
-                           "10 Hz then sat out most framesets (5-10 Hz: 91 % of the lab's framesets rejected; "
-                           "docs/accuracy.md, Session 10)")
+                           "interpolated across (a 2 Hz sensor; a longer one is a gap: a stall, the sensor sits out). Was "
+                           "2 x max_offset (0.1 s): sensors below 10 Hz then sat out most framesets (5-10 Hz: 91 % of "
+                           "the lab's framesets rejected; docs/accuracy.md, Session 10)")
     wait: float = Field(0.75, ge=0, description="s of data time to wait for late messages before a frameset is closed: "
                         "at least max_gap plus the sensors' delays, or a slow sensor's later bracketing message comes "
                         "too late (2-4 Hz sensors with 0.25 s: 10 % of their views not interpolated, 14 % lost)")

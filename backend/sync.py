@@ -343,20 +343,6 @@ class Synchronizer:
         return view_at(self._stamps[s], self._msgs[s], T, self.cfg, self._pairs)
 
 
-def _bridged(gap: float, stamps: list[float], i: int, cfg: SyncConfig) -> bool:
-    """Whether a sensor's two messages ``gap`` s apart around ``stamps[i]`` are interpolated
-    across: always within 2 x max_offset; up to max_gap when the gap is the sensor's own
-    pace (at most 1.5 times its typical interval, the median of the intervals around it: a
-    slow sensor). A fast sensor's stall or dropped frames are a gap: it sits out there
-    rather than lend views interpolated across what it did not see."""
-    if gap <= 2 * cfg.max_offset + 1e-9:
-        return True
-    if gap > cfg.max_gap + 1e-9:
-        return False
-    near = np.diff(stamps[max(0, i - 6):i + 6])
-    return len(near) < 3 or gap <= 1.5 * float(np.median(near))
-
-
 def view_at(stamps: list[float], msgs: list[Buffered], T: float, cfg: SyncConfig, cache: dict) -> View | None:
     """One sensor's view at frameset time T from its messages (``stamps`` sorted, on the
     synchronised clock): interpolated between the two that bracket T, else the nearest
@@ -370,8 +356,9 @@ def view_at(stamps: list[float], msgs: list[Buffered], T: float, cfg: SyncConfig
     if m0 is not None and m0.stamp == T:
         return _single(m0, T)
     if (
-        cfg.interpolate and m0 is not None and m1 is not None and m0.msg.size == m1.msg.size
-        and _bridged(m1.stamp - m0.stamp, stamps, i, cfg)
+        cfg.interpolate and m0 is not None and m1 is not None
+        and m1.stamp - m0.stamp <= cfg.max_gap + 1e-9
+        and m0.msg.size == m1.msg.size
     ):
         return _interpolate(m0, m1, T, cache)
     best = min((m for m in (m0, m1) if m is not None), key=lambda m: abs(m.stamp - T), default=None)
