@@ -409,6 +409,12 @@ class CameraSet:
     intrinsics: Mapping[str, Intrinsics]
     extrinsics: Mapping[str, Extrinsics]
 
+    @property
+    def sizes(self) -> list[tuple[int, int]]:
+        """Each camera's keypoint message size (width, height): the pixels the engine
+        works in (``EngineConfig.for_images``)."""
+        return [self.extrinsics[n].resolution for n in self.names]
+
     @staticmethod
     def load(intrinsics: str | os.PathLike, extrinsics: str | os.PathLike) -> "CameraSet":
         return CameraSet.combine(load_intrinsics(intrinsics), load_extrinsics(extrinsics),

@@ -72,8 +72,7 @@ def calibrate(
         intr = load_intrinsics(intrinsics)
         # px parameters in the keypoints' pixels: the initial estimate names the messages' size
         # (CameraSet.combine takes the intrinsics' where it names none)
-        cfg = cfg.for_images(e.resolution for e in cams.extrinsics.values()) if initial is not None else \
-            cfg.for_images(i.resolution for i in intr.values())
+        cfg = cfg.for_images(cams.sizes if initial is not None else [i.resolution for i in intr.values()])
     except (ConfigError, CameraFileError) as e:
         raise fail(str(e))
     if not recording.is_file():

@@ -331,24 +331,18 @@ class EngineConfig(_Section):
             apply_override(d, item)
         return EngineConfig.from_dict(d, str(path or "overrides"))
 
-    def pixel_scale(self, sizes: Iterable[tuple[int, int]]) -> float:
-        """The factor ``for_images`` applies for cameras of these image sizes (width, height)."""
+    def for_images(self, sizes: Iterable[tuple[int, int]]) -> "EngineConfig":
+        """This config with its px parameters (PIXEL_FIELDS) in the pixels of cameras of
+        these image sizes (width, height; 0 = unknown): multiplied by the square root of
+        their median area over ``preprocess.pixel_reference``'s, which becomes None, so
+        that a config already scaled is returned as it is: every entry point that meets
+        the cameras (the pipeline, the bootstrap) calls it, and nesting them is harmless.
+        Without a known size it is returned as it is too."""
         ref = self.preprocess.pixel_reference
         areas = [float(w) * float(h) for w, h in sizes if w > 0 and h > 0]
         if ref is None or not areas:
-            return 1.0
-        return math.sqrt(statistics.median(areas) / (ref[0] * ref[1]))
-
-    def for_images(self, sizes: Iterable[tuple[int, int]]) -> "EngineConfig":
-        """This config with its px parameters (PIXEL_FIELDS) in the pixels of cameras of
-        these image sizes (``pixel_scale``), and ``preprocess.pixel_reference`` None, so
-        that a config already scaled is returned as it is: every entry point that meets
-        the cameras (the pipeline, the bootstrap) calls it, and nesting them is harmless.
-        Without sizes (no cameras) it is returned as it is too."""
-        sizes = [(w, h) for w, h in sizes if w > 0 and h > 0]
-        if self.preprocess.pixel_reference is None or not sizes:
             return self
-        s = self.pixel_scale(sizes)
+        s = math.sqrt(statistics.median(areas) / (ref[0] * ref[1]))
         d = self.model_dump()
         for section, names in PIXEL_FIELDS.items():
             for name in names:

@@ -252,7 +252,7 @@ class Collector:
     def __init__(self, cameras: CameraSet, config: EngineConfig, options: LiveOptions, *, initial: bool,
                  seed: int = 0):
         self.cameras = cameras
-        self.cfg = config = config.for_images(e.resolution for e in cameras.extrinsics.values())
+        self.cfg = config = config.for_images(cameras.sizes)
         self.options = options
         self.initial = initial  # the camera set's poses are an initial estimate (distrust_initial)
         self.seed = seed

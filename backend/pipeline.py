@@ -79,7 +79,7 @@ class Pipeline:
         (backend/scale_check.py); None for cameras whose scale is the people's already
         (a bootstrap's)."""
         self.cameras = cameras
-        self.cfg = (config or EngineConfig()).for_images(e.resolution for e in cameras.extrinsics.values())
+        self.cfg = (config or EngineConfig()).for_images(cameras.sizes)
         self.names = cameras.names
         C = len(self.names)
         R0 = np.array([cameras.extrinsics[n].pose.R for n in self.names])

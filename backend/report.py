@@ -411,7 +411,7 @@ def reprojection_errors(intrinsics: Mapping[str, Intrinsics], extrinsics: Mappin
     from .sync import Synchronizer
 
     cams = CameraSet.combine(intrinsics, extrinsics)
-    cfg = (config or EngineConfig()).for_images(e.resolution for e in cams.extrinsics.values())
+    cfg = (config or EngineConfig()).for_images(cams.sizes)
     names = cams.names
     R = np.array([cams.extrinsics[n].pose.R for n in names])
     t = np.array([cams.extrinsics[n].pose.t for n in names])

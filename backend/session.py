@@ -201,7 +201,7 @@ class SessionInputs:
             if subset:
                 intr = {n: i for n, i in intr.items() if n in init}
             cams = CameraSet.combine(intr, init, _label(src, "intrinsics"), _label(src, "initial"))
-            config = config.for_images(e.resolution for e in cams.extrinsics.values())  # the keypoints' pixels
+            config = config.for_images(cams.sizes)
             ref = None
             if reference_yaml is not None:
                 ref_e = parse_extrinsics(reference_yaml, _label(src, "reference"))
