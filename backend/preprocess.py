@@ -1,6 +1,6 @@
 """Filters and undistortion of one frameset's views (the paper's preprocessing).
 
-Joints below the confidence threshold are dropped; a person needs both hips and both
+Joints outside the image and below the confidence threshold are dropped; a person needs both hips and both
 shoulders; persons too close to another person in the same image are dropped (their
 keypoints mix); crowded views are dropped. What remains is undistorted to normalised
 image coordinates with a per-joint standard deviation in pixels.
@@ -22,6 +22,7 @@ L_SHOULDER, R_SHOULDER, L_HIP, R_HIP = 5, 6, 11, 12
 TORSO = (L_SHOULDER, R_SHOULDER, L_HIP, R_HIP)
 # Relative keypoint noise per COCO joint: detectors place the face and shoulders best,
 # hips (under clothing) and the extremities worst. Ordered like proto.COCO17.
+OUTSIDE_TOLERANCE = 1.0  # px beyond the image border a joint may lie (pixel-centre conventions differ)
 JOINT_NOISE = np.array([1.0, 1.0, 1.0, 1.2, 1.2, 1.2, 1.2, 1.5, 1.5, 2.0, 2.0, 1.4, 1.4, 1.6, 1.6, 2.0, 2.0])
 
 
@@ -56,6 +57,10 @@ class Preprocessor:
         # threshold; a detector whose confidences run lower than the threshold shows here
         self.torso_seen: Counter = Counter()
         self.torso_low: Counter = Counter()
+        # per sensor: joints detected and those of them outside the message's image; a
+        # sensor whose `size` is not its keypoints' pixel frame shows here
+        self.joints_seen: Counter = Counter()
+        self.joints_outside: Counter = Counter()
 
     def intrinsics_for(self, sensor: str, size: tuple[int, int]) -> Intrinsics | None:
         """The sensor's intrinsics at a message's resolution; None if the aspect differs."""
@@ -85,6 +90,18 @@ class Preprocessor:
             self.rejected["crowded_view"] += P
             return []
         kp = v.kp.copy()
+        # A detector may place a joint it guesses beyond the image border (top-down models
+        # do, from a crop that extends past it): no pixel saw it, and the lens model is
+        # not valid there (a polynomial may fold back), so it is no measurement.
+        W, H = v.size
+        u, w = kp[..., 0], kp[..., 1]
+        seen = kp[..., 2] > 0
+        outside = seen & ~((u >= -OUTSIDE_TOLERANCE) & (u <= W + OUTSIDE_TOLERANCE)
+                           & (w >= -OUTSIDE_TOLERANCE) & (w <= H + OUTSIDE_TOLERANCE))
+        self.joints_seen[v.sensor] += int(seen.sum())
+        if outside.any():
+            self.joints_outside[v.sensor] += int(outside.sum())
+            kp[outside, 2] = 0.0
         torso = kp[:, TORSO, 2]
         detected = torso > 0
         confident = detected & (torso >= self.cfg.min_confidence)
@@ -111,19 +128,29 @@ class Preprocessor:
         src = v.index[idx] if v.index is not None else np.full(len(idx), -1)
         return [Detection(cam, xy[k], sigma[k], f, v.seq, int(src[k])) for k in range(len(idx))]
 
-    def confidence_report(self, min_joints: int = 200, warn_share: float = 0.5) -> dict[str, dict]:
+    def confidence_report(self, min_joints: int = 200, warn_share: float = 0.5,
+                          warn_outside: float = 0.2) -> dict[str, dict]:
         """Per sensor: torso keypoints seen, the share of them below ``min_confidence``,
-        and a warning when more than ``warn_share`` of at least ``min_joints`` are."""
+        the share of all its joints outside the image, and a warning when more than
+        ``warn_share`` resp. ``warn_outside`` of at least ``min_joints`` are."""
         out = {}
-        for sensor, n in self.torso_seen.items():
+        for sensor in self.joints_seen:
+            n = self.torso_seen[sensor]
             share = self.torso_low[sensor] / n if n else 0.0
-            warn = None
+            m = self.joints_seen[sensor]
+            outside = self.joints_outside[sensor] / m if m else 0.0
+            warn = []
+            if m >= min_joints and outside > warn_outside:
+                warn.append(f"{100 * outside:.0f} % of its keypoints lie outside its images' size and are dropped: "
+                            "the messages' `size` is not the pixel frame of their keypoints (a detector run at "
+                            "another resolution than it reports?)")
             if n >= min_joints and share > warn_share:
-                warn = (f"{100 * share:.0f} % of its torso keypoints are below preprocess.min_confidence "
-                        f"({self.cfg.min_confidence:g}) and dropped: few of its detections reach the calibration "
-                        "(people far, occluded or cut off by the image border; or a detector whose confidences run "
-                        "lower, which needs a lower threshold)")
-            out[sensor] = {"torso_keypoints": n, "below_confidence": round(share, 4), "warning": warn}
+                warn.append(f"{100 * share:.0f} % of its torso keypoints are below preprocess.min_confidence "
+                            f"({self.cfg.min_confidence:g}) and dropped: few of its detections reach the calibration "
+                            "(people far, occluded or cut off by the image border; or a detector whose confidences run "
+                            "lower, which needs a lower threshold)")
+            out[sensor] = {"torso_keypoints": n, "below_confidence": round(share, 4),
+                           "outside_image": round(outside, 4), "warning": "; ".join(warn) or None}
         return out
 
     def _too_close(self, kp: np.ndarray, boxes: np.ndarray, size: tuple[int, int]) -> np.ndarray:

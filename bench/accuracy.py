@@ -1,6 +1,7 @@
 """The paper's evaluation on the simulator, next to the paper's numbers and the limit.
 
-The 20-camera lab (shared/data/ais_lab20), simulated walkers of 1.96 m (and 1.70 m),
+The 20-camera lab (shared/data/ais_lab20), simulated walkers of 1.96 m (and 1.70 m; other heights:
+`--sim heights=1.55,1.20`),
 180 s; the initial estimate is the reference perturbed by exactly d m / r° per camera
 (``backend.perturb``, cam_0 kept); the full online pipeline (``run_offline``) calibrates.
 
@@ -147,7 +148,7 @@ def simulate(persons: int, duration: float, seed: int, cache: Path, sim_set: dic
     cache.mkdir(parents=True, exist_ok=True)
     tmp = cache / f".{os.getpid()}.{out.name}"
     sim = Simulator(Scene.load(lab_dir()), SimConfig(**{**sim_set, "persons": persons, "duration": duration,
-                                                        "seed": seed, "heights": HEIGHTS[persons]}))
+                                                        "seed": seed, "heights": sim_set.get("heights") or HEIGHTS[persons]}))
     sim.write(tmp)
     os.replace(Truth.sidecar_path(tmp), Truth.sidecar_path(out))  # the recording last: it marks completion
     os.replace(tmp, out)
@@ -347,7 +348,7 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
 
     t0 = time.perf_counter()
     p = run_offline(cams, cfg, feed(), seed=spec.seed, progress=progress, start=start,
-                    scale_heights=HEIGHTS[spec.persons] if known_height else ())
+                    scale_heights=tuple(truth.heights.tolist()) if known_height else ())
     run_s = time.perf_counter() - t0 - spent[0]
     state = p.state()
     final_poses = state.poses()
@@ -380,6 +381,7 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
     solve = np.array([h["solve_seconds"] for h in online])
     return {
         "spec": spec.__dict__,
+        "heights": truth.heights.tolist(),
         "evaluated_cameras": evaluated,
         "excluded_cameras": [n for n in names if n not in evaluated],
         "initial": initial,
@@ -544,7 +546,7 @@ def print_tables(runs: list[dict], console) -> dict:
             continue
         s = summary[f"{persons}p {start[0]:.2f}/{start[1]:g}"]
         n, dur = len(rs), rs[0]["spec"]["duration"]
-        t = table(f"Table A: {persons} person{'s' * (persons > 1)} ({', '.join(f'{h:.2f} m' for h in HEIGHTS[persons])}), "
+        t = table(f"Table A: {persons} person{'s' * (persons > 1)} ({', '.join(f'{h:.2f} m' for h in rs[0].get('heights', HEIGHTS[persons]))}), "
                   f"{dur:g} s, start {start[0]:.2f} m / {start[1]:g}°, {n} seed{'s' * (n > 1)}: "
                   f"each run's mean over cameras, then mean ± std [min, max] over seeds")
         for c in ("figure", "initial", "engine (final)", "engine online (before final batch)",

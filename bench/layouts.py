@@ -2,7 +2,9 @@
 
 Generated rooms (``edge_clients.sim.scenes.room``: 4 or 8 cameras high in the corners and
 along the walls of a 7 x 5 m room, all looking at its centre through 100° lenses with
-strong barrel distortion, 640 x 480) and, for comparison, the corridor; people walking
+strong barrel distortion, 640 x 480), variations of them (``hall``: 8 HD cameras 3.5 m
+high round a 16 x 10 m hall; ``low``: 4 cameras at head height; ``steep``: 4 cameras
+under a 3.4 m ceiling of a 4 x 4 m room looking steeply down) and the corridor; people walking
 (``--persons``, heights 1.80 / 1.65 m). Each case runs the command a user runs,
 ``extrcal calibrate`` in a subprocess, from a perturbed initial estimate (the paper's
 protocol, ``--starts`` m/deg) or from none (``none``: bootstrap, metric scale from the
@@ -32,7 +34,18 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 HEIGHTS = (1.80, 1.65)
-LAYOUTS = {"room4": ("room", {"cameras": 4}), "room8": ("room", {"cameras": 8}), "corridor": ("corridor", {})}
+LAYOUTS = {
+    "room4": ("room", {"cameras": 4}),
+    "room8": ("room", {"cameras": 8}),
+    "corridor": ("corridor", {}),
+    # a hall: people small in HD images, long baselines, mild lenses
+    "hall": ("room", {"cameras": 8, "width": 16.0, "depth": 10.0, "height": 3.5, "aim": 1.0, "hfov": 70.0,
+                      "resolution": (1280, 720), "k1": -0.05}),
+    # cameras at head height looking across: people hide each other, views nearly level
+    "low": ("room", {"cameras": 4, "height": 1.9, "aim": 1.2}),
+    # a small room's cameras near a high ceiling looking steeply down: people foreshortened
+    "steep": ("room", {"cameras": 4, "width": 4.0, "depth": 4.0, "height": 3.4, "aim": 0.3, "hfov": 110.0}),
+}
 
 
 def simulate(layout: str, persons: int, duration: float, seed: int, cache: Path) -> Path:

@@ -224,10 +224,11 @@ class SensorOut(BaseModel):
         "note (why its last update left the estimate as it was, null when it was updated)")
     keypoints: dict[str, float | int] | None = Field(
         None, description="the running session's preprocessing of its detections: torso_keypoints detected, "
-        "below_confidence: the share of them under preprocess.min_confidence (dropped)")
+        "below_confidence: the share of them under preprocess.min_confidence (dropped), outside_image: the share of all "
+        "its detected joints outside the message's size (dropped)")
     warnings: list[str] = Field(default_factory=list, description="a clock set apart from the other sensors' by more than "
                                 "the frameset std limit, messages arriving later than framesets wait, or most of its "
-                                "torso keypoints below the confidence threshold")
+                                "torso keypoints below the confidence threshold, or many of its keypoints outside its images")
 
 
 class Status(BaseModel):

@@ -126,6 +126,36 @@ def test_a_sensor_whose_torso_confidences_run_below_the_threshold_is_warned_abou
     assert pre().confidence_report() == {}
 
 
+def test_joints_outside_the_image_are_dropped_and_a_wrong_size_is_warned_about(pre, lab_intrinsics):
+    p = pre()
+    intr = lab_intrinsics["cam_4"]
+    W, H = intr.resolution
+    uv = _pixels(intr, _body([0.0, 0.0, 4.0]))
+    guessed = uv.copy()
+    guessed[15] = [uv[15, 0], H + 30.0]  # an ankle guessed below the border, confidently
+    guessed[9] = [-40.0, uv[9, 1]]  # a wrist left of it
+    guessed[16] = [uv[16, 0], H + 0.5]  # on the border by a pixel-centre convention: kept
+    [d] = p.view(_view("cam_4", [guessed], intr.resolution))
+    assert np.all(np.isnan(d.xy[[9, 15]])) and np.all(np.isnan(d.sigma[[9, 15]]))
+    assert np.all(np.isfinite(d.xy[16]))
+    # a torso joint outside: the person has no torso
+    cut = uv.copy()
+    cut[11] = [uv[11, 0], H + 5.0]
+    assert p.view(_view("cam_4", [cut], intr.resolution)) == []
+    assert p.rejected["no_torso"] == 1
+    rep = p.confidence_report()
+    assert rep["cam_4"]["outside_image"] == pytest.approx(3 / 34, abs=1e-4)
+    assert rep["cam_4"]["warning"] is None  # too few joints to judge, and few outside
+
+    # a sensor that reports half its keypoints' resolution: most joints lie outside
+    q = pre()
+    big = uv * 2.0
+    for _ in range(20):
+        q.view(_view("cam_4", [big], intr.resolution))
+    rep = q.confidence_report()["cam_4"]
+    assert rep["outside_image"] > 0.2
+    assert "outside its images' size" in rep["warning"]
+
 def test_persons_too_close_are_both_dropped(pre, lab_intrinsics):
     p = pre()
     intr = lab_intrinsics["cam_4"]  # 640x480: limit 0.03 * 800 = 24 px between boxes
