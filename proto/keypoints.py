@@ -26,6 +26,7 @@ COCO17 = (
 # Limits that keep one message from costing unbounded memory or time downstream.
 MAX_PERSONS = 256
 MAX_SIZE_PX = 16384
+MAX_STAMP = 1e11  # s since the epoch: larger stamps are milli-, micro- or nanoseconds
 MAX_SENSOR_LEN = 128
 _SENSOR_NAME = re.compile(r"[A-Za-z0-9_.\-]+")  # ASCII letters, digits, '_', '-', '.' (fullmatch)
 
@@ -230,6 +231,10 @@ def from_dict(d: Any, *, default_version: int | None = None) -> KeypointMessage:
     stamp = _num(d["stamp"], "stamp")
     if stamp <= 0:
         raise MessageError("stamp", f"must be seconds since the Unix epoch, got {stamp}")
+    if stamp >= MAX_STAMP:  # the year 5138: a clock counted in smaller units
+        unit = next((u for u, k in (("nanoseconds", 1e17), ("microseconds", 1e14), ("milliseconds", 1e11))
+                     if stamp >= k), "milliseconds")
+        raise MessageError("stamp", f"{stamp:.6g} is not seconds since the Unix epoch ({unit}?)")
     size = d["size"]
     if not isinstance(size, (list, tuple)) or len(size) != 2:
         raise MessageError("size", "expected [width, height]")

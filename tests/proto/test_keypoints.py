@@ -129,6 +129,9 @@ BAD = [
     (("stamp",), float("inf"), "stamp", "finite"),
     (("stamp",), 0, "stamp", "seconds since the Unix epoch"),
     (("stamp",), -5.0, "stamp", "seconds since the Unix epoch"),
+    (("stamp",), 1.7e12, "stamp", "(milliseconds?)"),  # a detector stamping in other units
+    (("stamp",), 1.7e15, "stamp", "(microseconds?)"),
+    (("stamp",), 1_700_000_000_000_000_000, "stamp", "(nanoseconds?)"),
     (("size",), _DELETE, "size", "missing"),
     (("size",), [848], "size", "expected [width, height]"),
     (("size",), [848, 0], "size", "not a plausible image size"),
