@@ -53,7 +53,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 LAB_CANDIDATES = (REPO.parent / "shared" / "data" / "ais_lab20", REPO / "edge_clients" / "data" / "ais_lab20")
-HEIGHTS = {1: (1.96,), 2: (1.96, 1.70), 3: (1.96, 1.70, 1.82), 4: (1.96, 1.70, 1.82, 1.62)}
+HEIGHTS = {1: (1.96,), 2: (1.96, 1.70), 3: (1.96, 1.70, 1.82), 4: (1.96, 1.70, 1.82, 1.62),
+           6: (1.96, 1.70, 1.82, 1.62, 1.75, 1.58), 8: (1.96, 1.70, 1.82, 1.62, 1.75, 1.58, 1.88, 1.66)}
 HEADLINE = (0.25, 10.0)
 STARTS = ((0.10, 5.0), (0.25, 10.0), (0.35, 15.0), (0.50, 20.0), (0.75, 20.0))
 CHECKPOINTS = (15, 30, 60, 90, 120, 180)
@@ -662,7 +663,7 @@ def _persons(text: str | None) -> list[int]:
     out = [int(x) for x in text.split(",")]
     bad = [p for p in out if p not in HEIGHTS]
     if bad:
-        raise SystemExit(f"--persons: 1 and/or 2 (the paper's walkers), got {bad}")
+        raise SystemExit(f"--persons: {', '.join(map(str, HEIGHTS))} (1 and 2 are the paper's walkers), got {bad}")
     return out
 
 
