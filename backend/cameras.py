@@ -6,6 +6,7 @@ clients need no OpenCV); undistortion uses OpenCV, imported lazily.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import tempfile
@@ -72,6 +73,21 @@ class Intrinsics:
         if h <= 0 or abs((w / h) / (bw / bh) - 1) >= 0.02:
             return None
         return self.scaled_to((w, h))
+
+    @functools.cached_property
+    def fold_radius(self) -> float:
+        """Distorted normalised radius beyond which the radial distortion polynomial
+        stops growing (inf: not within 79° of the axis). Past it several directions map
+        to one pixel (strong barrel coefficients fitted to the image centre fold back at
+        its corners), so a keypoint there has no one ray."""
+        d = np.zeros(8)
+        d[: min(len(self.dist), 8)] = self.dist[:8]
+        k1, k2, _, _, k3, k4, k5, k6 = d
+        r = np.linspace(0.0, 5.0, 5001)
+        r2 = r * r
+        rd = r * (1 + k1 * r2 + k2 * r2**2 + k3 * r2**3) / (1 + k4 * r2 + k5 * r2**2 + k6 * r2**3)
+        falls = np.flatnonzero(~(np.diff(rd) > 0))
+        return float(rd[falls[0]]) if len(falls) else math.inf
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Intrinsics):

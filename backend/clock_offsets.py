@@ -57,6 +57,7 @@ from .associate import Hypothesis
 from .cameras import Intrinsics, undistort
 from .config import ClockConfig
 from .geometry import pose_local, project_normalised, so3_exp, triangulate_batch
+from .preprocess import unmeasured
 
 log = logging.getLogger(__name__)
 
@@ -408,6 +409,8 @@ class _SensorTracks:
         kp = msg.keypoints()
         if not len(kp):
             return
+        outside, folded = unmeasured(kp, msg.size, intr)
+        kp[outside | folded, 2] = 0.0
         conf = kp[:, BODY, 2] >= self.min_conf
         keep = conf.sum(1) >= 4
         kp, conf = kp[keep], conf[keep]

@@ -1,8 +1,9 @@
 """Filters and undistortion of one frameset's views (the paper's preprocessing).
 
-Joints outside the image and below the confidence threshold are dropped; a person needs both hips and both
-shoulders; persons too close to another person in the same image are dropped (their
-keypoints mix); crowded views are dropped. What remains is undistorted to normalised
+Joints outside the image (or where its lens model folds back) and below the confidence
+threshold are dropped; a person needs both hips and both shoulders; persons too close to
+another person in the same image are dropped (their keypoints mix); crowded views are
+dropped. What remains is undistorted to normalised
 image coordinates with a per-joint standard deviation in pixels.
 """
 
@@ -24,6 +25,25 @@ TORSO = (L_SHOULDER, R_SHOULDER, L_HIP, R_HIP)
 # hips (under clothing) and the extremities worst. Ordered like proto.COCO17.
 OUTSIDE_TOLERANCE = 1.0  # px beyond the image border a joint may lie (pixel-centre conventions differ)
 JOINT_NOISE = np.array([1.0, 1.0, 1.0, 1.2, 1.2, 1.2, 1.2, 1.5, 1.5, 2.0, 2.0, 1.4, 1.4, 1.6, 1.6, 2.0, 2.0])
+
+
+def unmeasured(kp: np.ndarray, size: tuple[int, int], intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """Detected joints (confidence > 0) that are no measurement: outside the image, and
+    inside it where the lens model folds back (``Intrinsics.fold_radius``).
+
+    kp: (..., 3) float64 pixels and confidence at ``size`` (w, h); intr at that size.
+    Returns two (...,) bool masks. A detector may place a joint it guesses beyond the
+    image border (top-down models do, from a crop that extends past it): no pixel saw
+    it, and the lens model is not valid there."""
+    W, H = size
+    u, w = kp[..., 0], kp[..., 1]
+    seen = kp[..., 2] > 0
+    tol = OUTSIDE_TOLERANCE
+    outside = seen & ~((u >= -tol) & (u <= W + tol) & (w >= -tol) & (w <= H + tol))
+    folded = np.zeros_like(outside)
+    if np.isfinite(intr.fold_radius):
+        folded = seen & ~outside & (np.hypot((u - intr.cx) / intr.fx, (w - intr.cy) / intr.fy) >= intr.fold_radius)
+    return outside, folded
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,6 +81,8 @@ class Preprocessor:
         # sensor whose `size` is not its keypoints' pixel frame shows here
         self.joints_seen: Counter = Counter()
         self.joints_outside: Counter = Counter()
+        # ... and those where the lens model folds back (Intrinsics.fold_radius)
+        self.joints_folded: Counter = Counter()
 
     def intrinsics_for(self, sensor: str, size: tuple[int, int]) -> Intrinsics | None:
         """The sensor's intrinsics at a message's resolution; None if the aspect differs."""
@@ -90,18 +112,12 @@ class Preprocessor:
             self.rejected["crowded_view"] += P
             return []
         kp = v.kp.copy()
-        # A detector may place a joint it guesses beyond the image border (top-down models
-        # do, from a crop that extends past it): no pixel saw it, and the lens model is
-        # not valid there (a polynomial may fold back), so it is no measurement.
-        W, H = v.size
-        u, w = kp[..., 0], kp[..., 1]
         seen = kp[..., 2] > 0
-        outside = seen & ~((u >= -OUTSIDE_TOLERANCE) & (u <= W + OUTSIDE_TOLERANCE)
-                           & (w >= -OUTSIDE_TOLERANCE) & (w <= H + OUTSIDE_TOLERANCE))
+        outside, folded = unmeasured(kp, v.size, intr)
         self.joints_seen[v.sensor] += int(seen.sum())
-        if outside.any():
-            self.joints_outside[v.sensor] += int(outside.sum())
-            kp[outside, 2] = 0.0
+        self.joints_outside[v.sensor] += int(outside.sum())
+        self.joints_folded[v.sensor] += int(folded.sum())
+        kp[outside | folded, 2] = 0.0
         torso = kp[:, TORSO, 2]
         detected = torso > 0
         confident = detected & (torso >= self.cfg.min_confidence)
@@ -149,8 +165,14 @@ class Preprocessor:
                             f"({self.cfg.min_confidence:g}) and dropped: few of its detections reach the calibration "
                             "(people far, occluded or cut off by the image border; or a detector whose confidences run "
                             "lower, which needs a lower threshold)")
+            folded = self.joints_folded[sensor] / m if m else 0.0
+            if m >= min_joints and folded > warn_outside:
+                warn.append(f"{100 * folded:.0f} % of its keypoints lie where its lens model folds back (its "
+                            "distortion polynomial stops growing towards the image border) and are dropped: "
+                            "distortion coefficients fitted to the image's centre only?")
             out[sensor] = {"torso_keypoints": n, "below_confidence": round(share, 4),
-                           "outside_image": round(outside, 4), "warning": "; ".join(warn) or None}
+                           "outside_image": round(outside, 4), "beyond_lens_model": round(folded, 4),
+                           "warning": "; ".join(warn) or None}
         return out
 
     def _too_close(self, kp: np.ndarray, boxes: np.ndarray, size: tuple[int, int]) -> np.ndarray:

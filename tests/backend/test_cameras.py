@@ -125,6 +125,30 @@ def test_undistort_empty_and_rays(lab):
     np.testing.assert_allclose(d, want, atol=1e-7)
 
 
+
+def test_fold_radius_is_where_the_distortion_stops_growing(lab):
+    plain = Intrinsics("p", 500.0, 500.0, 320.0, 240.0, np.zeros(0), (640, 480))
+    assert plain.fold_radius == np.inf
+    # strong barrel fitted to the centre: r(1 + k1 r² + k2 r⁴) peaks at r² = 1.578
+    k1 = -0.28
+    barrel = replace(plain, dist=np.array([k1, k1 * k1 / 3, 0.0, 0.0, 0.0]))
+    assert barrel.fold_radius == pytest.approx(0.7829, abs=2e-4)
+    # the model maps two directions (and a third, further out) to one pixel short of the
+    # fold; pixels past it have no direction short of the fold at all
+    a = 1.0  # tan of the angle off the axis, short of the fold
+    rd = a * (1 + k1 * a**2 + k1 * k1 / 3 * a**4)
+    b = max(x.real for x in np.roots([k1 * k1 / 3, 0, k1, 0, 1, -rd]) if abs(x.imag) < 1e-9 and 1.3 < x.real < 2.2)
+    wide = replace(barrel, fx=250.0, fy=250.0)
+    pa, _ = project(np.array([[a, 0.0, 1.0]]), wide, Pose.identity())
+    pb, _ = project(np.array([[b, 0.0, 1.0]]), wide, Pose.identity())
+    np.testing.assert_allclose(pa, pb, atol=1e-6)
+    assert pa[0, 0] < 640 and rd < wide.fold_radius
+    # the lab's lenses fold beyond their image corners
+    for intr in lab.intrinsics.values():
+        w, h = intr.resolution
+        corner = max(np.hypot((x - intr.cx) / intr.fx, (y - intr.cy) / intr.fy) for x in (0, w) for y in (0, h))
+        assert intr.fold_radius > corner, intr.name
+
 def test_pose_conventions():
     """translation = optical centre, rotation = world_R_cam, OpenCV axes (z = viewing)."""
     R = so3_exp([0.3, -0.2, 0.9])

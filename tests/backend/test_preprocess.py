@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from backend.cameras import Pose, load_intrinsics, project
+from backend.cameras import Intrinsics, Pose, load_intrinsics, project
 from backend.config import PreprocessConfig
 from backend.preprocess import JOINT_NOISE, TORSO, Preprocessor
 from backend.sync import Frameset, View
@@ -155,6 +155,20 @@ def test_joints_outside_the_image_are_dropped_and_a_wrong_size_is_warned_about(p
     rep = q.confidence_report()["cam_4"]
     assert rep["outside_image"] > 0.2
     assert "outside its images' size" in rep["warning"]
+
+def test_joints_where_the_lens_model_folds_back_are_dropped():
+    k1 = -0.28  # fitted to the centre: folds at a distorted radius of 0.783, 196 px at f = 250
+    intr = Intrinsics("cam_w", 250.0, 250.0, 320.0, 240.0, np.array([k1, k1 * k1 / 3, 0.0, 0.0, 0.0]), (640, 480))
+    p = Preprocessor(PreprocessConfig(), ("cam_w",), {"cam_w": intr})
+    uv = _pixels(intr, _body([0.0, 0.0, 4.0]))
+    assert np.all(np.hypot(uv[:, 0] - 320, uv[:, 1] - 240) < 150)
+    far = uv.copy()
+    far[9] = [320 + 230.0, 240.0]  # a wrist 230 px out: inside the image, past the fold
+    [d] = p.view(_view("cam_w", [far], intr.resolution))
+    assert np.all(np.isnan(d.xy[9])) and np.isfinite(d.xy[[j for j in range(17) if j != 9]]).all()
+    rep = p.confidence_report()["cam_w"]
+    assert rep["beyond_lens_model"] == pytest.approx(1 / 17, abs=1e-4) and rep["outside_image"] == 0.0
+
 
 def test_persons_too_close_are_both_dropped(pre, lab_intrinsics):
     p = pre()
