@@ -3,8 +3,8 @@
 Joints outside the image (or where its lens model folds back) and below the confidence
 threshold are dropped; a person needs both hips and both shoulders; persons too close to
 another person in the same image are dropped (their keypoints mix); crowded views are
-dropped. What remains is undistorted to normalised
-image coordinates with a per-joint standard deviation in pixels.
+dropped. What remains is undistorted to normalised image coordinates with a per-joint
+standard deviation in pixels.
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ from .sync import Frameset, View
 
 L_SHOULDER, R_SHOULDER, L_HIP, R_HIP = 5, 6, 11, 12
 TORSO = (L_SHOULDER, R_SHOULDER, L_HIP, R_HIP)
+OUTSIDE_TOLERANCE = 1.0  # px beyond the image border a joint may lie (pixel-centre conventions differ)
 # Relative keypoint noise per COCO joint: detectors place the face and shoulders best,
 # hips (under clothing) and the extremities worst. Ordered like proto.COCO17.
-OUTSIDE_TOLERANCE = 1.0  # px beyond the image border a joint may lie (pixel-centre conventions differ)
 JOINT_NOISE = np.array([1.0, 1.0, 1.0, 1.2, 1.2, 1.2, 1.2, 1.5, 1.5, 2.0, 2.0, 1.4, 1.4, 1.6, 1.6, 2.0, 2.0])
 
 
@@ -147,8 +147,9 @@ class Preprocessor:
     def confidence_report(self, min_joints: int = 200, warn_share: float = 0.5,
                           warn_outside: float = 0.2) -> dict[str, dict]:
         """Per sensor: torso keypoints seen, the share of them below ``min_confidence``,
-        the share of all its joints outside the image, and a warning when more than
-        ``warn_share`` resp. ``warn_outside`` of at least ``min_joints`` are."""
+        the shares of all its joints outside the image and beyond its lens model, and a
+        warning when more than ``warn_share`` resp. ``warn_outside`` of at least
+        ``min_joints`` are."""
         out = {}
         for sensor in self.joints_seen:
             n = self.torso_seen[sensor]
