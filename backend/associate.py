@@ -164,8 +164,6 @@ class Associator:
         dist[cams[:, None] == cams[None, :]] = np.inf
 
         groups = _cluster(dist, cams, np.asarray(depth), self.cfg.max_distance)
-        if self.cfg.ambiguity_ratio > 0:
-            groups = self._unambiguous(groups, dist, cams, t[cams], dirs, seg0, seg1)
         out = []
         for g in groups:
             if len(g) < self.cfg.min_views:
@@ -175,62 +173,6 @@ class Associator:
                 out.append(h)
         self.created += len(out)
         return out
-
-    def _unambiguous(self, groups: list[list[int]], dist: np.ndarray, cams: np.ndarray, origins: np.ndarray,
-                     dirs: np.ndarray, seg0: np.ndarray, seg1: np.ndarray) -> list[list[int]]:
-        """The groups without their ambiguous members: a detection whose segment passes
-        within ``max_distance`` of another person, and within ``ambiguity_ratio`` times its
-        distance to its own. A person is the point the group's other torso rays (of other
-        cameras) intersect in, or their one segment when only one is left. In a crowd, a
-        camera whose estimate is some degrees off has rays that pass near several persons;
-        which one it joins is then chance, and a run of such joins can drag it metres off
-        (6 walkers in the lab: 1.7 m); its clear detections still join.
-
-        dist (n, n) segment distances (inf within a camera); cams (n,); origins, dirs
-        (n, 3) torso rays (unit); seg0, seg1 (n, 3) their depth segments."""
-        limit, ratio = self.cfg.max_distance, self.cfg.ambiguity_ratio
-        n, G = len(dist), len(groups)
-        label = np.empty(n, np.int64)
-        size = np.array([len(g) for g in groups])
-        for gi, g in enumerate(groups):
-            label[g] = gi
-        # each group's normal equations of the point nearest its rays, to take one ray out
-        M = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]  # (n, 3, 3)
-        Mo = np.einsum("nij,nj->ni", M, origins)
-        SA = np.zeros((G, 3, 3))
-        Sb = np.zeros((G, 3))
-        np.add.at(SA, label, M)
-        np.add.at(Sb, label, Mo)
-        # the member of each group from each detection's camera (-1: none)
-        same = np.full((G, n), -1)
-        for gi, g in enumerate(groups):
-            for k in g:
-                same[gi, cams == cams[k]] = k
-        # (n, G): group h without the member from m's camera (for m's own group: without m)
-        k = same.T  # (n, G)
-        has = k >= 0
-        A = SA[None] - np.where(has[..., None, None], M[np.maximum(k, 0)], 0.0)
-        b = Sb[None] - np.where(has[..., None], Mo[np.maximum(k, 0)], 0.0)
-        count = size[None] - has
-        P = np.linalg.solve(A + 1e-9 * np.eye(3), b[..., None])[..., 0]  # (n, G, 3)
-        # point-to-segment distance of each detection's segment to each group's point
-        u = seg1 - seg0
-        s_ = np.clip(np.einsum("ngi,ni->ng", P - seg0[:, None], u) / np.einsum("ni,ni->n", u, u)[:, None], 0, 1)
-        d = np.linalg.norm(seg0[:, None] + s_[..., None] * u[:, None] - P, axis=2)
-        # one ray left: the segment distance to it
-        lone = count == 1
-        if lone.any():
-            other = np.array([[next((m for m in groups[h] if m != k[i, h]), -1) for h in range(G)] for i in range(n)])
-            d = np.where(lone, dist[np.arange(n)[:, None], np.maximum(other, 0)], d)
-        d = np.where(count >= 1, d, np.inf)
-        own = d[np.arange(n), label]
-        d[np.arange(n), label] = np.inf
-        alt = d.min(axis=1)
-        ambiguous = (size[label] >= 2) & (alt < limit) & (alt < ratio * own)
-        if not ambiguous.any():
-            return groups
-        self.rejected["ambiguous_view"] += int(ambiguous.sum())
-        return [[m for m in g if not ambiguous[m]] for g in groups]
 
     def _hypothesis(self, time: float, dets: list[Detection], R: np.ndarray, t: np.ndarray,
                     gate_px: np.ndarray | None) -> Hypothesis | None:

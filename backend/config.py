@@ -65,9 +65,6 @@ class AssociateConfig(_Section):
     torso_ratio: float = 0.2924
     depth_margin: float = Field(0.15, ge=0, description="relative widening of the depth interval")
     max_distance: float = Field(1.0, gt=0, description="m, closest-point distance threshold between segments")
-    ambiguity_ratio: float = Field(0.0, ge=0, description="a detection is left out of its person when another person "
-                                   "(or a lone detection) is within max_distance and within this many times its "
-                                   "distance to its own (0: off)")
     min_views: int = Field(2, ge=2)
     reassociate: bool = Field(True, description="once cameras are certain, gate hypotheses by reprojection error")
     gate_pixels: float = Field(25.0, gt=0, description="px, a view whose torso reprojects further is split off")
