@@ -98,6 +98,12 @@ class SelectConfig(_Section):
                               "further than this from its prior (the initial estimate and its std) keeps its start: "
                               "wrong associations of a rough start, not the data, move a camera that far; unless most "
                               "cameras went that far (then the stated std is wrong). 0: off")
+    cycle_gate: float = Field(40.0, ge=0, description="χ² (6 dof): a cycle that puts a camera further than this from "
+                              "its predicted state (the filter's pose and covariance) is not taken for it: in a crowd "
+                              "a run of wrong associations drags a camera off faster than its uncertainty allows (6 "
+                              "walkers: a camera 1.6 m off, docs/accuracy.md, Session 11); it keeps its pose, its "
+                              "uncertainty grows by the process noise, and later cycles associate it again. Unless "
+                              "most cameras the cycle moved went that far. 0: off")
 
 
 class OptimizeConfig(_Section):

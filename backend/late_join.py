@@ -313,12 +313,13 @@ class JoiningPipeline(Pipeline):
         q = JoiningPipeline(cams, self.cfg, intrinsics=self.all_intrinsics, names=self.all_names)
         q._load(snap)
         self._carry_over(q)
-        q.last_cycle_time, q.first_gated = self.last_cycle_time, self.first_gated
+        q.last_cycle_time, q.first_gated, q.cycle_gated = self.last_cycle_time, self.first_gated, self.cycle_gated
         q.cycles_rejected, q.last_report = self.cycles_rejected, self.last_report
         old = {n: k for k, n in enumerate(self.names)}
         q.sync.take_over(self.sync)
         q.sync.take_buffers(self.late_sync, [j.name for j in new])
-        for k in ("accepted", "rejected", "torso_seen", "torso_low"):  # the session's counts go on
+        for k in ("accepted", "rejected", "torso_seen", "torso_low", "joints_seen", "joints_outside",
+                  "joints_folded"):  # the session's counts go on
             setattr(q.preprocess, k, getattr(self.preprocess, k))
         q.associate = self.associate
         q._recalibrate_due = [(due, names.index(self.names[c]), since) for due, c, since in self._recalibrate_due]

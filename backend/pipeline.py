@@ -65,6 +65,23 @@ def _from_prior(R0: np.ndarray, t0: np.ndarray, P: np.ndarray, R: np.ndarray, t:
     return float(np.linalg.norm(t - t0)), float(np.degrees(np.linalg.norm(delta[:3]))), chi2
 
 
+def _gated(problem: Problem, solution: Solution, gate: float) -> tuple[np.ndarray, dict[int, tuple[float, float, float]]]:
+    """(C,) bool the cameras the solution put further than χ² ``gate`` (6 dof) from the
+XX
+    off (0), or when most of the cameras it moved went that far: then the stated
+    uncertainty is what is wrong, not the data. NaN (a singular prior) is not far."""
+    far = np.zeros(len(solution.R), bool)
+    if gate <= 0:
+        return far, {}
+    idx = np.flatnonzero(solution.active)
+    moves = {c: _from_prior(problem.prior_R[c], problem.prior_t[c], problem.prior_cov[c], solution.R[c],
+                            solution.t[c]) for c in idx}
+    far[idx] = [moves[c][2] > gate for c in idx]
+    if far.sum() * 2 > len(idx):
+        far[:] = False
+    return far, moves
+
+
 class Pipeline:
     def __init__(self, cameras: CameraSet, config: EngineConfig | None = None, *, seed: int = 0,
                  start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
@@ -118,6 +135,7 @@ class Pipeline:
         self.last_lost_check: float | None = None
         self.first_passes = 0  # passes of the first adjustment done (select.first_scope)
         self.first_gated: list[str] = []  # cameras a first pass put implausibly far, kept at their start
+        self.cycle_gated: Counter = Counter()  # per camera: cycles whose move of it was not taken (select.cycle_gate)
         self.relocalized: list[str] = []
         self.final_batch_start: str | None = None  # the final batch kept: from the "estimate" or the "start"
         self.scale_heights = None if scale_heights is None else tuple(float(h) for h in scale_heights)
@@ -509,7 +527,12 @@ class Pipeline:
             change_t = float(upd.changed_translation.max())
             change_r = float(upd.changed_rotation.max())
         elif accepted:
-            active = solution.active & ~self._beyond_prior(problem, solution) if first else solution.active
+            if first:
+                active = solution.active & ~self._beyond_prior(problem, solution)
+            elif problem.kind == "cycle":
+                active = solution.active & ~self._beyond_prediction(problem, solution)
+            else:
+                active = solution.active
             upd = self.refiner.update(active, solution.R, solution.t, solution.cov, posterior=batch or first,
                                       cov_shape=solution.cov_shape, final=batch)
             change_t = float(upd.changed_translation.max())
@@ -552,21 +575,23 @@ class Pipeline:
         outvote a camera's prior and put it metres off with a small std, and the cycles
         after it then associate to the wrong pose. Left at its start, the next pass, with
         the others about right, associates it again."""
-        gate = self.cfg.select.first_gate
-        far = np.zeros(len(self.names), bool)
-        if gate <= 0:
-            return far
-        idx = np.flatnonzero(solution.active)
-        moves = {c: _from_prior(problem.prior_R[c], problem.prior_t[c], problem.prior_cov[c], solution.R[c],
-                                solution.t[c]) for c in idx}
-        far[idx] = [moves[c][2] > gate for c in idx]  # NaN (a singular prior) is not far
-        if far.sum() * 2 > len(idx):  # most cameras that far: the stated std is wrong, not the data
-            return np.zeros(len(self.names), bool)
+        far, moves = _gated(problem, solution, self.cfg.select.first_gate)
         for c in np.flatnonzero(far):
             log.warning("the first adjustment put %s %.2f m from its initial estimate (χ² %.0f against its stated "
                         "std): kept at its start, the next cycles associate it again", self.names[c], moves[c][0],
                         moves[c][2])
             self.first_gated.append(self.names[c])
+        return far
+
+    def _beyond_prediction(self, problem: Problem, solution: Solution) -> np.ndarray:
+        """(C,) bool the cameras a cycle put further from the filter's prediction (the
+        cycle's prior) than ``select.cycle_gate`` allows, when they are a minority of the
+        cameras it moved (``_gated``); counted per camera in ``cycle_gated``."""
+        far, moves = _gated(problem, solution, self.cfg.select.cycle_gate)
+        for c in np.flatnonzero(far):
+            log.debug("cycle %d would have moved %s %.2f m / %.1f° (χ² %.0f against its predicted std): not taken",
+                      problem.cycle, self.names[c], *moves[c])
+            self.cycle_gated[self.names[c]] += 1
         return far
 
     def _monitor(self) -> list[str]:

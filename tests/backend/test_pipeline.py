@@ -271,11 +271,12 @@ def test_skeletons_are_the_newest_persons_triangulated_near_the_truth(lab):
         assert np.ptp(pts, axis=0).max() < 2.2
 
 
-def _lab20(lab_dir, seed: int, translation: float, rotation: float):
-    """25 s of two walkers in the 20-camera lab (simulator seed ``seed``), every camera
-    perturbed by translation m / rotation deg: (cameras, true poses, messages)."""
+def _lab20(lab_dir, seed: int, translation: float, rotation: float, heights=(1.96, 1.70), duration=25.0):
+    """``duration`` s of walkers (``heights``) in the 20-camera lab (simulator seed
+    ``seed``), every camera perturbed by translation m / rotation deg: (cameras, true
+    poses, messages)."""
     scene = Scene.load(lab_dir)
-    sim = Simulator(scene, SimConfig(persons=2, duration=25.0, seed=seed, heights=(1.96, 1.70)))
+    sim = Simulator(scene, SimConfig(persons=len(heights), duration=duration, seed=seed, heights=heights))
     msgs = [m for _, m in sim.messages()]
     ref = {n: Extrinsics(scene.poses[n], scene.intrinsics[n].resolution) for n in scene.poses}
     cams = CameraSet.combine(dict(scene.intrinsics), perturb_extrinsics(ref, translation, rotation, seed=seed))
@@ -362,6 +363,29 @@ def test_a_camera_the_first_adjustment_puts_metres_off_keeps_its_start(lab20_see
         assert p.first_gated == [] and off["cam_1"] > 2.0
 
 
+@pytest.fixture(scope="module")
+def lab20_crowd(lab_dir):
+    """Six walkers, seed 0, every camera 0.25 m / 10° off: cam_5 sees one walker while
+    the others see another, and cycles drag it off (bench/accuracy.py --persons 6)."""
+    return _lab20(lab_dir, 0, 0.25, 10.0, heights=(1.96, 1.70, 1.82, 1.62, 1.75, 1.58), duration=30.0)
+
+
+@pytest.mark.parametrize("gate", [40.0, 0.0])
+def test_cycles_do_not_drag_a_camera_faster_than_its_uncertainty_allows(lab20_crowd, gate):
+    """Without the gate (0), cycles 3 and 4 take cam_5 from 0.5 to 1.1 m off (χ² 160-220
+    against their prior, all from hypotheses that join its view of one walker to the
+    others' views of another); with it those moves are not taken."""
+    cams, truth, msgs = lab20_crowd
+    p = run_offline(cams, EngineConfig().merged({"select": {"cycle_gate": gate}}), msgs, seed=0, finish=False)
+    assert p.cycle > 20
+    off = float(np.linalg.norm(p.refiner.t[cams.names.index("cam_5")] - truth["cam_5"].t))
+    if gate:
+        assert p.cycle_gated["cam_5"] >= 2
+        assert off < 0.6
+    else:
+        assert not p.cycle_gated and off > 1.0
+
+
 def test_the_first_gate_trusts_the_data_when_most_cameras_go_that_far(lab):
     """A start worse than its stated std moves every camera far: then the std is wrong,
     not the associations, and nothing is held back; a minority is."""
@@ -379,6 +403,11 @@ def test_the_first_gate_trusts_the_data_when_most_cameras_go_that_far(lab):
     every = SimpleNamespace(active=np.ones(C, bool), R=R0, t=t_far)
     assert not p._beyond_prior(problem, every).any()
     assert p.first_gated == [cams.names[1]]
+    # the cycles' gate (against the predicted state) decides alike
+    problem.cycle = 7
+    assert p._beyond_prediction(problem, one).tolist() == [c == 1 for c in range(C)]
+    assert not p._beyond_prediction(problem, every).any()
+    assert dict(p.cycle_gated) == {cams.names[1]: 1}
 
 
 def test_the_result_names_cameras_that_ended_far_beyond_their_stated_std(lab):
