@@ -247,9 +247,11 @@ def calibrate(
 
     span = (state.data_time or 0) - (first_stamp[0] if first_stamp else 0)
     c = state.counters
+    why = ", ".join(f"{k} {v}" for k, v in sorted(c.framesets_rejected.items(), key=lambda kv: -kv[1]) if v)
     console.print(
         f"{c.messages} messages ({stats.skipped} bad records skipped), {c.framesets} framesets "
-        f"({sum(c.framesets_rejected.values())} rejected), {c.hypotheses} hypotheses, {state.cycle} cycles "
+        f"({sum(c.framesets_rejected.values())} rejected{': ' + why if why else ''}), {c.hypotheses} hypotheses, "
+        f"{state.cycle} cycles "
         f"({c.cycles_rejected} rejected) in {wall:.1f} s = {span / max(wall, 1e-9):.1f}x real time",
         highlight=False,
     )
