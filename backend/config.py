@@ -117,12 +117,12 @@ class OptimizeConfig(_Section):
     min_triangulation_angle: float = Field(2.0, ge=0, description="deg: landmarks whose rays meet at a smaller angle carry no pose information and are left out")
     outlier_rounds: int = Field(2, ge=0, description="solve, drop views (one person in one camera) that reproject badly, solve again")
     outlier_px: float = Field(15.0, gt=0, description="px: a view whose median joint residual exceeds this (and 4x the median view residual) is an outlier")
-    bones: Literal["off", "batch", "all"] = Field("off", description="people keep their size: tie the bone lengths of "
-                                                  "each person's hypotheses to one unknown length per bone and person "
-                                                  "(docs/bones.md); 'batch': in the first and the final adjustment "
-                                                  "(for camera chains without three-way overlap, e.g. corridors: 0.127 -> "
-                                                  "0.051 m there; in the 20-camera lab it cost shape accuracy, 0.0118 -> "
-                                                  "0.0145 m from 0.10 m / 5°), 'all': in every cycle too")
+    bones: Literal["off", "auto", "batch", "all"] = Field(
+        "auto", description="people keep their size: tie the bone lengths of each person's hypotheses to one unknown "
+        "length per bone and person (docs/bones.md); 'batch': in the first and the final adjustment (for camera chains "
+        "without three-way overlap, e.g. corridors: 0.127 -> 0.051 m there; in the 20-camera lab it cost shape "
+        "accuracy, 0.0118 -> 0.0145 m from 0.10 m / 5°); 'auto': 'batch' when some camera sees people only together "
+        "with one other camera (a chain), else off; 'all': in every cycle too")
     bone_sigma: float = Field(0.02, gt=0, description="m: std of one measured bone length about the person's own "
                                                        "(keypoints are not joint centres; shoulders shrug)")
 

@@ -489,6 +489,8 @@ class Pipeline:
         rf = self.refiner
         self.cycle += 1
         opt = self.cfg.optimize.model_copy(update={"max_iterations": max(self.cfg.optimize.max_iterations, 100)})
+        if opt.bones == "auto":  # bones carry the scale along a chain, where projections cannot
+            opt = opt.model_copy(update={"bones": "batch" if self._pairwise_only().any() else "off"})
         return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.prior_R.copy(),
                        prior_t=rf.prior_t.copy(), prior_cov=rf.P0.copy(), focal=self.focal, config=opt,
                        frames=tuple(self._timed_frames(frames)),

@@ -15,7 +15,7 @@ from backend.people import label_persons, segments
 from backend.perturb import perturb_extrinsics
 from backend.pipeline import Pipeline
 from backend.refine import Refiner
-from edge_clients.sim import SimConfig, Simulator
+from edge_clients.sim import Scene, SimConfig, Simulator
 from edge_clients.sim.scenes import corridor
 
 HEIGHT = 1.80
@@ -77,7 +77,16 @@ def test_bone_lengths_carry_scale_along_the_chain(chain):
     assert one.ok and one.final_error < one.initial_error and one.bone_lengths is not None
 
 
-def test_bones_are_opt_in_and_batch_means_first_and_final_adjustments():
+@pytest.fixture(scope="module")
+def lab_room(lab_dir):
+    """15 s of two walkers in the 20-camera lab, its true poses: (cameras, messages)."""
+    scene = Scene.load(lab_dir)
+    sim = Simulator(scene, SimConfig(persons=2, duration=15.0, seed=0, heights=(1.96, 1.70)))
+    ref = {n: Extrinsics(scene.poses[n], scene.intrinsics[n].resolution) for n in scene.names}
+    return CameraSet.combine(dict(scene.intrinsics), ref), [m for _, m in sim.messages()]
+
+
+def test_bones_are_for_chains_and_batch_means_first_and_final_adjustments(chain, lab_room):
     from backend.optimize import bones_wanted
 
     cfg = EngineConfig().optimize
@@ -85,7 +94,18 @@ def test_bones_are_opt_in_and_batch_means_first_and_final_adjustments():
     t = np.zeros((2, 3))
     P = np.repeat(np.eye(6)[None], 2, axis=0)
     prob = Problem(cycle=1, R=R, t=t, prior_R=R, prior_t=t, prior_cov=P, focal=np.ones(2), config=cfg)
-    assert cfg.bones == "off" and not bones_wanted(replace(prob, kind="batch"))
+    # "auto" (the default) is decided by the pipeline when it builds an adjustment over
+    # all data: "batch" where some camera sees people only in pairs (the corridor) ...
+    assert cfg.bones == "auto" and not bones_wanted(replace(prob, kind="batch"))
+    assert chain[0].config.bones == "batch" and chain[3]._pairwise_only().any()
+    # ... and off where people are seen by three cameras and more (the lab)
+    cams, msgs = lab_room
+    p = Pipeline(cams, EngineConfig())
+    for msg in msgs:
+        p.push(msg)
+        p.advance(p.clock)
+    assert len(p.frames) > 50 and not p._pairwise_only().any()
+    assert p._batch_problem(100, 0.1).config.bones == "off"
     cfg = cfg.model_copy(update={"bones": "batch"})
     prob = replace(prob, config=cfg)
     assert not bones_wanted(prob) and bones_wanted(replace(prob, kind="batch")) and bones_wanted(replace(prob, kind="first"))
