@@ -80,14 +80,7 @@ class Intrinsics:
         stops growing (inf: not within 79° of the axis). Past it several directions map
         to one pixel (strong barrel coefficients fitted to the image centre fold back at
         its corners), so a keypoint there has no one ray."""
-        d = np.zeros(8)
-        d[: min(len(self.dist), 8)] = self.dist[:8]
-        k1, k2, _, _, k3, k4, k5, k6 = d
-        r = np.linspace(0.0, 5.0, 5001)
-        r2 = r * r
-        rd = r * (1 + k1 * r2 + k2 * r2**2 + k3 * r2**3) / (1 + k4 * r2 + k5 * r2**2 + k6 * r2**3)
-        falls = np.flatnonzero(~(np.diff(rd) > 0))
-        return float(rd[falls[0]]) if len(falls) else math.inf
+        return radial_fold(self.dist)[1]
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Intrinsics):
@@ -99,6 +92,20 @@ class Intrinsics:
             and np.allclose(self.dist, other.dist)
             and tuple(self.resolution) == tuple(other.resolution)
         )
+
+
+def radial_fold(dist: np.ndarray) -> tuple[float, float]:
+    """Where OpenCV's radial distortion (k1, k2, k3 over k4, k5, k6 of ``dist``) first
+    stops growing with the radius: (undistorted, distorted) normalised radius, searched
+    up to 5 (79° off the axis); (inf, inf) when it grows all the way."""
+    d = np.zeros(8)
+    d[: min(len(dist), 8)] = dist[:8]
+    k1, k2, _, _, k3, k4, k5, k6 = d
+    r = np.linspace(0.0, 5.0, 2001)
+    r2 = r * r
+    rd = r * (1 + k1 * r2 + k2 * r2**2 + k3 * r2**3) / (1 + k4 * r2 + k5 * r2**2 + k6 * r2**3)
+    falls = np.flatnonzero(~(np.diff(rd) > 0))
+    return (float(r[falls[0]]), float(rd[falls[0]])) if len(falls) else (math.inf, math.inf)
 
 
 @dataclass(frozen=True, eq=False)

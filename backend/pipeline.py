@@ -67,8 +67,8 @@ def _from_prior(R0: np.ndarray, t0: np.ndarray, P: np.ndarray, R: np.ndarray, t:
 
 def _gated(problem: Problem, solution: Solution, gate: float) -> tuple[np.ndarray, dict[int, tuple[float, float, float]]]:
     """(C,) bool the cameras the solution put further than χ² ``gate`` (6 dof) from the
-XX
-    off (0), or when most of the cameras it moved went that far: then the stated
+    problem's prior, and each moved camera's (m, deg, χ²) from it. None is far when the
+    gate is off (0), or when most of the cameras it moved went that far: then the stated
     uncertainty is what is wrong, not the data. NaN (a singular prior) is not far."""
     far = np.zeros(len(solution.R), bool)
     if gate <= 0:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from backend.cameras import project
+from backend.cameras import project, radial_fold
 
 from .scene import Scene
 
@@ -114,14 +114,7 @@ def fov_limit(intr) -> float:
     w, h = intr.resolution
     corners = np.array([[0, 0], [w, 0], [0, h], [w, h]], float)
     r_corner = float(np.max(np.hypot((corners[:, 0] - intr.cx) / intr.fx, (corners[:, 1] - intr.cy) / intr.fy)))
-    d = np.zeros(8)
-    d[: min(len(intr.dist), 8)] = intr.dist[:8]
-    k1, k2, _, _, k3, k4, k5, k6 = d
-    r = np.linspace(0.0, 5.0, 2001)
-    r2 = r * r
-    rd = r * (1 + k1 * r2 + k2 * r2**2 + k3 * r2**3) / (1 + k4 * r2 + k5 * r2**2 + k6 * r2**3)
-    falls = np.flatnonzero(np.diff(rd) <= 0)
-    r_fold = r[falls[0]] if len(falls) else np.inf
+    r_fold = radial_fold(intr.dist)[0]
     return float(min(1.15 * r_corner, 0.95 * r_fold))
 
 
