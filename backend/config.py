@@ -121,8 +121,8 @@ class OptimizeConfig(_Section):
         "auto", description="people keep their size: tie the bone lengths of each person's hypotheses to one unknown "
         "length per bone and person (docs/bones.md); 'batch': in the first and the final adjustment (for camera chains "
         "without three-way overlap, e.g. corridors: 0.127 -> 0.051 m there; in the 20-camera lab it cost shape "
-        "accuracy, 0.0118 -> 0.0145 m from 0.10 m / 5°); 'auto': 'batch' when some camera sees people only together "
-        "with one other camera (a chain), else off; 'all': in every cycle too")
+        "accuracy, 0.0118 -> 0.0145 m from 0.10 m / 5°); 'auto': in the final adjustment when some camera saw people "
+        "only together with one other camera (a chain), else off; 'all': in every cycle too")
     bone_sigma: float = Field(0.02, gt=0, description="m: std of one measured bone length about the person's own "
                                                        "(keypoints are not joint centres; shoulders shrug)")
 

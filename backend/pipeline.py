@@ -482,15 +482,18 @@ class Pipeline:
         det, assoc = self.detected_total, self.associated_total
         return (self.refiner.cycles == 0) & (det >= a.lost_min_detections) & (assoc < a.lost_ratio * det)
 
-    def _batch_problem(self, max_hypotheses: int, spacing: float, frames: Iterable | None = None) -> Problem:
+    def _batch_problem(self, max_hypotheses: int, spacing: float, frames: Iterable | None = None, *,
+                       final: bool = False) -> Problem:
         """Every archived frame (or ``frames``), re-associated in the solve with the current
         estimate; prior = the start (the initial estimate, or the data's shape aligned onto
-        it) with its covariance, so the result is the honest posterior of all the data."""
+        it) with its covariance, so the result is the honest posterior of all the data.
+        ``final``: the run's last adjustment, the one ``optimize.bones = "auto"`` gives
+        bones when the cameras form a chain (judged on the whole run's associations)."""
         rf = self.refiner
         self.cycle += 1
         opt = self.cfg.optimize.model_copy(update={"max_iterations": max(self.cfg.optimize.max_iterations, 100)})
         if opt.bones == "auto":  # bones carry the scale along a chain, where projections cannot
-            opt = opt.model_copy(update={"bones": "batch" if self._pairwise_only().any() else "off"})
+            opt = opt.model_copy(update={"bones": "batch" if final and self._pairwise_only().any() else "off"})
         return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.prior_R.copy(),
                        prior_t=rf.prior_t.copy(), prior_cov=rf.P0.copy(), focal=self.focal, config=opt,
                        frames=tuple(self._timed_frames(frames)),
@@ -701,7 +704,7 @@ class Pipeline:
         return self.scale_check
 
     def batch_adjust(self) -> CycleReport:
-        p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2)
+        p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2, final=True)
         sol = solve(p)
         if self.cfg.refine.final_batch_from_start:
             p, sol = self._batch_from_start(p, sol)

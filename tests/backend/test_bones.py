@@ -37,7 +37,7 @@ def chain():
         p.advance(p.clock)
     p.advance(p.clock + 1.0)
     assert len(p.frames) > 100
-    prob = p._batch_problem(1000, 0.1)
+    prob = p._batch_problem(1000, 0.1, final=True)
     return prob, {n: e.pose for n, e in ref.items()}, list(scene.names), p
 
 
@@ -94,10 +94,11 @@ def test_bones_are_for_chains_and_batch_means_first_and_final_adjustments(chain,
     t = np.zeros((2, 3))
     P = np.repeat(np.eye(6)[None], 2, axis=0)
     prob = Problem(cycle=1, R=R, t=t, prior_R=R, prior_t=t, prior_cov=P, focal=np.ones(2), config=cfg)
-    # "auto" (the default) is decided by the pipeline when it builds an adjustment over
-    # all data: "batch" where some camera sees people only in pairs (the corridor) ...
+    # "auto" (the default) is decided by the pipeline when it builds the final adjustment:
+    # "batch" where some camera saw people only in pairs (the corridor) ...
     assert cfg.bones == "auto" and not bones_wanted(replace(prob, kind="batch"))
     assert chain[0].config.bones == "batch" and chain[3]._pairwise_only().any()
+    assert chain[3]._batch_problem(100, 0.1).config.bones == "off"  # the first adjustment's: not yet
     # ... and off where people are seen by three cameras and more (the lab)
     cams, msgs = lab_room
     p = Pipeline(cams, EngineConfig())
@@ -105,7 +106,7 @@ def test_bones_are_for_chains_and_batch_means_first_and_final_adjustments(chain,
         p.push(msg)
         p.advance(p.clock)
     assert len(p.frames) > 50 and not p._pairwise_only().any()
-    assert p._batch_problem(100, 0.1).config.bones == "off"
+    assert p._batch_problem(100, 0.1, final=True).config.bones == "off"
     cfg = cfg.model_copy(update={"bones": "batch"})
     prob = replace(prob, config=cfg)
     assert not bones_wanted(prob) and bones_wanted(replace(prob, kind="batch")) and bones_wanted(replace(prob, kind="first"))
