@@ -66,10 +66,10 @@ def calibrate(
             raise fail(f"--person-height: heights must lie in 0.5-2.8 m, got {person_height!r}")
     try:
         cfg = EngineConfig.load(config, set_ or [])
-        if initial is not None:
-            cams = CameraSet.load(intrinsics, initial)
-        ref = {k: v.pose for k, v in load_extrinsics(reference).items()} if reference else None
         intr = load_intrinsics(intrinsics)
+        if initial is not None:
+            cams = CameraSet.combine(intr, load_extrinsics(initial), str(intrinsics), str(initial))
+        ref = {k: v.pose for k, v in load_extrinsics(reference).items()} if reference else None
         # px parameters in the keypoints' pixels: the initial estimate names the messages' size
         # (CameraSet.combine takes the intrinsics' where it names none)
         cfg = cfg.for_images(cams.sizes if initial is not None else [i.resolution for i in intr.values()])

@@ -318,9 +318,7 @@ class JoiningPipeline(Pipeline):
         old = {n: k for k, n in enumerate(self.names)}
         q.sync.take_over(self.sync)
         q.sync.take_buffers(self.late_sync, [j.name for j in new])
-        for k in ("accepted", "rejected", "torso_seen", "torso_low", "joints_seen", "joints_outside",
-                  "joints_folded"):  # the session's counts go on
-            setattr(q.preprocess, k, getattr(self.preprocess, k))
+        q.preprocess.take_counts(self.preprocess)  # the session's counts go on
         q.associate = self.associate
         q._recalibrate_due = [(due, names.index(self.names[c]), since) for due, c, since in self._recalibrate_due]
         for k in ("detected", "associated", "detected_total", "associated_total", "associated_multi"):

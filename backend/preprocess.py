@@ -84,6 +84,11 @@ class Preprocessor:
         # ... and those where the lens model folds back (Intrinsics.fold_radius)
         self.joints_folded: Counter = Counter()
 
+    def take_counts(self, other: "Preprocessor") -> None:
+        """Go on with another preprocessor's counts (a pipeline rebuilt mid-session)."""
+        for k in ("accepted", "rejected", "torso_seen", "torso_low", "joints_seen", "joints_outside", "joints_folded"):
+            setattr(self, k, getattr(other, k))
+
     def intrinsics_for(self, sensor: str, size: tuple[int, int]) -> Intrinsics | None:
         """The sensor's intrinsics at a message's resolution; None if the aspect differs."""
         key = (sensor, tuple(size))

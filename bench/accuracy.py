@@ -1,9 +1,9 @@
 """The paper's evaluation on the simulator, next to the paper's numbers and the limit.
 
-The 20-camera lab (shared/data/ais_lab20), simulated walkers of 1.96 m (and 1.70 m; other heights:
-`--sim heights=1.55,1.20`),
-180 s; the initial estimate is the reference perturbed by exactly d m / r° per camera
-(``backend.perturb``, cam_0 kept); the full online pipeline (``run_offline``) calibrates.
+The 20-camera lab (shared/data/ais_lab20), simulated walkers of 1.96 m (and 1.70 m; other
+heights with `--sim heights=1.55,1.20`), 180 s; the initial estimate is the reference
+perturbed by exactly d m / r° per camera (``backend.perturb``, cam_0 kept); the full
+online pipeline (``run_offline``) calibrates.
 
 - Table A: 1 and 2 persons from 0.25 m / 10°, N seeds: position and orientation error
   (rigid alignment, the paper's figure), shape error (similarity alignment) and the scale

@@ -232,8 +232,8 @@ def from_dict(d: Any, *, default_version: int | None = None) -> KeypointMessage:
     if stamp <= 0:
         raise MessageError("stamp", f"must be seconds since the Unix epoch, got {stamp}")
     if stamp >= MAX_STAMP:  # the year 5138: a clock counted in smaller units
-        unit = next((u for u, k in (("nanoseconds", 1e17), ("microseconds", 1e14), ("milliseconds", 1e11))
-                     if stamp >= k), "milliseconds")
+        unit = next(u for u, k in (("nanoseconds", 1e17), ("microseconds", 1e14), ("milliseconds", MAX_STAMP))
+                    if stamp >= k)
         raise MessageError("stamp", f"{stamp:.6g} is not seconds since the Unix epoch ({unit}?)")
     size = d["size"]
     if not isinstance(size, (list, tuple)) or len(size) != 2:

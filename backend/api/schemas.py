@@ -225,10 +225,12 @@ class SensorOut(BaseModel):
     keypoints: dict[str, float | int] | None = Field(
         None, description="the running session's preprocessing of its detections: torso_keypoints detected, "
         "below_confidence: the share of them under preprocess.min_confidence (dropped), outside_image: the share of all "
-        "its detected joints outside the message's size (dropped)")
+        "its detected joints outside the message's size (dropped), beyond_lens_model: the share where its lens "
+        "model folds back (dropped)")
     warnings: list[str] = Field(default_factory=list, description="a clock set apart from the other sensors' by more than "
                                 "the frameset std limit, messages arriving later than framesets wait, or most of its "
-                                "torso keypoints below the confidence threshold, or many of its keypoints outside its images")
+                                "torso keypoints below the confidence threshold, or many of its keypoints outside its images or where its "
+                                "lens model folds back")
 
 
 class Status(BaseModel):

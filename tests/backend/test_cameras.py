@@ -125,7 +125,6 @@ def test_undistort_empty_and_rays(lab):
     np.testing.assert_allclose(d, want, atol=1e-7)
 
 
-
 def test_fold_radius_is_where_the_distortion_stops_growing(lab):
     plain = Intrinsics("p", 500.0, 500.0, 320.0, 240.0, np.zeros(0), (640, 480))
     assert plain.fold_radius == np.inf
@@ -148,6 +147,7 @@ def test_fold_radius_is_where_the_distortion_stops_growing(lab):
         w, h = intr.resolution
         corner = max(np.hypot((x - intr.cx) / intr.fx, (y - intr.cy) / intr.fy) for x in (0, w) for y in (0, h))
         assert intr.fold_radius > corner, intr.name
+
 
 def test_pose_conventions():
     """translation = optical centre, rotation = world_R_cam, OpenCV axes (z = viewing)."""
