@@ -6,6 +6,13 @@ are grouped greedily by the closest-point distance of their segments (closest pa
 first, complete linkage below ``max_distance``, at most one detection per camera). Once
 the camera poses are known well, every view of a hypothesis must also reproject its
 torso within a gate, which splits wrong associations that segments alone allow.
+
+A hypothesis of two views has no third to show a wrong one: two people, each seen by
+one camera only (one walked out of the other's view, or behind someone), pair up
+whenever their torso rays pass within ``max_distance``, and a solve explains them by
+bending the cameras (in a chain, by a link's scale). Their joints then miss each other's
+epipolar lines, which need only the cameras' relative rotation and baseline direction,
+not the scale; such pairs are dropped once the poses are known well enough to tell.
 """
 
 from __future__ import annotations
@@ -138,8 +145,10 @@ class Associator:
         self.created = 0
 
     def __call__(self, time: float, views: Sequence[Sequence[Detection]], R: np.ndarray, t: np.ndarray,
-                 gate_px: np.ndarray | None = None) -> list[Hypothesis]:
-        """gate_px: (C,) px reprojection gate per camera (inf = not gated), or None."""
+                 gate_px: np.ndarray | None = None, pose_px: np.ndarray | None = None) -> list[Hypothesis]:
+        """gate_px: (C,) px reprojection gate per camera (inf = not gated), or None.
+        pose_px: (C,) px one std of how far the cameras' poses may move an image point
+        (``Pipeline._pose_px``), for the epipolar test of two-view hypotheses; None: no test."""
         dets = [d for v in views for d in v]
         if len(dets) < 2:
             return []
@@ -168,14 +177,14 @@ class Associator:
         for g in groups:
             if len(g) < self.cfg.min_views:
                 continue
-            h = self._hypothesis(time, [dets[k] for k in g], R, t, gate_px)
+            h = self._hypothesis(time, [dets[k] for k in g], R, t, gate_px, pose_px)
             if h is not None:
                 out.append(h)
         self.created += len(out)
         return out
 
     def _hypothesis(self, time: float, dets: list[Detection], R: np.ndarray, t: np.ndarray,
-                    gate_px: np.ndarray | None) -> Hypothesis | None:
+                    gate_px: np.ndarray | None, pose_px: np.ndarray | None = None) -> Hypothesis | None:
         cams = np.array([d.cam for d in dets])
         xy = np.stack([d.xy for d in dets])
         sigma = np.stack([d.sigma / d.focal for d in dets])
@@ -209,12 +218,47 @@ class Associator:
                 self.rejected["gate_too_few_views"] += 1
                 return None
             cams, xy, sigma = cams[keep], xy[keep], sigma[keep]
+            dets = [d for d, k in zip(dets, keep) if k]
+        if pose_px is not None and len(dets) == 2 and self.cfg.epipolar_sigmas > 0:
+            miss = epipolar_miss(dets[0], dets[1], R, t)
+            if miss is not None and miss[0] > self.cfg.epipolar_sigmas * miss[1] + 2.0 * float(
+                    np.hypot(pose_px[dets[0].cam], pose_px[dets[1].cam])):
+                self.rejected["epipolar"] += 1
+                return None
         # A centre behind any of its cameras is a wrong association, not a person.
         Xc = np.einsum("vji,vj->vi", R[cams], com - t[cams])
         if np.any(Xc[:, 2] <= 0):
             self.rejected["behind_camera"] += 1
             return None
         return Hypothesis(time, cams, xy, sigma, com)
+
+
+def epipolar_miss(a: Detection, b: Detection, R: np.ndarray, t: np.ndarray) -> tuple[float, float] | None:
+    """How far the joints of two views of one person miss each other's epipolar lines
+    with poses R (C, 3, 3), t (C, 3): (median over the joints both see of the mean of the
+    two distances, px; median of the joints' noise on that distance, px, from their
+    stds), or None with fewer than 4 joints in common."""
+    both = np.isfinite(a.xy[:, 0]) & np.isfinite(b.xy[:, 0])
+    if both.sum() < 4:
+        return None
+    R_ab = R[b.cam].T @ R[a.cam]  # a's camera frame into b's
+    t_ab = R[b.cam].T @ (t[a.cam] - t[b.cam])
+    n = np.linalg.norm(t_ab)
+    if n < 1e-9:
+        return None
+    tx = np.array([[0.0, -t_ab[2], t_ab[1]], [t_ab[2], 0.0, -t_ab[0]], [-t_ab[1], t_ab[0], 0.0]]) / n
+    E = tx @ R_ab  # x_b^T E x_a = 0
+    xa = np.c_[a.xy[both], np.ones(both.sum())]
+    xb = np.c_[b.xy[both], np.ones(both.sum())]
+    la, lb = xb @ E, xa @ E.T  # a's lines in a, b's lines in b
+    alg = np.abs(np.einsum("ij,ij->i", xb, lb))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        miss = 0.5 * (alg / np.linalg.norm(lb[:, :2], axis=1) * b.focal + alg / np.linalg.norm(la[:, :2], axis=1) * a.focal)
+    noise = np.hypot(a.sigma[both], b.sigma[both])
+    ok = np.isfinite(miss) & np.isfinite(noise)
+    if ok.sum() < 4:
+        return None
+    return float(np.median(miss[ok])), float(np.median(noise[ok]))
 
 
 def triangulate_hypotheses(hyps: Sequence[Hypothesis], R: np.ndarray, t: np.ndarray) -> np.ndarray:

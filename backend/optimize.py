@@ -58,6 +58,7 @@ class Problem:
     frames: tuple[tuple[float, tuple[tuple[Detection, ...], ...]], ...] = ()
     associate: AssociateConfig | None = None
     gate_px: np.ndarray | None = None
+    pose_px: np.ndarray | None = None  # (C,) px: the association's epipolar test of two views (Associator)
     max_hypotheses: int = 0
     spacing: float = 0.0
     seed: int = 0
@@ -219,7 +220,7 @@ def hypotheses_and_persons(p: Problem) -> tuple[list[Hypothesis], np.ndarray]:
         assoc = Associator(p.associate)
         hyps: list[Hypothesis] = []
         for time_, views in p.frames:
-            hyps.extend(assoc(time_, views, p.R, p.t, p.gate_px))
+            hyps.extend(assoc(time_, views, p.R, p.t, p.gate_px, p.pose_px))
     else:
         hyps = list(p.hypotheses)
     person = np.full(len(hyps), -1, np.int64)

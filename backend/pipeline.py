@@ -210,12 +210,12 @@ class Pipeline:
         if job is not None:
             self.apply_clock(job, job.run())
         ready = self.sync.pop_ready(now)
-        gate = self._gate() if ready else None
+        gate, pose_px = (self._gate(), self._pose_px()) if ready else (None, None)
         for fs in ready:
             dets = self.preprocess(fs)
             if len(dets) < 2:
                 continue
-            new += self._take(fs.time, tuple(tuple(v) for v in dets), R, t, gate)
+            new += self._take(fs.time, tuple(tuple(v) for v in dets), R, t, gate, pose_px)
         return new
 
     def take_frames(self, frames: Iterable[tuple[float, tuple[tuple[Detection, ...], ...]]]) -> int:
@@ -224,14 +224,14 @@ class Pipeline:
         associated and queued as if they had just come out of ``preprocess``; returns the
         new hypotheses."""
         R, t = self.refiner.R, self.refiner.t
-        gate = self._gate()
-        return sum(self._take(T, views, R, t, gate) for T, views in frames if len(views) >= 2)
+        gate, pose_px = self._gate(), self._pose_px()
+        return sum(self._take(T, views, R, t, gate, pose_px) for T, views in frames if len(views) >= 2)
 
     def _take(self, time: float, views: tuple[tuple[Detection, ...], ...], R: np.ndarray, t: np.ndarray,
-              gate: np.ndarray | None) -> int:
+              gate: np.ndarray | None, pose_px: np.ndarray | None) -> int:
         """One preprocessed frameset (>= 2 views): archive, associate, queue, count."""
         self.frames.append((time, views))
-        hyps = self.associate(time, views, R, t, gate)
+        hyps = self.associate(time, views, R, t, gate, pose_px)
         self.queue.extend(hyps)
         self.monitor.add(hyps)
         if self.cfg.clock.estimate:
@@ -441,7 +441,10 @@ class Pipeline:
         P[cam] = np.diag([np.radians(m.reopen_std_rotation) ** 2] * 3 + [m.reopen_std_translation ** 2] * 3)
         p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2,
                                 (f for f in self.frames if f[0] >= since))
-        return replace(p, prior_R=rf.R.copy(), prior_t=rf.t.copy(), prior_cov=P, kind="recalibrate", moved=(cam,))
+        pose_px = p.pose_px.copy()
+        pose_px[cam] = np.inf  # where it went is what this adjustment is to find
+        return replace(p, prior_R=rf.R.copy(), prior_t=rf.t.copy(), prior_cov=P, kind="recalibrate", moved=(cam,),
+                       pose_px=pose_px)
 
     def _relocalize_problem(self, lost, frames) -> Problem:
         """Prior = the start and its uncertainty: where a lost camera can be
@@ -500,7 +503,7 @@ class Pipeline:
                        associate=self.cfg.associate,
                        # the batch re-associates ungated: a camera the filter got wrong must
                        # keep its views to be put right; the solve's outlier rounds drop bad ones
-                       gate_px=None, max_hypotheses=max_hypotheses,
+                       gate_px=None, pose_px=self._pose_px(), max_hypotheses=max_hypotheses,
                        spacing=spacing, seed=int(self.rng.integers(2**31)), kind="batch")
 
     def apply(self, problem: Problem, solution: Solution) -> CycleReport:
