@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from backend.associate import Associator, depth_interval, intersect_rays, torso_centre, triangulate_torso
+from backend.associate import (Associator, depth_interval, epipolar_miss, intersect_rays, torso_centre,
+                               triangulate_torso)
 from backend.config import AssociateConfig
 from backend.preprocess import TORSO, Detection
 
@@ -229,6 +230,46 @@ def test_the_gate_drops_a_view_whose_torso_is_inconsistent():
     # cameras that are not gated (inf) keep their view
     [h] = Associator(cfg)(0.0, views, R, t, gate_px=np.array([25.0, 25.0, 25.0, np.inf]))
     assert _cams_of(h) == [0, 1, 2, 3]
+
+
+def test_two_views_of_two_people_are_not_paired_once_the_poses_can_tell():
+    """Camera 0 sees only A, camera 1 only B, close enough for their torso segments to
+    meet: two views have no third to show it, their joints' epipolar lines do."""
+    R, t = rig(2)
+    A = body([0.2, -0.3], heading=1.0)
+    B = body([0.5, 0.1], heading=2.5, height=1.7)
+    lone = [[detection(R, t, 0, A)], [detection(R, t, 1, B)]]
+    cfg = AssociateConfig()
+    assert len(Associator(cfg)(0.0, lone, R, t)) == 1  # segments alone pair them
+    assoc = Associator(cfg)
+    assert assoc(0.0, lone, R, t, pose_px=np.zeros(2)) == []
+    assert assoc.rejected["epipolar"] == 1
+    # one person in both views stays a hypothesis, and so does the pair while the poses
+    # are too uncertain to tell (their test would drop right pairs too)
+    [h] = assoc(0.0, [[detection(R, t, 0, A)], [detection(R, t, 1, A)]], R, t, pose_px=np.zeros(2))
+    assert _cams_of(h) == [0, 1]
+    assert len(assoc(0.0, lone, R, t, pose_px=np.full(2, 100.0))) == 1
+    assert len(Associator(cfg.model_copy(update={"epipolar_sigmas": 0.0}))(0.0, lone, R, t,
+                                                                             pose_px=np.zeros(2))) == 1
+
+
+def test_epipolar_miss_is_the_keypoint_noise_for_one_person_and_large_for_two():
+    R, t = rig(2)
+    A, B = body([0.2, -0.3], heading=1.0), body([0.5, 0.1], heading=2.5, height=1.7)
+    rng = np.random.default_rng(0)
+    a = detection(R, t, 0, A)
+    b = detection(R, t, 1, A)
+    b = Detection(1, b.xy + rng.normal(0, 2.0 / F, b.xy.shape), b.sigma, F)
+    miss, noise = epipolar_miss(a, b, R, t)
+    assert noise == pytest.approx(2.0 * np.sqrt(2))
+    assert miss < noise
+    miss, _ = epipolar_miss(a, detection(R, t, 1, B), R, t)
+    assert miss > 5 * noise
+    # scale-free: a camera moved along the baseline (a chain's link at another scale)
+    # changes nothing
+    t2 = t.copy()
+    t2[1] = t[0] + 2 * (t[1] - t[0])
+    assert epipolar_miss(a, b, R, t2)[0] == pytest.approx(epipolar_miss(a, b, R, t)[0], rel=1e-9)
 
 
 def test_segments_too_far_apart_do_not_join():
