@@ -706,7 +706,10 @@ class BootstrapResult:
 
     R: (C, 3, 3) world_R_cam; t: (C, 3) centres, metres by ``scale``; located: (C,) bool
     (the others keep R = I, t = 0 and must not be used); std_translation (C,) m and
-    std_rotation (C,) deg: the bundle adjustment's shape std (NaN where unknown).
+    std_rotation (C,) deg: the bundle adjustment's shape std (NaN where unknown);
+    residual_px (C,) and observations (C,): each camera's median reprojection error and
+    number of joint observations in the last bundle adjustment (how well the data hold
+    it there; None when not recorded).
     """
 
     names: tuple[str, ...]
@@ -725,6 +728,8 @@ class BootstrapResult:
     stages: Mapping[str, float] = field(default_factory=dict)
     checks: tuple[str, ...] = ()  # the cameras reached only over bridge pairs and their check ("cam_1 dropped ...")
     resections: tuple[str, ...] = ()  # the cameras no pair placed and their resection (backend/resect.py)
+    residual_px: np.ndarray | None = None
+    observations: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         C = len(self.names)
@@ -942,6 +947,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     tried_reloc = False
     check_notes: tuple[str, ...] = ()
     resect_notes: tuple[str, ...] = ()
+    residual_px, observations = np.full(C, np.nan), np.zeros(C, np.int64)
     rounds = cfg.batch_rounds
     r = 0
     while r < rounds:
@@ -965,6 +971,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
         say(f"bundle adjustment {r}/{rounds}: {sol.hypotheses} hypotheses, {int(sol.active.sum())} cameras, "
             f"median reprojection {np.median(sol.residual_px) if len(sol.residual_px) else float('nan'):.2f} px")
         if last and sol.ok:
+            residual_px, observations = sol.residual_cam_px.copy(), sol.obs_per_camera.copy()
             for c in np.flatnonzero(sol.active):
                 P = sol.cov_shape[c]
                 if np.all(np.isfinite(P)):
@@ -1020,9 +1027,11 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     R[~located], t[~located] = np.eye(3), 0.0
     std_t[~located] = np.nan
     std_r[~located] = np.nan
+    residual_px[~located], observations[~located] = np.nan, 0
     stages["people"] = _time.perf_counter() - t0
     return BootstrapResult(tuple(names), R, t, located, std_t, std_r, scale, note, len(good), tried, len(frames),
-                           float(data_seconds), _time.perf_counter() - t_start, stages, check_notes, resect_notes)
+                           float(data_seconds), _time.perf_counter() - t_start, stages, check_notes, resect_notes,
+                           residual_px, observations)
 
 
 def bootstrap_messages(intrinsics: Mapping[str, Intrinsics], config: EngineConfig, messages: Iterable[KeypointMessage],

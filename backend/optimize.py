@@ -132,6 +132,7 @@ class Solution:
     iterations: int
     seconds: float
     bone_lengths: np.ndarray | None = None  # (K, len(BONE_NAMES)) bone lengths per person after the solve, NaN = unseen
+    residual_cam_px: np.ndarray | None = None  # (C,) median of each camera's residual_px, NaN = no observation
 
 
 # COCO-17 bones; left and right share one length: (length index, joint a, joint b)
@@ -306,9 +307,12 @@ def solve(p: Problem) -> Solution:
         out = out + (nan, nan.copy(), "")
     R, t, lms, _, final_error, its, lengths, cov, cov_shape, reason = out
     res = residuals_px(R, t, lms, g.obs_cam, g.obs_lm, g.obs_xy, p.focal)
+    per_cam = np.full(C, np.nan)
+    for c in np.unique(g.obs_cam):
+        per_cam[c] = np.median(res[g.obs_cam == c])
     return Solution(reason == "", reason, R, t, cov, cov_shape, g.active, np.bincount(g.obs_cam, minlength=C),
                     int(len(np.unique(g.lm_hyp))), res, float(first_error), float(final_error),
-                    iterations + its, time.perf_counter() - t0, bone_lengths=lengths)
+                    iterations + its, time.perf_counter() - t0, bone_lengths=lengths, residual_cam_px=per_cam)
 
 
 def _relocalize(p: Problem) -> Solution:

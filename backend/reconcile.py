@@ -19,7 +19,14 @@ Per camera, the two are compared after the alignment:
 - *refused*: further than ``bootstrap.refuse_sigma`` times the initial estimate's stated
   std (``refine.initial_std_*``): one of the two is grossly wrong (a pair chained wrongly
   in the bootstrap, a camera swapped in the floor plan); that camera starts from the
-  initial estimate and the pipeline's association and re-localisation decide.
+  initial estimate and the pipeline's association and re-localisation decide;
+- *overruled*: refused, but the data hold the bootstrap's pose (its last bundle
+  adjustment has as many observations of the camera and reprojects them as well as the
+  others'), and only a few cameras are refused: the initial estimate is what is wrong
+  there (two cameras swapped, one moved since the floor plan), so the camera starts from
+  the data's pose whatever the mode but 'never'. Left at its initial pose such a camera
+  is never calibrated: its views join nobody, and re-localisation refuses poses that far
+  from the initial estimate.
 
 ``bootstrap.with_initial``: 'never' (the paper's way), 'always' (start from the aligned
 bootstrap for every camera it placed and did not refuse), 'auto' (the same, but only when
@@ -50,8 +57,8 @@ class Reconciled:
     pipeline starts (the aligned bootstrap where ``from_bootstrap``, else the initial
     estimate); translation (C,) m, rotation (C,) deg: the initial estimate's distance
     from the aligned bootstrap (NaN where the bootstrap did not place the camera);
-    agrees, refused, from_bootstrap, aligned (C,) bool (aligned: the camera took part in
-    the alignment, not trimmed); scale: initial-estimate units per bootstrap unit;
+    agrees, refused, from_bootstrap, aligned, overruled (C,) bool (aligned: the camera took
+    part in the alignment, not trimmed; overruled: refused, started from the data anyway); scale: initial-estimate units per bootstrap unit;
     std_translation (C,) m, std_rotation (C,) deg: the bootstrap's own std in those units
     (NaN where it did not place the camera)."""
 
@@ -68,12 +75,13 @@ class Reconciled:
     mode: str
     std_translation: np.ndarray
     std_rotation: np.ndarray
+    overruled: np.ndarray
 
     def __post_init__(self) -> None:
         C = len(self.names)
         assert self.R.shape == (C, 3, 3) and self.t.shape == (C, 3)
         for a in (self.translation, self.rotation, self.agrees, self.refused, self.from_bootstrap, self.aligned,
-                  self.std_translation, self.std_rotation):
+                  self.std_translation, self.std_rotation, self.overruled):
             assert a.shape == (C,)
 
     @property
@@ -103,7 +111,7 @@ class Reconciled:
         """(m, deg) how far the initial estimate is off the data's shape: the RMS distance
         over the cameras the alignment kept (the convention of ``refine.initial_std_*``:
         0.25 m for cameras 0.25 m off)."""
-        k = self.aligned & np.isfinite(self.translation)
+        k = self.aligned & ~self.refused & np.isfinite(self.translation)  # not the gross errors
         if not k.any():
             return 0.0, 0.0
         return (float(np.sqrt(np.mean(self.translation[k] ** 2))), float(np.sqrt(np.mean(self.rotation[k] ** 2))))
@@ -134,8 +142,13 @@ class Reconciled:
         head = (f"the initial estimate vs the data's shape (bootstrap, {n} cameras, aligned on "
                 f"{int(self.aligned.sum())}): median {dt:.3f} m / {dr:.2f}°, max {np.nanmax(self.translation):.3f} m / "
                 f"{np.nanmax(self.rotation):.2f}°; {int(self.agrees.sum())}/{n} agree")
-        refused = [m for m, r in zip(self.names, self.refused) if r]
+        refused = [m for m, r, o in zip(self.names, self.refused, self.overruled) if r and not o]
         tail = f"; refused (too far from the initial estimate): {', '.join(refused)}" if refused else ""
+        over = [f"{m} ({d:.2f} m / {a:.0f}° away)" for m, o, d, a in
+                zip(self.names, self.overruled, self.translation, self.rotation) if o]
+        if over:
+            tail += (f"; the data place {', '.join(over)} far from the initial estimate (swapped or moved?): "
+                     "started from the data's pose")
         if self.used:
             return f"{head}{tail}; starting from the data's shape for {int(self.from_bootstrap.sum())} cameras"
         return f"{head}{tail}; the initial estimate is used as it is ({self.mode})"
@@ -146,6 +159,7 @@ class Reconciled:
             "mode": self.mode, "used": self.used, "scale": self.scale,
             "from_bootstrap": [n for n, u in zip(self.names, self.from_bootstrap) if u],
             "refused": [n for n, r in zip(self.names, self.refused) if r],
+            "overruled": [n for n, o in zip(self.names, self.overruled) if o],
             "disagree": [n for n, a, f in zip(self.names, self.agrees, fin) if f and not a],
             "translation": {n: round(float(d), 5) for n, d, f in zip(self.names, self.translation, fin) if f},
             "rotation": {n: round(float(d), 4) for n, d, f in zip(self.names, self.rotation, fin) if f},
@@ -185,6 +199,9 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
     rc = config.refine
     refused = both & ((np.nan_to_num(dt) > b.refuse_sigma * rc.initial_std_translation)
                       | (np.nan_to_num(dr) > b.refuse_sigma * rc.initial_std_rotation))
+    overruled = refused & _held_by_data(boot, names, both) if mode != "never" else np.zeros(C, bool)
+    if refused.sum() > max(1, 0.25 * both.sum()):
+        overruled[:] = False  # many cameras refused: the alignment itself is in doubt, not a camera
     usable = both & ~refused
     # 'auto' starts from the data's shape only when the initial estimate is further off than
     # it claims: the case where the first adjustment, which trusts the stated std, loses
@@ -195,16 +212,40 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
     rms_r = float(np.sqrt(np.mean(dr[k] ** 2))) if k.any() else 0.0
     off = rms_t > b.auto_sigma * rc.initial_std_translation or rms_r > b.auto_sigma * rc.initial_std_rotation
     if mode == "never" or (mode == "auto" and (agrees[both].all() or not off)):
-        use = np.zeros(C, bool)
+        use = overruled.copy()
     else:
-        use = usable
+        use = usable | overruled
     R, t = R0.copy(), t0.copy()
     aligned = np.zeros(C, bool)
     aligned[idx] = keep
     for i, c in enumerate(idx):
         if use[c]:
             R[c], t[c] = Ra[i], ta[i]
-    return Reconciled(tuple(names), R, t, dt, dr, agrees, refused, use, aligned, float(s), mode, st, sr)
+    return Reconciled(tuple(names), R, t, dt, dr, agrees, refused, use, aligned, float(s), mode, st, sr, overruled)
+
+
+def _held_by_data(boot: BootstrapResult, names: Sequence[str], both: np.ndarray) -> np.ndarray:
+    """(C,) bool over ``names``: cameras of ``both`` that the bootstrap's last bundle
+    adjustment holds as firmly as the others: at least a quarter of the median camera's
+    observations, a median reprojection error within twice the median camera's (or 2 px
+    of it), and a finite std. A camera the bootstrap chained wrongly keeps few views, or
+    fits them badly."""
+    C = len(names)
+    out = np.zeros(C, bool)
+    if boot.residual_px is None or boot.observations is None:
+        return out
+    index = {n: k for k, n in enumerate(boot.names)}
+    k = np.array([index.get(n, -1) for n in names])
+    res = np.where(both, boot.residual_px[np.maximum(k, 0)], np.nan)
+    obs = np.where(both, boot.observations[np.maximum(k, 0)], 0)
+    std = np.where(both, boot.std_translation[np.maximum(k, 0)], np.nan)
+    placed = both & np.isfinite(res) & (obs > 0)
+    if placed.sum() < 3:
+        return out
+    med_res, med_obs = float(np.median(res[placed])), float(np.median(obs[placed]))
+    with np.errstate(invalid="ignore"):
+        out = placed & np.isfinite(std) & (obs >= 0.25 * med_obs) & (res <= max(2 * med_res, med_res + 2.0))
+    return out
 
 
 def bootstrap_start(cameras: CameraSet, intrinsics: Mapping[str, Intrinsics], config: EngineConfig,

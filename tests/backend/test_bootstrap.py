@@ -237,6 +237,10 @@ def test_bootstrap_places_the_cameras_without_an_initial_estimate(booted):
     assert res.scale is not None and res.scale.method == "known height"
     assert abs(1 / acc.scale - 1) < 0.01
     assert abs(np.log(acc.scale)) < 3 * res.scale.rel_std
+    # how firmly the last adjustment holds each camera (the reconciliation's evidence)
+    placed = res.located
+    assert np.all(res.observations[placed] > 100) and np.all(res.observations[~placed] == 0)
+    assert np.all(res.residual_px[placed] < 5.0) and np.all(np.isnan(res.residual_px[~placed]))
 
 
 def test_bootstrap_frame_is_the_floor(booted, lab_dir):

@@ -27,11 +27,11 @@ def _network(rng, C: int = 10) -> tuple[np.ndarray, np.ndarray]:
     return R, t
 
 
-def _boot(names, R, t, located=None, std=0.01) -> BootstrapResult:
+def _boot(names, R, t, located=None, std=0.01, residual_px=None, observations=None) -> BootstrapResult:
     C = len(names)
     located = np.ones(C, bool) if located is None else located
     return BootstrapResult(tuple(names), R, t, located, np.full(C, std), np.full(C, 0.1), None, "test", 0, 0, 0,
-                           0.0, 0.0)
+                           0.0, 0.0, residual_px=residual_px, observations=observations)
 
 
 def _similar(R, t, s, Rw, tw):
@@ -117,3 +117,47 @@ def test_an_initial_estimate_the_data_confirm_is_kept():
     few = np.zeros(8, bool)
     few[:2] = True
     assert reconcile(_boot(names, Rb, tb, few), names, R, t, cfg) is None
+
+
+def test_cameras_swapped_in_the_initial_estimate_start_where_the_data_hold_them():
+    rng = RNG(2)
+    names = [f"cam_{i}" for i in range(10)]
+    R, t = _network(rng, 10)
+    Rb, tb = _similar(R, t, 0.4, so3_exp([0.2, 0.1, -1.0]), np.array([1.0, 0.0, 0.5]))
+    # the initial estimate: the truth 0.1 m / 3° off, cam_2 and cam_6 swapped (a label or cable mix-up)
+    R0 = np.stack([so3_exp(np.radians(3) * v / np.linalg.norm(v)) @ r for v, r in zip(rng.normal(size=(10, 3)), R)])
+    t0 = t + rng.normal(0, 0.06, t.shape)
+    R0[[2, 6]], t0[[2, 6]] = R0[[6, 2]], t0[[6, 2]]
+    cfg = EngineConfig()
+    res, obs = np.full(10, 1.4), np.full(10, 900)
+    rec = reconcile(_boot(names, Rb, tb, residual_px=res, observations=obs), names, R0, t0, cfg)
+    assert rec.refused[[2, 6]].all() and rec.refused.sum() == 2
+    assert rec.overruled.tolist() == [c in (2, 6) for c in range(10)]
+    # only they start from the data (the others are within their std: left as they are)
+    assert rec.from_bootstrap.tolist() == rec.overruled.tolist()
+    for c in range(10):
+        if c in (2, 6):
+            assert rotation_angle_deg(rec.R[c], R[c]) < 3.0 and np.linalg.norm(rec.t[c] - t[c]) < 0.2
+        else:
+            assert np.allclose(rec.R[c], R0[c]) and np.allclose(rec.t[c], t0[c])
+    _, _, P = rec.start(cfg)
+    assert np.sqrt(P[2, 3, 3]) < 0.25 and np.sqrt(P[0, 3, 3]) == pytest.approx(0.25)  # the bootstrap's std there
+    assert "swapped or moved" in rec.summary() and rec.to_dict()["overruled"] == ["cam_2", "cam_6"]
+    # a camera the bootstrap's adjustment fits badly, or sees little of, is not the data's word
+    bad = res.copy()
+    bad[2] = 9.0
+    few = obs.copy()
+    few[6] = 50
+    rec = reconcile(_boot(names, Rb, tb, residual_px=bad, observations=few), names, R0, t0, cfg)
+    assert rec.refused[[2, 6]].all() and not rec.overruled.any() and not rec.used
+    # nor without the adjustment's record, nor with 'never'
+    assert not reconcile(_boot(names, Rb, tb), names, R0, t0, cfg).overruled.any()
+    assert not reconcile(_boot(names, Rb, tb, residual_px=res, observations=obs), names, R0, t0, cfg,
+                         mode="never").used
+    # many cameras refused: the alignment, not a camera, is in doubt
+    R4 = R0.copy()
+    R4[[0, 1, 3, 4]] = R4[[4, 3, 1, 0]]
+    t4 = t0.copy()
+    t4[[0, 1, 3, 4]] = t4[[4, 3, 1, 0]]
+    rec = reconcile(_boot(names, Rb, tb, residual_px=res, observations=obs), names, R4, t4, cfg)
+    assert rec.refused.sum() > 2 and not rec.overruled.any()
