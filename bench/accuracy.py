@@ -25,6 +25,7 @@ online pipeline (``run_offline``) calibrates.
     python bench/accuracy.py --persons none --starts 0.75/20 --seeds 1
     python bench/accuracy.py --quick                    # smoke run: 1 seed, 60 s, 2 persons
     python bench/accuracy.py --persons 2 --seeds 3 --starts none --pixels 2.25   # HD cameras
+    python bench/accuracy.py --persons 2 --seeds 3 --starts none --swap cam_3:cam_7   # a label mix-up
     python bench/accuracy.py --report a.json            # the tables of an earlier --out
 
 Simulated recordings are cached (msgpack + truth sidecar) in --cache, keyed by the
@@ -43,7 +44,7 @@ import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -266,7 +267,7 @@ def bootstrap_cached(recording: str, intrinsics, cfg, seed: int, cache: Path):
             return None
         return BootstrapResult(names, z["R"], z["t"], z["located"], z["std_t"], z["std_r"], None, "cached",
                                int(z["pairs"]), int(z["pairs_tried"]), int(z["frames"]), float(z["data_seconds"]),
-                               float(z["seconds"]))
+                               float(z["seconds"]), residual_px=z["residual_px"], observations=z["observations"])
     try:
         b = bootstrap_messages(intrinsics, cfg, read_recording(recording), seed=seed)
     except BootstrapError:
@@ -278,13 +279,14 @@ def bootstrap_cached(recording: str, intrinsics, cfg, seed: int, cache: Path):
         else:
             np.savez(f, ok=True, R=b.R, t=b.t, located=b.located, std_t=b.std_translation, std_r=b.std_rotation,
                      pairs=b.pairs, pairs_tried=b.pairs_tried, frames=b.frames, data_seconds=b.data_seconds,
-                     seconds=b.seconds)
+                     seconds=b.seconds, residual_px=b.residual_px, observations=b.observations)
     os.replace(tmp, path)
     return b
 
 
 def run(spec: Spec, recording: str, overrides: list[str], config: str | None, limit_start: str,
-        limit_budget: int | None = None, known_height: bool = False) -> dict:
+        limit_budget: int | None = None, known_height: bool = False,
+        swap: tuple[tuple[str, str], ...] = ()) -> dict:
     """One calibration run of the full pipeline, its history, and its limit.
 
     Figures are over the cameras the data can calibrate: those the limit's solve
@@ -292,7 +294,8 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
     and its initial error would swamp the mean); the same figures over all cameras are
     kept as *_all. The result is what ``extrcal calibrate`` writes: with the scale check's
     correction (``bootstrap.initial_scale``; ``known_height``: the walkers' true heights
-    given, as ``--person-height``)."""
+    given, as ``--person-height``; ``swap``: pairs of cameras whose poses are exchanged in
+    the initial estimate, a label or cable mix-up)."""
     from backend.cameras import CameraSet, Pose, load_extrinsics, load_intrinsics
     from backend.config import EngineConfig
     from backend.evaluate import evaluate
@@ -311,6 +314,8 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
     ref_ext = load_extrinsics(lab / "reference.yaml")
     ref = {n: e.pose for n, e in ref_ext.items()}
     init = perturb_extrinsics(ref_ext, spec.translation, spec.rotation, seed=spec.seed)
+    for a, b in swap:
+        init[a], init[b] = replace(init[a], pose=init[b].pose), replace(init[b], pose=init[a].pose)
     cams = CameraSet.combine(load_intrinsics(lab / "intrinsics.yaml"), init)
     first = min(m.stamp for m in msgs[:1000])
     data_s = max(m.stamp for m in msgs[-1000:]) - first
@@ -425,6 +430,13 @@ def acc_start(rec) -> dict:
     from backend.cameras import Pose
 
     return {n: Pose(rec.R[c].copy(), rec.t[c].copy()) for c, n in enumerate(rec.names)}
+
+
+def _swaps(text: str) -> tuple[tuple[str, str], ...]:
+    pairs = [item.split(":") for item in text.split(",") if item]
+    if any(len(p) != 2 for p in pairs):
+        raise SystemExit(f"--swap: expected A:B[,C:D], got {text!r}")
+    return tuple((a, b) for a, b in pairs)
 
 
 def _run_job(job) -> dict:
@@ -696,6 +708,9 @@ def main(argv: list[str] | None = None) -> None:
                     help="engine parameter override (repeatable), as for `extrcal calibrate --set`")
     ap.add_argument("--sim", dest="sim_set", action="append", default=[], metavar="KEY=VALUE",
                     help="simulator setting (repeatable), as for `extrcal simulate --set`, e.g. intrinsics_error=0")
+    ap.add_argument("--swap", default="", metavar="A:B[,C:D]",
+                    help="exchange these cameras' poses in the initial estimate (a label or cable mix-up), e.g. "
+                         "cam_3:cam_7")
     ap.add_argument("--known-height", action="store_true",
                     help="the walkers' true heights given to the scale check (as `extrcal calibrate --person-height`)")
     ap.add_argument("--limit-start", choices=("reference", "initial"), default="reference",
@@ -777,7 +792,7 @@ def main(argv: list[str] | None = None) -> None:
         console.print(f"  {time.perf_counter() - t0:.0f} s")
     runs = []
     work = [(s, str(paths[(s.persons, s.duration, s.seed)]), args.overrides, args.config, args.limit_start,
-             args.limit_hypotheses, args.known_height) for s in specs]
+             args.limit_hypotheses, args.known_height, _swaps(args.swap)) for s in specs]
     for spec_, r in zip(specs, mapper(_run_job, work)):
         runs.append(r)
         lim = r["limit"] or {}
