@@ -120,7 +120,7 @@ def calibrate(
         except RecordingError as e:
             raise fail(f"{e} (use --skip-bad to skip malformed records)")
         if rec is not None:
-            cfg = rec.config(cfg)
+            cfg, cams = rec.config(cfg), rec.cameras(cams)
         if not quiet:
             console.print(note, highlight=False)
             if rec is not None and rec.used:

@@ -152,10 +152,11 @@ class Handover:
             rec, _, note = reconcile_cameras(result, cameras, config)
             meta["reconciled"] = rec.to_dict() if rec is not None else None
             meta["note"] = note
+            cams = cameras
             if rec is not None:
                 config = rec.config(config)
                 start = rec.start(config)
-            cams = cameras
+                cams = rec.cameras(cameras)
             meta["frame"] = "the initial estimate's frame and scale"
             meta["not_placed"] = []  # they start from the initial estimate: calibrated all the same
         else:

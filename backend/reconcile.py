@@ -35,7 +35,7 @@ some camera does not agree: an initial estimate the data confirm is left exactly
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Iterable, Mapping, Sequence
 
 import numpy as np
@@ -43,7 +43,7 @@ import numpy as np
 from proto import KeypointMessage
 
 from .bootstrap import BootstrapError, BootstrapResult, Progress, bootstrap_messages
-from .cameras import CameraSet, Intrinsics
+from .cameras import CameraSet, Intrinsics, Pose
 from .config import EngineConfig
 from .geometry import align_poses
 from .refine import initial_covariance
@@ -106,6 +106,19 @@ class Reconciled:
                 "initial_std_translation": max(b.handover_std_translation, 3 * st),
                 "initial_std_rotation": max(b.handover_std_rotation, 3 * sr)}))
         return self.R.copy(), self.t.copy(), P
+
+    def cameras(self, cameras: CameraSet) -> CameraSet:
+        """``cameras`` with the overruled cameras' initial poses replaced by the data's
+        (aligned into the initial estimate's frame and scale): the run's frame and scale
+        are fitted to the initial estimate's centres (``Refiner.keep_scale``), and a pose
+        known to be wrong (a swapped camera metres away) would pull them."""
+        if not self.overruled.any():
+            return cameras
+        ext = dict(cameras.extrinsics)
+        for c in np.flatnonzero(self.overruled):
+            n = self.names[c]
+            ext[n] = replace(ext[n], pose=Pose(self.R[c].copy(), self.t[c].copy()))
+        return CameraSet(cameras.names, cameras.intrinsics, ext)
 
     def observed_std(self) -> tuple[float, float]:
         """(m, deg) how far the initial estimate is off the data's shape: the RMS distance

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from backend.bootstrap import BootstrapResult
-from backend.cameras import Pose
+from backend.cameras import CameraSet, Extrinsics, Pose
 from backend.config import EngineConfig
 from backend.evaluate import evaluate
 from backend.geometry import rotation_angle_deg, so3_exp, trimmed_similarity
@@ -143,6 +143,13 @@ def test_cameras_swapped_in_the_initial_estimate_start_where_the_data_hold_them(
     _, _, P = rec.start(cfg)
     assert np.sqrt(P[2, 3, 3]) < 0.25 and np.sqrt(P[0, 3, 3]) == pytest.approx(0.25)  # the bootstrap's std there
     assert "swapped or moved" in rec.summary() and rec.to_dict()["overruled"] == ["cam_2", "cam_6"]
+    # the run's initial estimate (its frame and scale) no longer has them where they are not
+    cams = CameraSet(tuple(names), {}, {n: Extrinsics(Pose(R0[c], t0[c]), (640, 480)) for c, n in enumerate(names)})
+    fixed = rec.cameras(cams)
+    for c, n in enumerate(names):
+        want = (rec.R[c], rec.t[c]) if c in (2, 6) else (R0[c], t0[c])
+        assert np.allclose(fixed.extrinsics[n].pose.R, want[0]) and np.allclose(fixed.extrinsics[n].pose.t, want[1])
+        assert fixed.extrinsics[n].resolution == (640, 480)
     # a camera the bootstrap's adjustment fits badly, or sees little of, is not the data's word
     bad = res.copy()
     bad[2] = 9.0
