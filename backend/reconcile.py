@@ -22,7 +22,8 @@ Per camera, the two are compared after the alignment:
   initial estimate and the pipeline's association and re-localisation decide;
 - *overruled*: refused, but the data hold the bootstrap's pose (its last bundle
   adjustment has as many observations of the camera and reprojects them as well as the
-  others'), and only a few cameras are refused: the initial estimate is what is wrong
+  others'), and only a few cameras are refused (two, or a quarter; at least as many and
+  three left to align on): the initial estimate is what is wrong
   there (two cameras swapped, one moved since the floor plan), so the camera starts from
   the data's pose whatever the mode but 'never'. Left at its initial pose such a camera
   is never calibrated: its views join nobody, and re-localisation refuses poses that far
@@ -213,8 +214,11 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
     refused = both & ((np.nan_to_num(dt) > b.refuse_sigma * rc.initial_std_translation)
                       | (np.nan_to_num(dr) > b.refuse_sigma * rc.initial_std_rotation))
     overruled = refused & _held_by_data(boot, names, both) if mode != "never" else np.zeros(C, bool)
-    if refused.sum() > max(1, 0.25 * both.sum()):
-        overruled[:] = False  # many cameras refused: the alignment itself is in doubt, not a camera
+    kept = np.zeros(C, bool)
+    kept[idx] = keep
+    if refused.sum() > max(2, 0.25 * both.sum()) or (kept & ~refused).sum() < max(3, refused.sum()):
+        # many cameras refused, or few left to align on: the alignment is in doubt, not a camera
+        overruled[:] = False
     usable = both & ~refused
     # 'auto' starts from the data's shape only when the initial estimate is further off than
     # it claims: the case where the first adjustment, which trusts the stated std, loses
