@@ -66,7 +66,7 @@ class AssociateConfig(_Section):
     depth_margin: float = Field(0.15, ge=0, description="relative widening of the depth interval")
     max_distance: float = Field(1.0, gt=0, description="m, closest-point distance threshold between segments")
     min_views: int = Field(2, ge=2)
-    epipolar_sigmas: float = Field(3.0, ge=0, description="a hypothesis of two views whose joints miss each other's "
+    epipolar_sigmas: float = Field(4.0, ge=0, description="a hypothesis of two views whose joints miss each other's "
                                    "epipolar lines by more than this many keypoint stds (median over the joints), plus "
                                    "3 stds of the two poses' uncertainty, pairs two people: dropped (two views have no "
                                    "third to show it; docs/accuracy.md, session 12). 0: off")
