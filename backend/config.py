@@ -68,7 +68,7 @@ class AssociateConfig(_Section):
     min_views: int = Field(2, ge=2)
     epipolar_sigmas: float = Field(4.0, ge=0, description="a hypothesis of two views whose joints miss each other's "
                                    "epipolar lines by more than this many keypoint stds (median over the joints), plus "
-                                   "3 stds of the two poses' uncertainty, pairs two people: dropped (two views have no "
+                                   "2 stds of the two poses' uncertainty (Pipeline._pose_px), pairs two people: dropped (two views have no "
                                    "third to show it; docs/accuracy.md, session 12). 0: off")
     reassociate: bool = Field(True, description="once cameras are certain, gate hypotheses by reprojection error")
     gate_pixels: float = Field(25.0, gt=0, description="px, a view whose torso reprojects further is split off")
