@@ -234,15 +234,20 @@ class AlignedPoses:
     dr: np.ndarray
 
 
-def align_poses(R_src: np.ndarray, t_src: np.ndarray, R_dst: np.ndarray, t_dst: np.ndarray) -> AlignedPoses | None:
+def align_poses(R_src: np.ndarray, t_src: np.ndarray, R_dst: np.ndarray, t_dst: np.ndarray,
+                use: np.ndarray | None = None) -> AlignedPoses | None:
     """The src poses (N, 3, 3), (N, 3) (world-from-camera rotations, centres) aligned onto
-    the dst poses of the same N cameras by ``trimmed_similarity`` of the centres, with the
-    per-camera differences; None when the centres give no similarity."""
+    the dst poses of the same N cameras by ``trimmed_similarity`` of the centres (of the
+    cameras ``use`` (N,) bool, default all), with the per-camera differences; None when
+    the centres give no similarity."""
     assert R_src.shape == R_dst.shape and t_src.shape == t_dst.shape and len(t_src) == len(R_src)
-    fit = trimmed_similarity(t_src, t_dst)
+    use = np.ones(len(t_src), bool) if use is None else use
+    fit = trimmed_similarity(t_src[use], t_dst[use])
     if fit is None:
         return None
-    s, Rw, tw, keep = fit
+    s, Rw, tw, kept = fit
+    keep = np.zeros(len(t_src), bool)
+    keep[np.flatnonzero(use)[kept]] = True
     R = np.einsum("ij,cjk->cik", Rw, R_src)
     t = s * t_src @ Rw.T + tw
     dr = np.array([rotation_angle_deg(R[i], R_dst[i]) for i in range(len(R))])

@@ -194,25 +194,37 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
     idx = np.flatnonzero(both)
     if len(idx) < 3:
         return None
-    k = np.array([index[names[c]] for c in idx])
-    al = align_poses(boot.R[k], boot.t[k], R0[idx], t0[idx])
-    if al is None:
-        return None
-    s, keep, Ra, ta = al.s, al.keep, al.R, al.t
-    dt = np.full(C, np.nan)
-    dr = np.full(C, np.nan)
-    dt[idx], dr[idx] = al.dt, al.dr
-    # the bootstrap's own std, in the initial estimate's units
-    st = np.full(C, np.nan)
-    sr = np.full(C, np.nan)
-    st[idx] = s * boot.std_translation[k]
-    sr[idx] = boot.std_rotation[k]
-    tol_t = np.fmax(b.agree_translation, 3 * np.nan_to_num(st, nan=0.0))
-    tol_r = np.fmax(b.agree_rotation, 3 * np.nan_to_num(sr, nan=0.0))
-    agrees = both & (np.nan_to_num(dt, nan=np.inf) <= tol_t) & (np.nan_to_num(dr, nan=np.inf) <= tol_r)
+    bi = np.array([index[names[c]] for c in idx])  # the bootstrap's index of each camera in both
     rc = config.refine
-    refused = both & ((np.nan_to_num(dt) > b.refuse_sigma * rc.initial_std_translation)
-                      | (np.nan_to_num(dr) > b.refuse_sigma * rc.initial_std_rotation))
+
+    def compare(use: np.ndarray | None):
+        al = align_poses(boot.R[bi], boot.t[bi], R0[idx], t0[idx], use)
+        if al is None:
+            return None
+        dt, dr, st, sr = (np.full(C, np.nan) for _ in range(4))
+        dt[idx], dr[idx] = al.dt, al.dr
+        # the bootstrap's own std, in the initial estimate's units
+        st[idx] = al.s * boot.std_translation[bi]
+        sr[idx] = boot.std_rotation[bi]
+        tol_t = np.fmax(b.agree_translation, 3 * np.nan_to_num(st, nan=0.0))
+        tol_r = np.fmax(b.agree_rotation, 3 * np.nan_to_num(sr, nan=0.0))
+        agrees = both & (np.nan_to_num(dt, nan=np.inf) <= tol_t) & (np.nan_to_num(dr, nan=np.inf) <= tol_r)
+        refused = both & ((np.nan_to_num(dt) > b.refuse_sigma * rc.initial_std_translation)
+                          | (np.nan_to_num(dr) > b.refuse_sigma * rc.initial_std_rotation))
+        return al, dt, dr, st, sr, agrees, refused
+
+    out = compare(None)
+    if out is None:
+        return None
+    refused = out[-1]
+    if refused.any() and (both & ~refused).sum() >= 3:
+        # a refused camera is a gross error of one of the two: it must not pull the frame
+        # the others are compared in (a swapped pair 0.5 m apart is not trimmed)
+        again = compare(~refused[idx])
+        if again is not None:
+            out = again[:-1] + (again[-1] | refused,)
+    al, dt, dr, st, sr, agrees, refused = out
+    s, keep, Ra, ta = al.s, al.keep, al.R, al.t
     overruled = refused & _held_by_data(boot, names, both) if mode != "never" else np.zeros(C, bool)
     kept = np.zeros(C, bool)
     kept[idx] = keep
