@@ -171,21 +171,19 @@ def test_cameras_swapped_in_the_initial_estimate_start_where_the_data_hold_them(
 
 
 def test_refused_cameras_do_not_pull_the_frame_the_others_are_compared_in():
-    """Two cameras 0.5 m apart swapped: too close for the trimmed alignment to leave them
-    out, so the frame is fitted again without them once they are refused."""
+    """Two cameras 0.5 m apart swapped in an estimate whose cameras are 0.25 m off each:
+    too close for the trimmed alignment to leave them out, so the frame is fitted again
+    without them once they are refused."""
     rng = RNG(4)
-    names = [f"cam_{i}" for i in range(8)]
-    R, t = _network(rng, 8)
+    names = [f"cam_{i}" for i in range(10)]
+    R, t = _network(rng, 10)
     t[5] = t[1] + [0.5, 0.0, 0.0]
     R[5] = so3_exp([0.0, 0.0, np.pi]) @ R[1]  # facing the other way
     Rb, tb = _similar(R, t, 0.4, so3_exp([0.1, -0.2, 0.7]), np.array([0.0, 2.0, 0.3]))
-    R0, t0 = R.copy(), t.copy()
+    d = rng.normal(size=t.shape)
+    R0, t0 = R.copy(), t + 0.25 * d / np.linalg.norm(d, axis=1, keepdims=True)
     R0[[1, 5]], t0[[1, 5]] = R0[[5, 1]], t0[[5, 1]]
-    res, obs = np.full(8, 1.2), np.full(8, 700)
+    res, obs = np.full(10, 1.2), np.full(10, 700)
     rec = reconcile(_boot(names, Rb, tb, residual_px=res, observations=obs), names, R0, t0, EngineConfig())
-    assert rec.refused.tolist() == [c in (1, 5) for c in range(8)] and rec.overruled[[1, 5]].all()
-    assert not rec.aligned[[1, 5]].any() and rec.aligned.sum() == 6
-    assert rec.scale == pytest.approx(1 / 0.4, rel=1e-9)
-    assert np.nanmax(np.delete(rec.translation, [1, 5])) < 1e-9
-    for c in (1, 5):  # where the data put them: the truth, exactly
-        assert np.allclose(rec.t[c], t[c]) and rotation_angle_deg(rec.R[c], R[c]) < 1e-6
+    assert rec.refused.tolist() == [c in (1, 5) for c in range(10)] and rec.overruled[[1, 5]].all()
+    assert not rec.aligned[[1, 5]].any() and rec.aligned.sum() == 8
