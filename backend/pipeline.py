@@ -354,15 +354,14 @@ class Pipeline:
         s = self.cfg.select
         return self.cycle > 0 and (s.first_scope <= 0 or self.first_passes >= s.first_passes)
 
-    def _pose_px(self) -> np.ndarray:
+    def _pose_px(self, start: bool = False) -> np.ndarray:
         """(C,) px a camera's reprojections may be off by its pose's uncertainty (one std;
-        a person ~3 m away, as in the association gate)."""
-        C = len(self.names)
-        out = np.zeros(C)
-        for c in range(C):
-            st, sr = self.refiner.std(c, shape=False)
-            out[c] = self.focal[c] * (np.radians(sr) + st / 3.0)
-        return out
+        a person ~3 m away, as in the association gate); ``start``: the start's (the prior
+        of the adjustments over all data)."""
+        P = self.refiner.P0 if start else self.refiner.P
+        st = np.sqrt(np.maximum(np.trace(P[:, 3:, 3:], axis1=1, axis2=2) / 3, 0))
+        sr = np.sqrt(np.maximum(np.trace(P[:, :3, :3], axis1=1, axis2=2) / 3, 0))
+        return self.focal * (sr + st / 3.0)
 
     def _gate(self) -> np.ndarray | None:
         """(C,) reprojection gate in px for cameras the filter is already sure of."""
@@ -722,7 +721,7 @@ class Pipeline:
         wide prior) can end in another minimum than from the start the bootstrap found
         with all the data (docs/bootstrap.md, seed 2's cam_13)."""
         rf = self.refiner
-        q = replace(p, R=rf.prior_R.copy(), t=rf.prior_t.copy())
+        q = replace(p, R=rf.prior_R.copy(), t=rf.prior_t.copy(), pose_px=self._pose_px(start=True))
         alt = solve(q)
         n_p, n_q = int(sol.obs_per_camera.sum()), int(alt.obs_per_camera.sum())
         better = (alt.ok and (not sol.ok or (n_q >= n_p > 0 and alt.final_error / n_q < sol.final_error / n_p)))
