@@ -59,7 +59,8 @@ class Reconciled:
     estimate); translation (C,) m, rotation (C,) deg: the initial estimate's distance
     from the aligned bootstrap (NaN where the bootstrap did not place the camera);
     agrees, refused, from_bootstrap, aligned, overruled (C,) bool (aligned: the camera took
-    part in the alignment, not trimmed; overruled: refused, started from the data anyway); scale: initial-estimate units per bootstrap unit;
+    part in the alignment, not trimmed; overruled: refused, started from the data anyway);
+    scale: initial-estimate units per bootstrap unit;
     std_translation (C,) m, std_rotation (C,) deg: the bootstrap's own std in those units
     (NaN where it did not place the camera)."""
 
@@ -225,10 +226,10 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
             out = again[:-1] + (again[-1] | refused,)
     al, dt, dr, st, sr, agrees, refused = out
     s, keep, Ra, ta = al.s, al.keep, al.R, al.t
+    aligned = np.zeros(C, bool)
+    aligned[idx] = keep
     overruled = refused & _held_by_data(boot, names, both) if mode != "never" else np.zeros(C, bool)
-    kept = np.zeros(C, bool)
-    kept[idx] = keep
-    if refused.sum() > max(2, 0.25 * both.sum()) or (kept & ~refused).sum() < max(3, refused.sum()):
+    if refused.sum() > max(2, 0.25 * both.sum()) or (aligned & ~refused).sum() < max(3, refused.sum()):
         # many cameras refused, or few left to align on: the alignment is in doubt, not a camera
         overruled[:] = False
     usable = both & ~refused
@@ -245,8 +246,6 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
     else:
         use = usable | overruled
     R, t = R0.copy(), t0.copy()
-    aligned = np.zeros(C, bool)
-    aligned[idx] = keep
     for i, c in enumerate(idx):
         if use[c]:
             R[c], t[c] = Ra[i], ta[i]

@@ -317,6 +317,7 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
     for a, b in swap:
         init[a], init[b] = replace(init[a], pose=init[b].pose), replace(init[b], pose=init[a].pose)
     cams = CameraSet.combine(load_intrinsics(lab / "intrinsics.yaml"), init)
+    given = cams.poses()  # the user's initial estimate (a reconciliation may replace cameras of it)
     first = min(m.stamp for m in msgs[:1000])
     data_s = max(m.stamp for m in msgs[-1000:]) - first
 
@@ -379,7 +380,7 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
         h.update(acc(h.pop("poses")))
     if reconciled is not None and reconciled["start"] is not None:
         reconciled["start"] = acc(reconciled["start"])
-    initial = acc(cams.poses())
+    initial = acc(given)
     lim = None
     if lim_info is not None:
         lim = {**acc(lim_poses, per_camera=True), **lim_info}
@@ -396,7 +397,7 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
         "final_uncorrected": acc(before_check),
         "scale_check": check.to_dict() if check is not None else None,
         "limit": lim,
-        "initial_all": acc(cams.poses(), names),
+        "initial_all": acc(given, names),
         "final_all": acc(final_poses, names),
         "limit_all": acc(lim_poses, names) if lim_poses is not None else None,
         "history": [{k: h[k] for k in ("t", "cycle", "final", "position", "orientation", "shape_position",
