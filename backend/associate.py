@@ -24,7 +24,7 @@ from typing import Sequence
 import numpy as np
 
 from .config import AssociateConfig
-from .geometry import closest_points_segments, triangulate_batch, triangulate_views
+from .geometry import closest_points_segments, hat, triangulate_batch, triangulate_views
 from .preprocess import L_HIP, L_SHOULDER, R_HIP, R_SHOULDER, TORSO, Detection
 
 
@@ -246,8 +246,7 @@ def epipolar_miss(a: Detection, b: Detection, R: np.ndarray, t: np.ndarray) -> t
     n = np.linalg.norm(t_ab)
     if n < 1e-9:
         return None
-    tx = np.array([[0.0, -t_ab[2], t_ab[1]], [t_ab[2], 0.0, -t_ab[0]], [-t_ab[1], t_ab[0], 0.0]]) / n
-    E = tx @ R_ab  # x_b^T E x_a = 0
+    E = hat(t_ab / n) @ R_ab  # x_b^T E x_a = 0
     xa = np.c_[a.xy[both], np.ones(both.sum())]
     xb = np.c_[b.xy[both], np.ones(both.sum())]
     la, lb = xb @ E, xa @ E.T  # a's lines in a, b's lines in b

@@ -210,7 +210,7 @@ class Pipeline:
         if job is not None:
             self.apply_clock(job, job.run())
         ready = self.sync.pop_ready(now)
-        gate, pose_px = (self._gate(), self._pose_px()) if ready else (None, None)
+        gate, pose_px = self._gates() if ready else (None, None)
         for fs in ready:
             dets = self.preprocess(fs)
             if len(dets) < 2:
@@ -224,7 +224,7 @@ class Pipeline:
         associated and queued as if they had just come out of ``preprocess``; returns the
         new hypotheses."""
         R, t = self.refiner.R, self.refiner.t
-        gate, pose_px = self._gate(), self._pose_px()
+        gate, pose_px = self._gates()
         return sum(self._take(T, views, R, t, gate, pose_px) for T, views in frames if len(views) >= 2)
 
     def _take(self, time: float, views: tuple[tuple[Detection, ...], ...], R: np.ndarray, t: np.ndarray,
@@ -363,13 +363,15 @@ class Pipeline:
         sr = np.sqrt(np.maximum(np.trace(P[:, :3, :3], axis1=1, axis2=2) / 3, 0))
         return self.focal * (sr + st / 3.0)
 
-    def _gate(self) -> np.ndarray | None:
-        """(C,) reprojection gate in px for cameras the filter is already sure of."""
-        a = self.cfg.associate
+    def _gates(self) -> tuple[np.ndarray | None, np.ndarray]:
+        """The association's gates, from one ``_pose_px``: (C,) reprojection gate in px
+        for cameras the filter is already sure of (None without ``reassociate``), and the
+        pose term of the epipolar test of two views."""
+        a, pose_px = self.cfg.associate, self._pose_px()
         if not a.reassociate:
-            return None
+            return None, pose_px
         sure = self.refiner.cycles >= 2
-        return np.where(sure, a.gate_pixels + 3 * self._pose_px(), np.inf)
+        return np.where(sure, a.gate_pixels + 3 * pose_px, np.inf), pose_px
 
     # ------------------------------------------------------------ optimisation
 

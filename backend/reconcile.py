@@ -228,7 +228,9 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
     s, keep, Ra, ta = al.s, al.keep, al.R, al.t
     aligned = np.zeros(C, bool)
     aligned[idx] = keep
-    overruled = refused & _held_by_data(boot, names, both) if mode != "never" else np.zeros(C, bool)
+    overruled = np.zeros(C, bool)
+    if mode != "never":
+        overruled[idx] = refused[idx] & _held_by_data(boot, bi)
     if refused.sum() > max(2, 0.25 * both.sum()) or (aligned & ~refused).sum() < max(3, refused.sum()):
         # many cameras refused, or few left to align on: the alignment is in doubt, not a camera
         overruled[:] = False
@@ -252,28 +254,21 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
     return Reconciled(tuple(names), R, t, dt, dr, agrees, refused, use, aligned, float(s), mode, st, sr, overruled)
 
 
-def _held_by_data(boot: BootstrapResult, names: Sequence[str], both: np.ndarray) -> np.ndarray:
-    """(C,) bool over ``names``: cameras of ``both`` that the bootstrap's last bundle
+def _held_by_data(boot: BootstrapResult, bi: np.ndarray) -> np.ndarray:
+    """(N,) bool: which of the bootstrap's placed cameras ``bi`` (N,) its last bundle
     adjustment holds as firmly as the others: at least a quarter of the median camera's
     observations, a median reprojection error within twice the median camera's (or 2 px
     of it), and a finite std. A camera the bootstrap chained wrongly keeps few views, or
     fits them badly."""
-    C = len(names)
-    out = np.zeros(C, bool)
     if boot.residual_px is None or boot.observations is None:
-        return out
-    index = {n: k for k, n in enumerate(boot.names)}
-    k = np.array([index.get(n, -1) for n in names])
-    res = np.where(both, boot.residual_px[np.maximum(k, 0)], np.nan)
-    obs = np.where(both, boot.observations[np.maximum(k, 0)], 0)
-    std = np.where(both, boot.std_translation[np.maximum(k, 0)], np.nan)
-    placed = both & np.isfinite(res) & (obs > 0)
+        return np.zeros(len(bi), bool)
+    res, obs, std = boot.residual_px[bi], boot.observations[bi], boot.std_translation[bi]
+    placed = np.isfinite(res) & (obs > 0)
     if placed.sum() < 3:
-        return out
+        return np.zeros(len(bi), bool)
     med_res, med_obs = float(np.median(res[placed])), float(np.median(obs[placed]))
     with np.errstate(invalid="ignore"):
-        out = placed & np.isfinite(std) & (obs >= 0.25 * med_obs) & (res <= max(2 * med_res, med_res + 2.0))
-    return out
+        return placed & np.isfinite(std) & (obs >= 0.25 * med_obs) & (res <= max(2 * med_res, med_res + 2.0))
 
 
 def bootstrap_start(cameras: CameraSet, intrinsics: Mapping[str, Intrinsics], config: EngineConfig,
