@@ -485,6 +485,20 @@ class _SensorTracks:
 # ------------------------------------------------------------------ the estimator
 
 
+def _triangulate_rows(rows: list[tuple[_Record, np.ndarray]], R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(N, J, 3) the BODY joints of each record from its views where the mask says."""
+    N, J = len(rows), len(BODY)
+    V = max(int(o.sum()) for _, o in rows)
+    cams = np.zeros((N, V), np.int64)
+    xy = np.full((N, V, J, 2), np.nan)
+    for n, (r, o) in enumerate(rows):
+        k = int(o.sum())
+        cams[n, :k] = r.cams[o]
+        xy[n, :k] = r.xy[o]
+    pts = np.transpose(xy, (0, 2, 1, 3)).reshape(N * J, V, 2)
+    return triangulate_batch(R, t, np.repeat(cams[:, None, :], J, axis=1).reshape(N * J, V), pts).reshape(N, J, 3)
+
+
 @dataclass
 class _Record:
     """A hypothesis as the estimator keeps it: time, cameras (V,), BODY joints
@@ -582,8 +596,14 @@ class ClockOffsetEstimator:
         self.candidate = np.full(S, np.nan)  # the last fresh estimate that passed the test to be applied (``_first``)
         self.candidate_std = np.full(S, np.nan)
         self.note: list[str | None] = ["no update yet"] * S
+        # a sensor whose fresh estimates agree is estimated less often (``_settle``)
+        self.every = np.full(S, config.interval)  # s between its estimates
+        self.next_due = np.full(S, -np.inf)  # data time of its next estimate
+        self.settle_ref = np.full(S, np.nan)  # its last fresh estimate, and std
+        self.settle_ref_std = np.full(S, np.nan)
         self._job: ClockJob | None = None  # the update in flight (``begin`` .. ``finish``)
         self.pose_cov: np.ndarray | None = None  # (S, 6, 6) of the poses of the update in flight (``begin``)
+        self._tri: dict[tuple[int, bytes], np.ndarray] = {}  # a job's triangulations (``_triangulate``)
 
     @property
     def _margin(self) -> float:
@@ -666,7 +686,7 @@ class ClockOffsetEstimator:
         work.records = deque()
         for k in ("raw", "offset", "std", "scale", "nblocks", "center", "applied", "anchor", "anchor_std",
                   "drift_candidate", "drift_candidate_std",
-                  "drift_warnings"):
+                  "drift_warnings", "next_due"):
             setattr(work, k, getattr(self, k).copy())
         work.pose, work.note = list(self.pose), list(self.note)
         work._job = None
@@ -685,6 +705,7 @@ class ClockOffsetEstimator:
         if result is None:
             return []
         self._take(result)
+        self._settle(job.now)
         for live, done in zip(self.tracks, job.work.tracks):  # keep the arrays the job built
             for a, b in zip(live.tracks, done.tracks):
                 if a._arrays is None and b._arrays is not None and len(a.stamps) == len(b.stamps):
@@ -725,6 +746,25 @@ class ClockOffsetEstimator:
         self.nblocks, self.center, self.pose = result.nblocks.copy(), result.center.copy(), list(result.pose)
         self.note = list(result.note)
 
+    def _settle(self, now: float) -> None:
+        """When each sensor is estimated next. A fresh estimate that agrees with the
+        sensor's last fresh one (within 2.5 combined std or ``clock.min_change``, its std
+        within ``clock.max_std``) doubles the sensor's interval, up to
+        ``clock.settled_interval``; one that does not, or an uncertain one, sets it back
+        to ``clock.interval``. Most of the estimator's CPU goes into sensors whose offset
+        is known and steady; a drift is still seen, within a settled interval."""
+        cfg = self.cfg
+        for s in range(len(self.names)):
+            if self.note[s] is not None:  # not estimated this time (skipped, or no estimate)
+                continue
+            o, e = self.raw[s], self.std[s]
+            ref, ref_e = self.settle_ref[s], self.settle_ref_std[s]
+            agree = (np.isfinite(ref) and e <= cfg.max_std
+                     and abs(o - ref) <= max(cfg.min_change, 2.5 * math.hypot(e, ref_e)))
+            self.every[s] = min(2 * self.every[s], max(cfg.settled_interval, cfg.interval)) if agree else cfg.interval
+            self.next_due[s] = now + self.every[s] - 0.5 * cfg.interval  # due at the update nearest to that
+            self.settle_ref[s], self.settle_ref_std[s] = o, e
+
     def _relative(self) -> None:
         """The offsets relative to the sensors' median (the network's own clock)."""
         est = np.isfinite(self.raw)
@@ -737,20 +777,27 @@ class ClockOffsetEstimator:
 
     def _compute(self, job: "ClockJob") -> "ClockResult | None":
         """The heavy part, on the job's copies (``self`` is ``job.work``)."""
+        # the persons the other views triangulate are the same for every sensor not in a
+        # record, and one of V leave-one-out sets for those in it: made once per job
+        self._tri: dict[tuple[int, bytes], np.ndarray] = {}
         self._attach_tracks(job.records, job.now, job.flush)
         recs = [r for r in job.records if r.tracks is not None]
         if not recs:
             self.note = ["no samples: no person seen by three cameras in the window yet"] * len(self.names)
         else:
             R, t, S = job.R, job.t, len(self.names)
+            todo = [s for s in range(S) if job.flush or self.next_due[s] <= job.now]
+            for s in set(range(S)) - set(todo):
+                self.note[s] = (f"settled: its estimates agree, estimated every {self.every[s]:g} s "
+                                f"(next at data time {self.next_due[s]:.1f})")
             trusted = self._trusted(recs)
-            for s in range(S):
+            for s in todo:
                 if job.cancelled:
                     return None
                 self._estimate_sensor(s, recs, trusted[0], R, t)
             again = self._trusted(recs)
             if not np.array_equal(again[1], trusted[1]):  # views found mistimed that were used: once more without them
-                for s in range(S):
+                for s in todo:
                     if job.cancelled:
                         return None
                     self._estimate_sensor(s, recs, again[0], R, t)
@@ -803,19 +850,15 @@ class ClockOffsetEstimator:
         return Samples(self._triangulate(rows, R, t), np.array([r.time for r, _ in rows]), tuple(trs),
                        tuple(r.memo.setdefault(s, {}) for r, _ in rows))
 
-    @staticmethod
-    def _triangulate(rows: list[tuple[_Record, np.ndarray]], R: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """(N, J, 3) the BODY joints of each record from its views where the mask says."""
-        N, J = len(rows), len(BODY)
-        V = max(int(o.sum()) for _, o in rows)
-        cams = np.zeros((N, V), np.int64)
-        xy = np.full((N, V, J, 2), np.nan)
-        for n, (r, o) in enumerate(rows):
-            k = int(o.sum())
-            cams[n, :k] = r.cams[o]
-            xy[n, :k] = r.xy[o]
-        pts = np.transpose(xy, (0, 2, 1, 3)).reshape(N * J, V, 2)
-        return triangulate_batch(R, t, np.repeat(cams[:, None, :], J, axis=1).reshape(N * J, V), pts).reshape(N, J, 3)
+    def _triangulate(self, rows: list[tuple[_Record, np.ndarray]], R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(N, J, 3) the BODY joints of each record from its views where the mask says,
+        each (record, mask) triangulated once per job (R, t are the job's throughout)."""
+        keys = [(id(r), o.tobytes()) for r, o in rows]
+        todo = {k: row for k, row in zip(keys, rows) if k not in self._tri}
+        if todo:
+            X = _triangulate_rows(list(todo.values()), R, t)
+            self._tri.update(zip(todo, X))
+        return np.stack([self._tri[k] for k in keys]) if keys else np.zeros((0, len(BODY), 3))
 
     def _identify(self, s: int, recs: list[_Record], trusted: list[np.ndarray], R: np.ndarray, t: np.ndarray) -> None:
         """For records without sensor s (it missed the frameset or was not associated):

@@ -509,3 +509,40 @@ def test_a_sensor_without_data_says_why_it_has_no_offset():
     est.update(100.0, R, t, flush=True)
     for c in est.clocks():
         assert c.offset is None and c.note is not None and "no samples" in c.note
+
+
+def test_a_sensor_whose_estimates_agree_is_estimated_less_often(monkeypatch):
+    """A fresh estimate that agrees with the sensor's last one doubles its interval up to
+    clock.settled_interval; one that moved sets it back. An update skips the sensors not
+    due (they say why, and count as stale), a flush estimates every sensor."""
+    from backend.clock_offsets import _Record
+
+    est = _estimator_with([0.0, 50.0], 1.0)
+    cfg = est.cfg
+    assert cfg.settled_interval > 2 * cfg.interval
+    est._settle(0.0)  # first fresh estimates: nothing to agree with yet
+    assert np.all(est.every == cfg.interval)
+    for k in range(1, 6):  # agreeing estimates, one interval apart
+        est.raw += 0.0005
+        est._settle(k * cfg.interval)
+    assert np.all(est.every == cfg.settled_interval)
+    est.raw[1] += 0.030  # the second sensor's clock jumped
+    est._settle(6 * cfg.interval)
+    assert est.every[0] == cfg.settled_interval and est.every[1] == cfg.interval
+    assert est.next_due[1] < 7 * cfg.interval < est.next_due[0]
+
+    done = []
+    monkeypatch.setattr(ClockOffsetEstimator, "_attach_tracks",
+                        lambda self, recs, now, flush: [setattr(r, "tracks", [None] * len(r.cams)) for r in recs])
+    monkeypatch.setattr(ClockOffsetEstimator, "_estimate_sensor", lambda self, s, *a: done.append(s))
+    est.records.append(_Record(7 * cfg.interval, np.array([0, 1]), np.zeros((2, len(BODY), 2)), np.zeros(2)))
+    R, t = np.repeat(np.eye(3)[None], 2, axis=0), np.zeros((2, 3))
+    job = est.begin(7 * cfg.interval, R, t)
+    result = job.run()
+    assert done == [1] and result.note[0].startswith("settled") and result.note[1] is None
+    est.finish(job, result)
+    assert est.every[0] == cfg.settled_interval  # a skipped sensor keeps its interval
+    done.clear()
+    job = est.begin(7 * cfg.interval + 1, R, t, flush=True)
+    job.run()
+    assert sorted(done) == [0, 1]
