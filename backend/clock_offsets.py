@@ -747,19 +747,24 @@ class ClockOffsetEstimator:
         self.note = list(result.note)
 
     def _settle(self, now: float) -> None:
-        """When each sensor is estimated next. A fresh estimate that agrees with the
-        sensor's last fresh one (within 2.5 combined std or ``clock.min_change``, its std
-        within ``clock.max_std``) doubles the sensor's interval, up to
-        ``clock.settled_interval``; one that does not, or an uncertain one, sets it back
-        to ``clock.interval``. Most of the estimator's CPU goes into sensors whose offset
-        is known and steady; a drift is still seen, within a settled interval."""
+        """When each sensor is estimated next. A synchronised sensor (nothing applied, its
+        estimate within half of ``clock.min_apply`` of the median) whose fresh estimate
+        agrees with its last fresh one (within 2.5 combined std or ``clock.min_change``,
+        its std within ``clock.max_std``) doubles its interval, up to
+        ``clock.settled_interval``; any other fresh estimate sets it back to
+        ``clock.interval``. Most of the estimator's CPU went into sensors whose clocks
+        are fine; a sensor with an offset is refined at every update (the calibration
+        uses its timing), and a synchronised one that starts to drift is seen within a
+        settled interval."""
         cfg = self.cfg
+        self._relative()
         for s in range(len(self.names)):
             if self.note[s] is not None:  # not estimated this time (skipped, or no estimate)
                 continue
             o, e = self.raw[s], self.std[s]
             ref, ref_e = self.settle_ref[s], self.settle_ref_std[s]
-            agree = (np.isfinite(ref) and e <= cfg.max_std
+            agree = (np.isfinite(ref) and e <= cfg.max_std and self.applied[s] == 0.0
+                     and abs(self.offset[s]) < cfg.min_apply / 2
                      and abs(o - ref) <= max(cfg.min_change, 2.5 * math.hypot(e, ref_e)))
             self.every[s] = min(2 * self.every[s], max(cfg.settled_interval, cfg.interval)) if agree else cfg.interval
             self.next_due[s] = now + self.every[s] - 0.5 * cfg.interval  # due at the update nearest to that

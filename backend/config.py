@@ -275,7 +275,8 @@ class ClockConfig(_Section):
                            "apply confident ones beyond NTP's spread (the service runs the estimate in a thread)")
     max_offset: float = Field(0.25, gt=0, le=2.0, description="s: largest offset searched (relative to the synchronised clock)")
     interval: float = Field(10.0, gt=0, description="s of data time between estimates")
-    settled_interval: float = Field(60.0, ge=0, description="s: a sensor whose fresh estimates agree is estimated at "
+    settled_interval: float = Field(60.0, ge=0, description="s: a synchronised sensor (nothing applied, "
+                                    "its estimate within half of min_apply) whose fresh estimates agree is estimated at "
                                     "twice the interval of the last time, up to this (CPU; a drift is then seen within it)")
     block: float = Field(5.0, gt=0, description="s of data per block: the unit of the jackknife (longer than the detector's correlated noise)")
     window: float = Field(120.0, gt=0, description="s of recent data an estimate uses (follows slow drift)")

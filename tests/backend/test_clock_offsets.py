@@ -512,12 +512,13 @@ def test_a_sensor_without_data_says_why_it_has_no_offset():
 
 
 def test_a_sensor_whose_estimates_agree_is_estimated_less_often(monkeypatch):
-    """A fresh estimate that agrees with the sensor's last one doubles its interval up to
-    clock.settled_interval; one that moved sets it back. An update skips the sensors not
-    due (they say why, and count as stale), a flush estimates every sensor."""
+    """A synchronised sensor's fresh estimate that agrees with its last one doubles its
+    interval up to clock.settled_interval; one that moved sets it back, and a sensor
+    with an offset is estimated at every update. An update skips the sensors not due
+    (they say why, and count as stale), a flush estimates every sensor."""
     from backend.clock_offsets import _Record
 
-    est = _estimator_with([0.0, 50.0], 1.0)
+    est = _estimator_with([0.0, 2.0, 0.0], 1.0)
     cfg = est.cfg
     assert cfg.settled_interval > 2 * cfg.interval
     est._settle(0.0)  # first fresh estimates: nothing to agree with yet
@@ -530,19 +531,24 @@ def test_a_sensor_whose_estimates_agree_is_estimated_less_often(monkeypatch):
     est._settle(6 * cfg.interval)
     assert est.every[0] == cfg.settled_interval and est.every[1] == cfg.interval
     assert est.next_due[1] < 7 * cfg.interval < est.next_due[0]
+    for k in range(7, 12):  # now 30 ms off: estimated at every update, steady or not
+        est._settle(k * cfg.interval)
+        assert est.every[1] == cfg.interval
 
     done = []
     monkeypatch.setattr(ClockOffsetEstimator, "_attach_tracks",
                         lambda self, recs, now, flush: [setattr(r, "tracks", [None] * len(r.cams)) for r in recs])
     monkeypatch.setattr(ClockOffsetEstimator, "_estimate_sensor", lambda self, s, *a: done.append(s))
-    est.records.append(_Record(7 * cfg.interval, np.array([0, 1]), np.zeros((2, len(BODY), 2)), np.zeros(2)))
-    R, t = np.repeat(np.eye(3)[None], 2, axis=0), np.zeros((2, 3))
+    est.next_due[1] = 7 * cfg.interval
+    est.records.append(_Record(7 * cfg.interval, np.array([0, 1]), np.zeros((2, len(BODY), 2)), np.zeros(3)))
+    R, t = np.repeat(np.eye(3)[None], 3, axis=0), np.zeros((3, 3))
     job = est.begin(7 * cfg.interval, R, t)
     result = job.run()
     assert done == [1] and result.note[0].startswith("settled") and result.note[1] is None
+    assert result.note[2].startswith("settled")
     est.finish(job, result)
     assert est.every[0] == cfg.settled_interval  # a skipped sensor keeps its interval
     done.clear()
     job = est.begin(7 * cfg.interval + 1, R, t, flush=True)
     job.run()
-    assert sorted(done) == [0, 1]
+    assert sorted(done) == [0, 1, 2]
