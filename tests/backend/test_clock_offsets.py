@@ -316,6 +316,24 @@ def test_a_drift_is_warned_of_when_two_fresh_estimates_agree_on_it():
     assert update(41.0, 70) == 1 and update(40.5, 80) == 1  # the new anchor: nothing more
 
 
+def test_an_estimate_back_within_ntp_spread_is_no_drift():
+    """A synchronised sensor whose first estimates were 22 ms off (the poses still rough)
+    and now say 3 ms: that clock did not move, the estimate was wrong; no warning. One
+    that leaves NTP's spread from there is warned of."""
+    est = _estimator_with([0.0, 0.0, 0.0], 2.0)
+    est.nblocks[:] = 8  # 22 - 4.5 x 2 ms: within min_apply, not applied
+
+    def update(ms: float, now: float) -> int:
+        est.raw[0] = ms / 1000
+        est._apply(now)
+        return int(est.drift_warnings[0])
+
+    assert update(-22.0, 10) == 0 and update(-21.0, 20) == 0 and est.applied[0] == 0.0
+    est.std[:] = 0.001
+    assert update(3.0, 30) == 0 and update(3.5, 40) == 0  # re-anchored, silently
+    assert update(30.0, 50) == 0 and update(31.0, 60) == 1
+
+
 def test_a_less_certain_reestimate_does_not_replace_an_estimate(monkeypatch):
     """The re-estimate after the final batch replaces a sensor's estimate only when it is
     at least as certain (seed 5 of the bench: +123.7 +- 2.7 ms would have become +132.8 +-
