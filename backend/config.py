@@ -270,9 +270,9 @@ class BootstrapConfig(_Section):
 class ClockConfig(_Section):
     """Sensor clock offsets estimated from the data (backend/clock_offsets.py, docs/clock_offsets.md)."""
 
-    estimate: bool = Field(False, description="(off by default: not at its 5 ms bar on every seed (24 of 25 on seeds 1-5), and seconds of CPU per "
-                           "interval, see docs/clock_offsets.md) estimate each sensor's clock offset from its keypoints and "
-                           "apply confident ones beyond NTP's spread (the service runs the estimate in a thread)")
+    estimate: bool = Field(True, description="estimate each sensor's clock offset from its keypoints and apply confident "
+                           "ones beyond NTP's spread (the service runs the estimate in a thread; docs/clock_offsets.md); "
+                           "false: stamps are taken as they come, and a sensor beyond sync.max_offset sits out")
     max_offset: float = Field(0.25, gt=0, le=2.0, description="s: largest offset searched (relative to the synchronised clock)")
     interval: float = Field(10.0, gt=0, description="s of data time between estimates")
     settled_interval: float = Field(60.0, ge=0, description="s: a synchronised sensor (nothing applied, "
