@@ -823,8 +823,10 @@ class ClockOffsetEstimator:
         rel = self.raw - (np.median(self.raw[fin]) if fin.sum() >= 3 else 0.0)
         out = []
         for r in recs:
-            est = rel[r.cams]
-            ok = ~np.isfinite(est) | (np.abs(est - r.applied[r.cams]) <= tol)
+            est, applied = rel[r.cams], r.applied[r.cams]
+            # a view made with nothing applied is as timed as NTP keeps it while its estimate
+            # is within NTP's spread: that is not applied either (``_apply``)
+            ok = ~np.isfinite(est) | (np.abs(est - applied) <= np.where(applied == 0.0, max(tol, self.cfg.min_apply), tol))
             out.append(ok)
         return out, np.concatenate(out) if out else np.zeros(0, bool)
 

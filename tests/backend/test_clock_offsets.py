@@ -570,3 +570,20 @@ def test_a_sensor_whose_estimates_agree_is_estimated_less_often(monkeypatch):
     job = est.begin(7 * cfg.interval + 1, R, t, flush=True)
     job.run()
     assert sorted(done) == [0, 1, 2]
+
+
+def test_views_within_ntp_spread_of_their_estimate_are_trusted():
+    """A view made with nothing applied is left out of the others' 3D only when its
+    sensor's estimate is one that would be applied (beyond clock.min_apply): with every
+    sensor's clock a little off (detector latencies differ per board), the old 5 ms rule
+    left no sensor two others timed right. A view made with an offset applied is left out
+    when the estimate moved from it by more than clock.retime_tolerance."""
+    from backend.clock_offsets import _Record
+
+    est = _estimator_with([0.0, 0.0, 0.0, 10.0, 30.0, 33.0, 40.0], 1.0)
+    cfg = est.cfg
+    assert cfg.retime_tolerance < 0.010 < cfg.min_apply < 0.030
+    applied = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.030, 0.030])
+    rec = _Record(0.0, np.arange(7), np.zeros((7, len(BODY), 2)), applied)
+    ok, _ = est._trusted([rec])
+    assert ok[0].tolist() == [True, True, True, True, False, True, False]
