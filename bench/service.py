@@ -43,6 +43,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from backend.cameras import Extrinsics, Intrinsics, Pose, dump_extrinsics, load_extrinsics, load_intrinsics  # noqa: E402
+from backend.config import apply_override  # noqa: E402
 from backend.perturb import perturb_extrinsics  # noqa: E402
 from proto.transport import free_port  # noqa: E402
 
@@ -148,7 +149,7 @@ def children(pid: int) -> list[int]:
         return []
 
 
-def run(cameras: int, rate: float, seconds: float, persons: int, work: Path, log) -> dict:
+def run(cameras: int, rate: float, seconds: float, persons: int, work: Path, log, config: dict | None = None) -> dict:
     import httpx
 
     data = work / f"msgs-{cameras}.pkl"
@@ -183,7 +184,7 @@ def run(cameras: int, rate: float, seconds: float, persons: int, work: Path, log
         r = client.post("/sessions", json={
             "name": f"bench {cameras}", "intrinsics_yaml": intr_yaml,
             "initial_yaml": dump_extrinsics(perturb_extrinsics(ext, 0.1, 3.0, seed=1)),
-            "reference_yaml": dump_extrinsics(ext)})
+            "reference_yaml": dump_extrinsics(ext), **({"config": config} if config else {})})
         r.raise_for_status()
         sid = r.json()["id"]
 
@@ -240,6 +241,14 @@ def fmt(x, scale: float = 1.0, digits: int = 1) -> str:
     return f"{x * scale:.{digits}f}"
 
 
+def _settings(pairs: list[str]) -> dict:
+    """SECTION.KEY=VALUE pairs as the session body's nested config."""
+    out: dict = {}
+    for p in pairs:
+        apply_override(out, p)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cameras", type=int, nargs="+", default=[20, 100])
@@ -247,6 +256,8 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--persons", type=int, nargs="+", default=None, help="per camera count (default 2 for 20, 8 for 100)")
     ap.add_argument("--json", type=Path, help="also write the figures here")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="engine setting of the session (repeatable), e.g. clock.estimate=false")
     args = ap.parse_args()
     log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     results = []
@@ -254,7 +265,7 @@ def main() -> None:
         for i, n in enumerate(args.cameras):
             persons = args.persons[i] if args.persons else (2 if n <= 20 else 8)
             log(f"{n} cameras x {args.rate:g} Hz, {persons} people, {args.seconds:g} s")
-            results.append(run(n, args.rate, args.seconds, persons, Path(tmp), log))
+            results.append(run(n, args.rate, args.seconds, persons, Path(tmp), log, _settings(args.set)))
     print(f"\nextrcal service on {os.cpu_count()} cores (load average {os.getloadavg()[0]:.1f} at the end); "
           "Zenoh on loopback; one publisher process\n")
     print("latency: arrival on the loop − capture stamp, less the simulated network delay (median "
