@@ -596,7 +596,7 @@ class ClockOffsetEstimator:
         self.candidate = np.full(S, np.nan)  # the last fresh estimate that passed the test to be applied (``_first``)
         self.candidate_std = np.full(S, np.nan)
         self.note: list[str | None] = ["no update yet"] * S
-        # a sensor whose fresh estimates agree is estimated less often (``_settle``)
+        # a synchronised sensor whose fresh estimates agree is estimated less often (``_settle``)
         self.every = np.full(S, config.interval)  # s between its estimates
         self.next_due = np.full(S, -np.inf)  # data time of its next estimate
         self.settle_ref = np.full(S, np.nan)  # its last fresh estimate, and std
@@ -793,8 +793,8 @@ class ClockOffsetEstimator:
             R, t, S = job.R, job.t, len(self.names)
             todo = [s for s in range(S) if job.flush or self.next_due[s] <= job.now]
             for s in set(range(S)) - set(todo):
-                self.note[s] = (f"settled: its estimates agree, estimated every {self.every[s]:g} s "
-                                f"(next at data time {self.next_due[s]:.1f})")
+                self.note[s] = (f"settled: synchronised, estimated every {self.every[s]:g} s of data "
+                                f"(next in {self.next_due[s] - job.now:.0f} s)")
             trusted = self._trusted(recs)
             for s in todo:
                 if job.cancelled:
@@ -826,7 +826,8 @@ class ClockOffsetEstimator:
             est, applied = rel[r.cams], r.applied[r.cams]
             # a view made with nothing applied is as timed as NTP keeps it while its estimate
             # is within NTP's spread: that is not applied either (``_apply``)
-            ok = ~np.isfinite(est) | (np.abs(est - applied) <= np.where(applied == 0.0, max(tol, self.cfg.min_apply), tol))
+            ok = ~np.isfinite(est) | (np.abs(est - applied) <= np.where(applied == 0.0, max(tol, self.cfg.min_apply),
+                                                                         tol))
             out.append(ok)
         return out, np.concatenate(out) if out else np.zeros(0, bool)
 
