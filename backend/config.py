@@ -152,6 +152,9 @@ class RefineConfig(_Section):
     converged_cycles: int = Field(10, ge=1, description="cycles over which the net pose change is measured")
     final_batch: bool = Field(True, description="a batch adjustment over all frames, re-associated with the final estimate, when the run stops")
     batch_size: int = Field(1000, ge=10, description="most hypotheses in the final batch adjustment")
+    batch_fill: bool = Field(True, description="the final batch takes the hypotheses select.min_spacing / 2 apart first, "
+                             "then the others up to batch_size (false: the spaced ones only; a walker who passes the "
+                             "same spots again, as along a corridor, then loses most of a chain's links)")
     final_batch_from_start: bool = Field(False, description="the final batch also from the start (the bootstrap's "
                                          "estimate: set by the hand-over), kept when it explains at least as many "
                                          "observations at a lower cost per observation")

@@ -61,6 +61,7 @@ class Problem:
     pose_px: np.ndarray | None = None  # (C,) px: the association's epipolar test of two views (Associator)
     max_hypotheses: int = 0
     spacing: float = 0.0
+    fill: bool = False  # after the spaced hypotheses, the others up to max_hypotheses (``select_spaced``)
     seed: int = 0
     marginals: bool = True
     kind: str = "cycle"  # cycle | first | batch | relocalize | recalibrate
@@ -229,7 +230,8 @@ def hypotheses_and_persons(p: Problem) -> tuple[list[Hypothesis], np.ndarray]:
         person = label_persons(segments(hyps, p.R, p.t))
     if p.frames and (p.max_hypotheses and len(hyps) > p.max_hypotheses or p.spacing > 0):
         index = {id(h): i for i, h in enumerate(hyps)}
-        hyps = select_spaced(hyps, p.max_hypotheses or len(hyps), p.spacing, np.random.default_rng(p.seed))
+        hyps = select_spaced(hyps, p.max_hypotheses or len(hyps), p.spacing, np.random.default_rng(p.seed),
+                             fill=p.fill)
         person = person[[index[id(h)] for h in hyps]]
     return hyps, person
 

@@ -505,7 +505,8 @@ class Pipeline:
                        # the batch re-associates ungated: a camera the filter got wrong must
                        # keep its views to be put right; the solve's outlier rounds drop bad ones
                        gate_px=None, pose_px=self._pose_px(), max_hypotheses=max_hypotheses,
-                       spacing=spacing, seed=int(self.rng.integers(2**31)), kind="batch")
+                       spacing=spacing, fill=final and self.cfg.refine.batch_fill,
+                       seed=int(self.rng.integers(2**31)), kind="batch")
 
     def apply(self, problem: Problem, solution: Solution) -> CycleReport:
         """Fold a solved cycle into the estimate (or reject it, keeping the estimate)."""

@@ -84,9 +84,12 @@ class HypothesisQueue:
         return [items[i] for i in sorted(taken)]
 
 
-def select_spaced(hyps: list[Hypothesis], n: int, spacing: float, rng: np.random.Generator) -> list[Hypothesis]:
-    """Up to n hypotheses in random order, each >= spacing from those taken (grid hash)."""
-    if spacing <= 0:
+def select_spaced(hyps: list[Hypothesis], n: int, spacing: float, rng: np.random.Generator, *,
+                  fill: bool = False) -> list[Hypothesis]:
+    """Up to n hypotheses in random order, each >= spacing from those taken (grid hash);
+    ``fill``: then the others, in random order, until n are taken (spacing decides what a
+    budget keeps first, it does not throw data away below the budget)."""
+    if spacing <= 0 or (fill and len(hyps) <= n):
         order = rng.permutation(len(hyps))[:n]
         return [hyps[i] for i in sorted(order)]
     cells: dict[tuple[int, int, int], list[np.ndarray]] = {}
@@ -109,4 +112,7 @@ def select_spaced(hyps: list[Hypothesis], n: int, spacing: float, rng: np.random
         taken.append(int(i))
         if len(taken) >= n:
             break
+    if fill and len(taken) < n:
+        rest = np.setdiff1d(np.arange(len(hyps)), taken)
+        taken.extend(rng.permutation(rest)[:n - len(taken)].tolist())
     return [hyps[i] for i in sorted(taken)]
