@@ -226,7 +226,8 @@ def limit(p, cfg, truth, ref, seed: int, start: str, budget: int | None = None) 
     opt = cfg.optimize.model_copy(update={"max_iterations": max(cfg.optimize.max_iterations, 100)})
     hyps_all, unknown = true_hypotheses(list(p.frames), truth, names, R_ref, t_ref)
     n = cfg.refine.batch_size if budget is None else budget
-    hyps = select_spaced(hyps_all, n or len(hyps_all), cfg.select.min_spacing / 2, np.random.default_rng(seed))
+    hyps = select_spaced(hyps_all, n or len(hyps_all), cfg.select.min_spacing / 2, np.random.default_rng(seed),
+                         fill=cfg.refine.batch_fill)
     R_start, t_start = (R_ref, t_ref) if start == "reference" else (rf.R0, rf.t0)
     prob = Problem(cycle=0, R=R_start.copy(), t=t_start.copy(), prior_R=rf.R0.copy(), prior_t=rf.t0.copy(),
                    prior_cov=P0, focal=p.focal, config=opt, hypotheses=tuple(hyps), kind="batch")
