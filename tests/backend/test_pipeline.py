@@ -12,7 +12,7 @@ from backend.cameras import CameraSet, Extrinsics
 from backend.config import EngineConfig
 from backend.evaluate import evaluate
 from backend.geometry import pose_retract, rotation_angle_deg
-from backend.optimize import solve
+from backend.optimize import hypotheses_and_persons, solve
 from backend.perturb import perturb_extrinsics
 from backend.monitor import Alarm
 from backend.pipeline import Pipeline, run_offline
@@ -186,6 +186,19 @@ def test_a_failing_scale_check_costs_nothing_but_itself(lab, run, monkeypatch, c
     assert p.scale_check is None and state.scale_check is None and state.cycle == run[0].cycle + 1
     np.testing.assert_array_equal(p.refiner.t0, t0)
     assert "the scale check failed" in caplog.text
+
+
+def test_only_the_final_batch_fills_its_budget(lab, run):
+    """The final batch takes the spaced hypotheses first, then the others up to its budget
+    (refine.batch_fill); the first adjustment keeps the spaced ones only."""
+    p, _ = run
+    final = p._batch_problem(p.cfg.refine.batch_size, p.cfg.select.min_spacing / 2, final=True)
+    assert final.fill and not p._batch_problem(10, p.cfg.select.min_spacing).fill
+    hyps, _ = hypotheses_and_persons(final)
+    spaced, _ = hypotheses_and_persons(replace(final, fill=False))
+    assert len(spaced) < len(hyps) <= p.cfg.refine.batch_size
+    off = Pipeline(p.cameras, EngineConfig.from_dict({"refine": {"batch_fill": False}}))
+    assert not off._batch_problem(100, 0.1, (), final=True).fill
 
 
 def test_offline_runs_are_deterministic_for_a_seed(lab):

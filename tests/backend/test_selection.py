@@ -100,3 +100,16 @@ def test_select_spaced():
     assert len(select_spaced(hyps, 30, 0.0, np.random.default_rng(1))) == 30
     times = [h.time for h in select_spaced(hyps, 30, 0.0, np.random.default_rng(1))]
     assert times == sorted(times)
+
+
+def test_select_spaced_fill_takes_the_spaced_first_then_the_rest_up_to_the_budget():
+    """A walker passing the same spots again (a corridor): 200 hypotheses at 20 spots.
+    Spaced alone keeps one per spot; ``fill`` keeps those and then others up to the budget,
+    and all of them when they are fewer."""
+    hyps = [_hyp(i, [0.5 * (i % 20), 0.0, 1.0]) for i in range(200)]
+    spaced = select_spaced(hyps, 1000, 0.4, np.random.default_rng(1))
+    assert len(spaced) == 20
+    filled = select_spaced(hyps, 120, 0.4, np.random.default_rng(1), fill=True)
+    assert len(filled) == 120 and len({h.com[0] for h in filled}) == 20  # every spot, then more
+    assert [h.time for h in filled] == sorted(h.time for h in filled)
+    assert len(select_spaced(hyps, 1000, 0.4, np.random.default_rng(1), fill=True)) == 200
