@@ -391,6 +391,7 @@ class Service:
         self.handoff: HandOff | None = None
         self._status_snapshot: dict[str, Any] | None = None  # published by status(), read by any thread
         self._status_pub: dict[str, Any] | None = None
+        self._status_stale = False  # a session changed since the last snapshot (``_changed``)
         self._status_asked = -math.inf  # monotonic time of the last /status from the HTTP thread
         # Zenoh links of this session (routers, peers), checked every LINK_CHECK s; the wall
         # time they all went, while endpoints to connect to are configured
@@ -1043,6 +1044,7 @@ class Service:
         """A session started, stopped or changed state: the published status is out of date
         (an operator's GET /status right after POST /sessions must show it)."""
         self._status_pub = None
+        self._status_stale = True
 
     def _persist(self, s: ActiveSession, *, snapshot: bool, note: str | None = None) -> None:
         rec = s.record
@@ -1640,6 +1642,7 @@ class Service:
         """The full status, computed now (on the service loop); also published as the
         snapshot that other threads may read."""
         with self.work.measure("status"):
+            self._status_stale = False
             d = self._status()
         self._status_snapshot = d  # a new dict every time, never changed after: safe to share
         self._status_pub = d  # ... and the one served as it is while fresh (None after a change)
@@ -1658,16 +1661,21 @@ class Service:
         if pub is not None and time.time() - pub["as_of"] < STATUS_FRESH:
             return pub  # fresh enough: waiting for the loop (its GIL) is what makes /status slow
         snap = self._status_snapshot
-        if snap is not None and self.lag and self.lag[-1] > STATUS_WAIT:
+        # a snapshot from before a session started, stopped or changed state would contradict
+        # what the operator was just told (POST /sessions): then the fresh one is waited for
+        stale = self._status_stale
+        if snap is not None and not stale and self.lag and self.lag[-1] > STATUS_WAIT:
             return snap  # the loop is busy now: asking it would only add to its work
 
         async def fresh() -> dict[str, Any]:
             return self.status()
 
-        fut = asyncio.run_coroutine_threadsafe(fresh(), loop)
+        wrapped = asyncio.wrap_future(asyncio.run_coroutine_threadsafe(fresh(), loop))
         try:
-            return await asyncio.wait_for(asyncio.wrap_future(fut), STATUS_WAIT)
+            return await asyncio.wait_for(asyncio.shield(wrapped) if stale else wrapped, STATUS_WAIT)
         except TimeoutError:
+            if stale:
+                return await wrapped
             snap = self._status_snapshot
             if snap is None:  # none yet (the first second of the service): wait for it
                 return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(fresh(), loop))

@@ -59,6 +59,27 @@ def test_status_answers_from_the_snapshot_while_the_loop_is_busy(svc):
         assert again["as_of"] > snap["as_of"] and time.time() - again["as_of"] < 2
 
 
+def test_status_right_after_a_change_is_not_an_older_snapshot(svc):
+    """After a session started, stopped or changed state, /status waits for the loop
+    rather than serve the snapshot from before: an operator's GET /status right after
+    POST /sessions must show the session, however busy the loop."""
+    with httpx.Client(base_url=svc.url, timeout=30) as c:
+        assert c.get("/status").status_code == 200
+        changed: list[float] = []
+        started = threading.Event()
+
+        def change_then_busy() -> None:  # what starting a session does, then a busy loop
+            svc.service._changed()
+            changed.append(time.time())
+            started.set()
+            time.sleep(1.0)
+
+        svc.loop.call_soon_threadsafe(change_then_busy)
+        assert started.wait(10)
+        snap = c.get("/status").json()
+        assert snap["as_of"] >= changed[0]
+
+
 def test_posts_and_event_streams_go_through_the_bridge(svc):
     with httpx.Client(base_url=svc.url, timeout=30) as c:
         r = c.post("/sessions", json={"intrinsics_yaml": "not: [valid"})
