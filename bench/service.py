@@ -224,7 +224,8 @@ def run(cameras: int, rate: float, seconds: float, persons: int, work: Path, log
             }
             log(f"  {key}: {json.dumps(result[key], default=str)[:400]}")
         session = client.get(f"/sessions/{sid}").json()
-        result["session"] = {"state": session["state"], "cycles": session["cycles"], "accuracy": session["accuracy"]}
+        result["session"] = {"state": session["state"], "cycles": session["cycles"], "accuracy": session["accuracy"],
+                             "reason": session.get("reason")}
     finally:
         server.send_signal(signal.SIGTERM)
         try:
@@ -292,7 +293,8 @@ def main() -> None:
         print(f"| {r['cameras']} | {x['cycles']} | {fmt(cw.get('mean'), digits=2)} / {fmt(cw.get('p95'), digits=2)} / "
               f"{fmt(cw.get('max'), digits=2)} | {fmt(cs.get('mean'), digits=2)} / {fmt(cs.get('max'), digits=2)} | "
               f"{r['session']['state']}, {r['session']['cycles']} cycles, error "
-              f"{fmt(acc.get('position_mean'), 100, 1)} cm / {fmt(acc.get('orientation_mean'), 1, 2)}° |")
+              f"{fmt(acc.get('position_mean'), 100, 1)} cm / {fmt(acc.get('orientation_mean'), 1, 2)}°"
+              + (f" ({r['session']['reason']})" if r["session"]["state"] == "failed" else "") + " |")
     print("\n| cameras | load | loop work: wall mean (CPU mean) / wall max ms per call |")
     print("|---|---|---|")
     for r in results:
