@@ -273,9 +273,11 @@ class BootstrapConfig(_Section):
 class ClockConfig(_Section):
     """Sensor clock offsets estimated from the data (backend/clock_offsets.py, docs/clock_offsets.md)."""
 
-    estimate: bool = Field(True, description="estimate each sensor's clock offset from its keypoints and apply confident "
-                           "ones beyond NTP's spread (the service runs the estimate in a thread; docs/clock_offsets.md); "
-                           "false: stamps are taken as they come, and a sensor beyond sync.max_offset sits out")
+    estimate: bool = Field(False, description="estimate each sensor's clock offset from its keypoints and apply confident "
+                           "ones beyond NTP's spread (the service runs the estimate in a thread; docs/clock_offsets.md). "
+                           "Off by default: live it doubles the service's CPU (0.17 -> 0.40 cores for 20 cameras at 30 Hz) "
+                           "and under a saturating burst a session failed with it; turn it on where clocks or stamps are "
+                           "suspect (every recording calibrated as accurately as with synchronised clocks, session 13)")
     max_offset: float = Field(0.25, gt=0, le=2.0, description="s: largest offset searched (relative to the synchronised clock)")
     interval: float = Field(10.0, gt=0, description="s of data time between estimates")
     settled_interval: float = Field(60.0, ge=0, description="s: a synchronised sensor (nothing applied, "

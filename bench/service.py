@@ -221,6 +221,8 @@ def run(cameras: int, rate: float, seconds: float, persons: int, work: Path, log
                 "loop_lag_max": s1["loop_lag"]["max"], "loop_lag_p99": s1["loop_lag"]["p99"],
                 "rejected": s1["messages"]["rejected"],
                 "loop_work": s1.get("loop_work"),
+                "clock_applied": {n: x["time_offset"]["applied"] for n, x in s1["sensors"].items()
+                                  if (x.get("time_offset") or {}).get("applied")},
             }
             log(f"  {key}: {json.dumps(result[key], default=str)[:400]}")
         session = client.get(f"/sessions/{sid}").json()

@@ -103,7 +103,6 @@ def test_without_estimation_no_raw_messages_are_kept():
     ref = load_extrinsics(LAB / "reference.yaml")
     cams = CameraSet.combine({"cam_1": intr["cam_1"], "cam_2": intr["cam_2"]},
                              {"cam_1": ref["cam_1"], "cam_2": ref["cam_2"]})
-    assert Pipeline(cams, EngineConfig.from_dict({"clock": {"estimate": False}})).raw is None
-    assert Pipeline(cams, EngineConfig()).raw is not None  # estimation is on by default
+    assert Pipeline(cams, EngineConfig()).raw is None
     cfg = EngineConfig.from_dict({"clock": {"estimate": True, "retime_seconds": 0}})
     assert Pipeline(cams, cfg).raw is None
