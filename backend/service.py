@@ -391,7 +391,7 @@ class Service:
         self.handoff: HandOff | None = None
         self._status_snapshot: dict[str, Any] | None = None  # published by status(), read by any thread
         self._status_pub: dict[str, Any] | None = None
-        self._status_stale = False  # a session changed since the last snapshot (``_changed``)
+        self._status_stale = False  # a session started or ended since the last snapshot (``active``)
         self._status_asked = -math.inf  # monotonic time of the last /status from the HTTP thread
         # Zenoh links of this session (routers, peers), checked every LINK_CHECK s; the wall
         # time they all went, while endpoints to connect to are configured
@@ -417,6 +417,7 @@ class Service:
     def active(self, s: ActiveSession | None) -> None:
         self._active = s
         self._changed()
+        self._status_stale = True  # a session started or ended: no snapshot from before is served
         if self.handoff is not None:  # sensors outside the session are refused on Zenoh's threads
             self.handoff.accept(None if s is None else s.sensors)
 
@@ -1044,7 +1045,6 @@ class Service:
         """A session started, stopped or changed state: the published status is out of date
         (an operator's GET /status right after POST /sessions must show it)."""
         self._status_pub = None
-        self._status_stale = True
 
     def _persist(self, s: ActiveSession, *, snapshot: bool, note: str | None = None) -> None:
         rec = s.record
@@ -1661,8 +1661,8 @@ class Service:
         if pub is not None and time.time() - pub["as_of"] < STATUS_FRESH:
             return pub  # fresh enough: waiting for the loop (its GIL) is what makes /status slow
         snap = self._status_snapshot
-        # a snapshot from before a session started, stopped or changed state would contradict
-        # what the operator was just told (POST /sessions): then the fresh one is waited for
+        # a snapshot from before a session started or ended would contradict what the
+        # operator was just told (POST /sessions): then the fresh one is waited for
         stale = self._status_stale
         if snap is not None and not stale and self.lag and self.lag[-1] > STATUS_WAIT:
             return snap  # the loop is busy now: asking it would only add to its work
