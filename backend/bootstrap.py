@@ -50,7 +50,7 @@ from proto import KeypointMessage
 from .associate import Hypothesis, torso_centre
 from .cameras import CameraSet, Extrinsics, Intrinsics, Pose, natural_key
 from .config import BootstrapConfig, EngineConfig
-from .geometry import hat, rotation_angle_deg, so3_exp, triangulate_batch
+from .geometry import hat, pose_std, rotation_angle_deg, so3_exp, triangulate_batch
 from .people import ANKLE_HEIGHT, ScaleEstimate, Segments, measure_scale, segments
 from .preprocess import Detection, Preprocessor
 from .sync import Synchronizer
@@ -975,8 +975,8 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
             for c in np.flatnonzero(sol.active):
                 P = sol.cov_shape[c]
                 if np.all(np.isfinite(P)):
-                    std_t[c] = np.sqrt(max(np.trace(P[3:, 3:]) / 3, 0))
-                    std_r[c] = np.degrees(np.sqrt(max(np.trace(P[:3, :3]) / 3, 0)))
+                    std_t[c], sr = pose_std(P)
+                    std_r[c] = np.degrees(sr)
         if last and not tried_reloc:
             tried_reloc = True
             R, t, located, checks = check_bridged(frames, good, R, t, located, focal, config, seed=seed)

@@ -104,7 +104,7 @@ def calibrate(
                           + (f"; not placed: {', '.join(lost)}" if lost else ""), highlight=False)
             if ref is not None and boot.located.sum() >= 3:
                 console.print(f"bootstrap vs reference: {evaluate(boot.poses(), ref).summary()}", highlight=False)
-    rec = None
+    rec, start = None, None
     if boot is None and cfg.bootstrap.with_initial != "never":
         # the data's shape aligned onto the initial estimate (backend/reconcile.py)
         from .reconcile import bootstrap_start
@@ -120,7 +120,7 @@ def calibrate(
         except RecordingError as e:
             raise fail(f"{e} (use --skip-bad to skip malformed records)")
         if rec is not None:
-            cfg, cams = rec.config(cfg), rec.cameras(cams)
+            cfg, cams, start = rec.applied(cfg, cams)
         if not quiet:
             console.print(note, highlight=False)
             if rec is not None and rec.used:
@@ -185,7 +185,7 @@ def calibrate(
         joining = JoiningPipeline(cams, cfg, intrinsics=intr, names=boot.names, seed=seed)
     try:
         p = run_offline(cams, cfg, messages(), seed=seed, progress=progress,
-                        start=rec.start(cfg) if rec is not None else None, pipeline=joining,
+                        start=start, pipeline=joining,
                         scale_heights=heights if boot is None else None)
     except RecordingError as e:
         raise fail(f"{e} (use --skip-bad to skip malformed records)")

@@ -859,14 +859,15 @@ class ClockOffsetEstimator:
                        tuple(r.memo.setdefault(s, {}) for r, _ in rows))
 
     def _triangulate(self, rows: list[tuple[_Record, np.ndarray]], R: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """(N, J, 3) the BODY joints of each record from its views where the mask says,
-        each (record, mask) triangulated once per job (R, t are the job's throughout)."""
+        """(N, J, 3) the BODY joints of each record of ``rows`` (N >= 1) from its views where
+        the mask says, each (record, mask) triangulated once per job (R, t are the job's
+        throughout)."""
         keys = [(id(r), o.tobytes()) for r, o in rows]
         todo = {k: row for k, row in zip(keys, rows) if k not in self._tri}
         if todo:
             X = _triangulate_rows(list(todo.values()), R, t)
             self._tri.update(zip(todo, X))
-        return np.stack([self._tri[k] for k in keys]) if keys else np.zeros((0, len(BODY), 3))
+        return np.stack([self._tri[k] for k in keys])
 
     def _identify(self, s: int, recs: list[_Record], trusted: list[np.ndarray], R: np.ndarray, t: np.ndarray) -> None:
         """For records without sensor s (it missed the frameset or was not associated):

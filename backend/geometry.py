@@ -80,6 +80,15 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     return th / (2 * np.sin(th)) * v
 
 
+def pose_std(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One std of poses with covariance P (..., 6, 6) (tangent: rotation, then
+    translation): the RMS over the three axes, (m, rad), each of shape (...)."""
+    assert P.shape[-2:] == (6, 6)
+    st = np.sqrt(np.maximum(np.trace(P[..., 3:, 3:], axis1=-2, axis2=-1) / 3, 0))
+    sr = np.sqrt(np.maximum(np.trace(P[..., :3, :3], axis1=-2, axis2=-1) / 3, 0))
+    return st, sr
+
+
 def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     """Shortest-arc angle between two rotations, degrees.
 

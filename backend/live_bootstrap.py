@@ -154,9 +154,7 @@ class Handover:
             meta["note"] = note
             cams = cameras
             if rec is not None:
-                config = rec.config(config)
-                start = rec.start(config)
-                cams = rec.cameras(cameras)
+                config, cams, start = rec.applied(config, cameras)
             meta["frame"] = "the initial estimate's frame and scale"
             meta["not_placed"] = []  # they start from the initial estimate: calibrated all the same
         else:

@@ -35,7 +35,7 @@ from .associate import Associator
 from .cameras import CameraSet
 from .clock_offsets import ClockJob, ClockOffsetEstimator, ClockResult
 from .config import EngineConfig
-from .geometry import pose_local
+from .geometry import pose_local, pose_std
 from .monitor import Alarm, Monitor
 from .optimize import Problem, Solution, solve
 from .preprocess import Detection, Preprocessor
@@ -358,9 +358,7 @@ class Pipeline:
         """(C,) px a camera's reprojections may be off by its pose's uncertainty (one std;
         a person ~3 m away, as in the association gate); ``start``: the start's (the prior
         of the adjustments over all data)."""
-        P = self.refiner.P0 if start else self.refiner.P
-        st = np.sqrt(np.maximum(np.trace(P[:, 3:, 3:], axis1=1, axis2=2) / 3, 0))
-        sr = np.sqrt(np.maximum(np.trace(P[:, :3, :3], axis1=1, axis2=2) / 3, 0))
+        st, sr = pose_std(self.refiner.P0 if start else self.refiner.P)
         return self.focal * (sr + st / 3.0)
 
     def _gates(self) -> tuple[np.ndarray | None, np.ndarray]:

@@ -109,6 +109,13 @@ class Reconciled:
                 "initial_std_rotation": max(b.handover_std_rotation, 3 * sr)}))
         return self.R.copy(), self.t.copy(), P
 
+    def applied(self, config: EngineConfig, cameras: CameraSet
+                ) -> tuple[EngineConfig, CameraSet, tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+        """What a run takes from this reconciliation: its config (``config``), its cameras
+        (``cameras``) and its start (``start``, with that config)."""
+        config = self.config(config)
+        return config, self.cameras(cameras), self.start(config)
+
     def cameras(self, cameras: CameraSet) -> CameraSet:
         """``cameras`` with the overruled cameras' initial poses replaced by the data's
         (aligned into the initial estimate's frame and scale): the run's frame and scale

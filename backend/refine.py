@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import RefineConfig
-from .geometry import pose_local, pose_retract, rotation_angle_deg, trimmed_similarity
+from .geometry import pose_local, pose_retract, pose_std, rotation_angle_deg, trimmed_similarity
 
 
 @dataclass(frozen=True)
@@ -223,9 +223,8 @@ class Refiner:
     def std(self, c: int, *, shape: bool = True) -> tuple[float, float]:
         """(m, deg) of camera c: by default without the uncertainty of the world frame
         when a solve provided it; ``shape=False``: the filter's own covariance."""
-        P = self.S[c] if shape else self.P[c]
-        return (float(np.sqrt(max(np.trace(P[3:, 3:]) / 3, 0))),
-                float(np.degrees(np.sqrt(max(np.trace(P[:3, :3]) / 3, 0)))))
+        st, sr = pose_std(self.S[c] if shape else self.P[c])
+        return float(st), float(np.degrees(sr))
 
     def converged(self, c: int) -> bool:
         """Converged: at least ``converged_cycles`` cycles, the net change over them below

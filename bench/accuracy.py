@@ -349,8 +349,7 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
         if boot is not None:
             rec, _, _ = reconcile_cameras(boot, cams, cfg)
             if rec is not None:
-                cfg, cams = rec.config(cfg), rec.cameras(cams)
-                start = rec.start(cfg)
+                cfg, cams, start = rec.applied(cfg, cams)
                 reconciled = {**rec.to_dict(), "start": acc_start(rec) if start is not None else None,
                               "initial_std": [cfg.refine.initial_std_translation, cfg.refine.initial_std_rotation]}
 
