@@ -33,6 +33,9 @@ from .people import label_persons, segments
 from .preprocess import Detection
 from .selection import select_spaced
 
+# a solve's reason when no landmark could be placed: the data, not the optimizer, failed
+NOTHING_TO_SOLVE = "no camera has enough observations"
+
 
 @dataclass(frozen=True, eq=False)
 class Problem:
@@ -398,7 +401,7 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
     C, L = len(p.R), len(g.landmarks)
     cams = np.flatnonzero(g.active)
     if len(cams) == 0 or L == 0:
-        return "no camera has enough observations"
+        return NOTHING_TO_SOLVE
     X = lambda c: gtsam.symbol("x", int(c))  # noqa: E731
     Lk = lambda l: gtsam.symbol("l", int(l))  # noqa: E731
     # keys by list lookup: a final batch has ~10^5 observations, and two gtsam.symbol calls

@@ -37,7 +37,7 @@ from .clock_offsets import ClockJob, ClockOffsetEstimator, ClockResult
 from .config import EngineConfig
 from .geometry import pose_local, pose_std
 from .monitor import Alarm, Monitor
-from .optimize import Problem, Solution, solve
+from .optimize import NOTHING_TO_SOLVE, Problem, Solution, solve
 from .preprocess import Detection, Preprocessor
 from .refine import Refiner
 from .retime import RawArchive
@@ -404,10 +404,13 @@ class Pipeline:
             else:
                 if not self.queue.ready():
                     return None
-                self.cycle += 1
                 settled = (rf.cycles >= a.settled_cycles) | self._pairwise_only()
                 hyps = self.queue.select(self.rng, None,
                                          lambda h: len(h.cams) >= a.min_views_unsettled or settled[h.cams].all())
+                if not hyps:  # queued, but none usable yet: no cycle; look again an interval later
+                    self.last_cycle_time = now
+                    return None
+                self.cycle += 1
                 p = Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
                             prior_cov=rf.predicted_covariance(), focal=self.focal, config=cfg.optimize,
                             hypotheses=tuple(hyps), kind="cycle")
@@ -571,6 +574,7 @@ class Pipeline:
             max_change_rotation=change_r,
             reprojection_px=float(np.median(finite)) if len(finite) else float("nan"),
             moved_cameras=tuple(alarms),
+            starved=not accepted and solution.reason == NOTHING_TO_SOLVE,
         )
         self.last_report = report
         return report

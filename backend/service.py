@@ -324,7 +324,7 @@ class ActiveSession:
     state: "CalibrationState"
     finishing: bool = False
     in_cycle: bool = False
-    failures: int = 0
+    failures: int = 0  # cycles in a row the optimizer failed (CycleReport.starved ones not counted)
     last_snapshot: float = 0.0
     # the optimizer's last failure in this session (None: none yet); replaced, never changed
     solver_fault: dict[str, Any] | None = None
@@ -958,7 +958,7 @@ class Service:
         if report.accepted:
             s.failures = 0
             s.last_accepted = report.cycle
-        else:
+        elif not report.starved:  # a cycle with nothing to solve neither counts nor resets
             s.failures += 1
         acc = self._accuracy(s, state)
         if acc is not None:

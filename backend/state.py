@@ -86,6 +86,9 @@ class CycleReport:
     max_change_rotation: float  # deg
     reprojection_px: float  # median reprojection error of the cycle's projections after the solve
     moved_cameras: tuple[str, ...] = ()  # converged cameras the monitor found moved in this cycle
+    # rejected with nothing to solve (no landmark placed: garbled data, or none that fits the
+    # estimate); not the optimizer failing, so a session is not failed for such cycles
+    starved: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

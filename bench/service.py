@@ -261,10 +261,15 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="also write the figures here")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="engine setting of the session (repeatable), e.g. clock.estimate=false")
+    ap.add_argument("--keep", type=Path, help="keep the service's state directory and log here (default: a "
+                    "temporary directory, removed)")
     args = ap.parse_args()
     log = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     results = []
     with tempfile.TemporaryDirectory(prefix="extrcal-bench-") as tmp:
+        if args.keep:
+            args.keep.mkdir(parents=True, exist_ok=True)
+            tmp = str(args.keep)
         for i, n in enumerate(args.cameras):
             persons = args.persons[i] if args.persons else (2 if n <= 20 else 8)
             log(f"{n} cameras x {args.rate:g} Hz, {persons} people, {args.seconds:g} s")

@@ -12,7 +12,7 @@ from backend.cameras import CameraSet, Extrinsics
 from backend.config import EngineConfig
 from backend.evaluate import evaluate
 from backend.geometry import pose_retract, rotation_angle_deg
-from backend.optimize import hypotheses_and_persons, solve
+from backend.optimize import NOTHING_TO_SOLVE, hypotheses_and_persons, solve
 from backend.perturb import perturb_extrinsics
 from backend.monitor import Alarm
 from backend.pipeline import Pipeline, run_offline
@@ -249,6 +249,32 @@ def test_one_problem_in_flight_and_rejected_solutions_keep_the_estimate(lab):
     np.testing.assert_array_equal(p.refiner.R, R)
     np.testing.assert_array_equal(p.refiner.t, t)
     assert p.state().counters.cycles_rejected == 1
+    assert not report.starved  # the optimizer failed: it counts towards failing a session
+    # a solve with nothing to solve (no landmark placed) is a starved cycle, not a failure
+    for m in msgs:
+        if m.stamp > p.clock:
+            p.push(m)
+            p.advance(p.clock)
+            prob = p.next_problem(p.clock)
+            if prob is not None:
+                break
+    assert prob is not None and prob.cycle == 3
+    report = p.apply(prob, replace(sol, ok=False, reason=NOTHING_TO_SOLVE, hypotheses=0,
+                                   obs_per_camera=np.zeros_like(sol.obs_per_camera)))
+    assert not report.accepted and report.starved and report.to_dict()["starved"] is True
+
+
+def test_no_cycle_when_none_of_the_queued_hypotheses_is_usable_yet(lab):
+    """Hypotheses with too few views for unsettled cameras stay queued; a cycle over none
+    of them would only be rejected (and ten in a row used to fail a live session)."""
+    cams, _, msgs = lab
+    cfg = EngineConfig().merged({"select": {"scope": 10, "first_scope": 0}, "associate": {"min_views_unsettled": 17, "lost_min_detections": 10**6}})
+    p = Pipeline(cams, cfg, seed=0)
+    for m in msgs:
+        p.push(m)
+        p.advance(p.clock)
+        assert p.next_problem(p.clock) is None
+    assert p.queue.ready() and p.cycle == 0 and p.state().counters.cycles_rejected == 0
 
 
 @pytest.mark.parametrize("shift", [365 * 86400.0, -365 * 86400.0], ids=["a_year_ahead", "a_year_behind"])
