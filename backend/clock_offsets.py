@@ -44,8 +44,6 @@ import copy
 import functools
 import logging
 import math
-import threading
-import time
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Iterable, Mapping
@@ -544,8 +542,7 @@ class ClockJob:
 
     now: data time of the estimate. R (C, 3, 3), t (C, 3): the poses it uses (copies).
     records: the records in the window. work: the estimator's copy it runs on.
-    cancelled: set by ``cancel`` (any thread) to end ``run`` early (between sensors; it
-    returns None).
+    cancelled: set from any thread to end ``run`` early (between sensors; it returns None).
     """
 
     now: float
@@ -555,29 +552,12 @@ class ClockJob:
     records: list
     work: "ClockOffsetEstimator"
     cancelled: bool = False
-    _stop: threading.Event = field(default_factory=threading.Event, repr=False)
-    _duty: float = 1.0
-    _mark: float = 0.0
 
-    def run(self, duty: float = 1.0) -> ClockResult | None:
-        """Compute. ``duty`` in (0, 1]: the share of its wall time it computes; below 1 it
-        rests between sensors for as long again as the last one took times (1/duty - 1).
-        In a thread next to an event loop, numpy between small arrays holds the GIL most
-        of the time: with 100 cameras the loop's p99 lag went from 31 to 301 ms."""
-        assert 0.0 < duty <= 1.0
-        self._duty, self._mark = duty, time.perf_counter()
+    def run(self) -> ClockResult | None:
         return self.work._compute(self)
-
-    def checkpoint(self) -> bool:
-        """Between sensors: rest as ``duty`` says; True when the job was cancelled."""
-        if self._duty < 1.0 and not self.cancelled:
-            self._stop.wait((time.perf_counter() - self._mark) * (1.0 / self._duty - 1.0))
-            self._mark = time.perf_counter()
-        return self.cancelled
 
     def cancel(self) -> None:
         self.cancelled = True
-        self._stop.set()
 
 
 class ClockOffsetEstimator:
@@ -817,13 +797,13 @@ class ClockOffsetEstimator:
                                 f"(next in {self.next_due[s] - job.now:.0f} s)")
             trusted = self._trusted(recs)
             for s in todo:
-                if job.checkpoint():
+                if job.cancelled:
                     return None
                 self._estimate_sensor(s, recs, trusted[0], R, t)
             again = self._trusted(recs)
             if not np.array_equal(again[1], trusted[1]):  # views found mistimed that were used: once more without them
                 for s in todo:
-                    if job.checkpoint():
+                    if job.cancelled:
                         return None
                     self._estimate_sensor(s, recs, again[0], R, t)
         return ClockResult(self.raw, self.std, self.scale, self.nblocks, self.center, tuple(self.pose),

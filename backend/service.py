@@ -731,8 +731,7 @@ class Service:
         result in are cheap and run here, on the loop. A thread, not the solver process:
         the job reads minutes of tracks and keeps caches in its records, too much to ship
         every few seconds; and numpy code gives the GIL back every few ms (a gtsam solve
-        does not). But not often enough: with 100 cameras the thread took the loop's p99
-        lag from 31 to 301 ms, so it computes only ``clock_duty`` of its time."""
+        does not)."""
         while not self._closing:
             await asyncio.sleep(self.settings.tick)
             s = self.active
@@ -744,7 +743,7 @@ class Service:
                 continue
             s.clock_idle.clear()
             try:
-                result = await asyncio.to_thread(job.run, self.settings.clock_duty)
+                result = await asyncio.to_thread(job.run)
             except Exception:
                 log.exception("the clock offset estimate failed")
                 result = None

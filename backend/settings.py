@@ -114,9 +114,6 @@ class ServiceSettings(BaseSettings):
     ingest_queue: int = Field(20000, ge=10, description="messages waiting for the loop; the oldest are dropped beyond")
     snapshot_interval: float = Field(0.0, ge=0, description="s of wall time between pipeline snapshots (0: after every cycle)")
     tick: float = Field(0.02, gt=0, le=1, description="s between front-end advances on the loop")
-    clock_duty: float = Field(0.5, gt=0, le=1, description="share of wall time the clock offsets' estimate "
-                              "(clock.estimate) may compute in its thread; it rests in between, leaving the GIL to "
-                              "the loop (1: no rest)")
     solver_start: Literal["spawn", "forkserver"] = Field("spawn", description="how the solver process starts")
 
     @field_validator("site")
