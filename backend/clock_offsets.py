@@ -123,6 +123,16 @@ def _sigmas(blocks: int) -> float:
     return float(scipy.stats.t.ppf(1 - 0.00135, max(blocks - 1, 1)))
 
 
+def _row_nanmedian(a: np.ndarray) -> np.ndarray:
+    """(N, J) -> (N,) the median of each row's non-NaN values (every row has one), as
+    ``np.nanmedian(a, axis=1)`` gives it, without its per-call cost."""
+    s = np.sort(a, axis=1)  # NaN sort last
+    n = np.count_nonzero(~np.isnan(a), axis=1)
+    assert n.min(initial=1) >= 1
+    i = np.arange(len(a))
+    return 0.5 * (s[i, (n - 1) // 2] + s[i, n // 2])
+
+
 def interpolate_track(stamps: np.ndarray, xy: np.ndarray, ok: np.ndarray, q: np.ndarray,
                       max_gap: float) -> tuple[np.ndarray, np.ndarray]:
     """A track (stamps (n,) increasing, n >= 2, xy (n, J, 2), ok (n, J) bool) at query
@@ -903,18 +913,21 @@ class ClockOffsetEstimator:
                 continue
             q = r.time + grid
             cand = np.flatnonzero((spans[:, 0] <= q[-1]) & (spans[:, 1] >= q[0]))
-            best = []
+            dist, owner = [], []
             for j in cand:
                 pos, ok = interpolate_track(*live[j].arrays(), q, cfg.track_gap)  # (K, J, 2), (K, J)
                 ok = ok & vis
                 enough = ok.sum(1) >= 4
                 if not enough.any():
                     continue
-                d = np.where(ok[enough], np.linalg.norm(pos[enough] - np.nan_to_num(proj[n]), axis=-1), np.nan)
-                best.append((float(np.nanmedian(d, axis=1).min()), j))
-            if not best:
+                dist.append(np.where(ok[enough], np.linalg.norm(pos[enough] - np.nan_to_num(proj[n]), axis=-1), np.nan))
+                owner.append(j)
+            if not dist:
                 continue
-            best.sort()
+            # one median over every candidate's grid rows (per-call overhead was a sixth of the estimate)
+            med = _row_nanmedian(np.concatenate(dist))
+            first = np.cumsum([0] + [len(d) for d in dist[:-1]])
+            best = sorted(zip(np.minimum.reduceat(med, first).tolist(), owner))
             if best[0][0] > gates[n] or (len(best) > 1 and best[0][0] > _RATIO * best[1][0]):
                 continue
             st, txy, tok = live[best[0][1]].arrays()

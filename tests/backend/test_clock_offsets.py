@@ -10,7 +10,7 @@ import pytest
 
 from backend.cameras import CameraSet, load_extrinsics, load_intrinsics
 from backend.clock_offsets import (BODY, ClockOffsetEstimator, Samples, fit_pose, interpolate_track,
-                                   jackknife_minimum, parabola_minimum, profile)
+                                   _row_nanmedian, jackknife_minimum, parabola_minimum, profile)
 from backend.geometry import so3_exp
 from backend.config import EngineConfig, SyncConfig
 from backend.pipeline import Pipeline
@@ -587,3 +587,12 @@ def test_views_within_ntp_spread_of_their_estimate_are_trusted():
     rec = _Record(0.0, np.arange(9), np.zeros((9, len(BODY), 2)), applied)
     ok, _ = est._trusted([rec])
     assert ok[0].tolist() == [True] * 6 + [False, True, False]
+
+
+def test_the_row_median_is_numpys_nanmedian():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        a = rng.normal(size=(int(rng.integers(1, 40)), 13))
+        a[rng.random(a.shape) < 0.5] = np.nan
+        a[:, 3] = rng.normal(size=len(a))  # every row has a value
+        np.testing.assert_array_equal(_row_nanmedian(a), np.nanmedian(a, axis=1))
