@@ -15,6 +15,7 @@ seeds (recordings cached like bench/accuracy.py, with its helpers). Per seed:
 
     python bench/bootstrap.py                         # 5 seeds, checkpoints 60, 90, 120 s
     python bench/bootstrap.py --seeds 2 --checkpoints 120 --no-online
+    python bench/bootstrap.py --checkpoints 120 --no-online --population-heights   # the scale prior's honesty
     python bench/bootstrap.py --report b.json         # the tables of an earlier --out
     python bench/bootstrap.py --data-seconds 110 --out c.json   # `extrcal calibrate` on the first 110 s
 
@@ -58,7 +59,15 @@ def _shape(acc) -> dict:
             "per_camera": per}
 
 
-def run_seed(seed: int, checkpoints: list[float], cache: Path, online: bool, say) -> dict:
+def population_heights(seed: int, persons: int = 2) -> tuple[float, ...]:
+    """Walkers drawn from the population the prior describes (backend/people.py: as many
+    women as men, statures N(1.66, 0.07) and N(1.79, 0.07) m), per seed: whether the
+    prior's stated std is honest for walkers it knows nothing of."""
+    rng = np.random.default_rng([seed, 2026])
+    return tuple(round(float(rng.normal(1.79 if rng.random() < 0.5 else 1.66, 0.07)), 3) for _ in range(persons))
+
+
+def run_seed(seed: int, checkpoints: list[float], cache: Path, online: bool, say, population: bool = False) -> dict:
     import accuracy
 
     from backend.bootstrap import BootstrapError, bootstrap, camera_set, collect_frames, handover
@@ -70,8 +79,8 @@ def run_seed(seed: int, checkpoints: list[float], cache: Path, online: bool, say
     from proto import read_recording
 
     lab = accuracy.lab_dir()
-    heights = accuracy.HEIGHTS[2]
-    rec = accuracy.simulate(2, 180.0, seed, cache)
+    heights = population_heights(seed) if population else accuracy.HEIGHTS[2]
+    rec = accuracy.simulate(2, 180.0, seed, cache, {"heights": list(heights)} if population else {})
     intr = load_intrinsics(lab / "intrinsics.yaml")
     ref = {n: e.pose for n, e in load_extrinsics(lab / "reference.yaml").items()}
     names = tuple(sorted(intr, key=natural_key))
@@ -79,8 +88,8 @@ def run_seed(seed: int, checkpoints: list[float], cache: Path, online: bool, say
     cfg = EngineConfig().for_images(i.resolution for i in intr.values())
     t0 = time.perf_counter()
     frames = collect_frames(names, intr, cfg, read_recording(rec))
-    say(f"seed {seed}: {len(frames)} framesets read in {time.perf_counter() - t0:.0f} s")
-    out: dict = {"seed": seed, "load": os.getloadavg()[0], "checkpoints": []}
+    say(f"seed {seed}: walkers {heights} m, {len(frames)} framesets read in {time.perf_counter() - t0:.0f} s")
+    out: dict = {"seed": seed, "load": os.getloadavg()[0], "checkpoints": [], "walkers": list(heights)}
     boot = None
     for T in checkpoints:
         part = [f for f in frames if f[0] - frames[0][0] <= T]
@@ -351,6 +360,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--jobs", type=int, default=1, help="with --data-seconds: runs in parallel processes (wall "
                     "times then include each other's load)")
     ap.add_argument("--report", type=Path, help="print the tables of an earlier --out and stop")
+    ap.add_argument("--population-heights", action="store_true", help="walkers drawn per seed from the population "
+                    "the scale prior describes, not 1.96 m and 1.70 m (without --data-seconds)")
     a = ap.parse_args(argv)
     if a.report:
         data = json.loads(a.report.read_text())
@@ -383,7 +394,7 @@ def main(argv: list[str] | None = None) -> None:
     checkpoints = [float(x) for x in a.checkpoints.split(",")]
     runs = []
     for seed in range(a.first_seed, a.first_seed + a.seeds):
-        runs.append(run_seed(seed, checkpoints, a.cache, not a.no_online, say))
+        runs.append(run_seed(seed, checkpoints, a.cache, not a.no_online, say, a.population_heights))
         if a.out:
             from backend.cameras import write_atomic
 
