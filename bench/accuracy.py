@@ -411,6 +411,7 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
         "cameras_converged": int(sum(c.converged for c in state.cameras)),
         "cameras_calibrated": len(calibrated),
         "not_calibrated": [n for n in names if n not in calibrated],
+        "moved": [c.name for c in state.cameras if c.moved_at is not None],  # the monitor's alarms (monitor.enabled)
         "frames": len(p.frames),
         "frames_archive_full": len(p.frames) == p.frames.maxlen,
         "hypotheses": state.counters.hypotheses,
@@ -846,6 +847,8 @@ def _worst(r: dict) -> str:
     out = f" | worst {n} {pc[n][0]:.3f} m {pc[n][1]:.2f}°"
     if r.get("not_calibrated"):
         out += f" | not calibrated: {', '.join(r['not_calibrated'])}"
+    if r.get("moved"):
+        out += f" | flagged moved: {', '.join(r['moved'])}"
     return out
 
 
