@@ -52,7 +52,7 @@ def calibrate(
     from .cameras import CameraFileError, CameraSet, load_extrinsics, load_intrinsics, save_extrinsics
     from .cli import fail
     from .config import ConfigError, EngineConfig
-    from .evaluate import evaluate
+    from .evaluate import MIN_CAMERAS, evaluate
     from .pipeline import run_offline
 
     console = Console(stderr=True)
@@ -129,9 +129,9 @@ def calibrate(
                               f"{cfg.refine.initial_std_rotation:.2f}°", highlight=False)
     if ref is not None:
         common = set(ref) & set(cams.names)
-        if len(common) < 3:
+        if len(common) < MIN_CAMERAS:
             raise fail(f"the reference {reference} shares {len(common)} cameras with the calibration; "
-                       "at least 3 cameras are needed to compare them")
+                       f"at least {MIN_CAMERAS} cameras are needed to compare them")
 
     stats = ReadStats()
     hist_f = open(history, "w") if history else None

@@ -11,6 +11,9 @@ from .cameras import Pose, natural_key
 from .geometry import rotation_angle_deg, umeyama
 
 
+MIN_CAMERAS = 2  # an alignment needs two cameras' poses (or three centres)
+
+
 @dataclass(frozen=True)
 class Stats:
     mean: float
@@ -56,10 +59,36 @@ class Accuracy:
         )
 
 
+def _align(src: np.ndarray, dst: np.ndarray, src_R: np.ndarray, dst_R: np.ndarray, with_scale: bool
+           ) -> tuple[float, np.ndarray, np.ndarray]:
+    """(s, R, t) with dst ≈ s·R·src + t. src, dst: (N, 3) camera centres, src_R, dst_R:
+    (N, 3, 3) world_R_cam. Umeyama on the centres (shared/FORMATS.md); where they cannot
+    fix the rotation (two cameras, or all on one line: any turn about the line fits), the
+    rotation is the chordal mean of dst_R·src_Rᵀ, i.e. the orientations fix it, and the
+    scale is the ratio of the centres' spreads."""
+    xs, xd = src - src.mean(0), dst - dst.mean(0)
+    sv = np.linalg.svd(xs, compute_uv=False)
+    if len(src) >= 3 and sv[1] > 1e-6 * max(sv[0], 1e-12):
+        return umeyama(src, dst, with_scale=with_scale)
+    U, _, Vt = np.linalg.svd(np.einsum("nij,nkj->ik", dst_R, src_R))
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    ns, nd = float(np.sum(xs**2)), float(np.sum(xd**2))
+    s = float(np.sqrt(nd / ns)) if with_scale and ns > 0 else 1.0
+    return s, R, dst.mean(0) - s * R @ src.mean(0)
+
+
+def align_poses(result: Mapping[str, Pose], reference: Mapping[str, Pose], names, *, with_scale: bool
+                ) -> tuple[float, np.ndarray, np.ndarray]:
+    """(s, R, t) that maps the result's frame onto the reference's, over the cameras
+    ``names`` (as the accuracy figures align)."""
+    return _align(np.array([result[n].t for n in names]), np.array([reference[n].t for n in names]),
+                  np.array([result[n].R for n in names]), np.array([reference[n].R for n in names]), with_scale)
+
+
 def _errors(result: Mapping[str, Pose], reference: Mapping[str, Pose], names, with_scale: bool):
     src = np.array([result[n].t for n in names])
     dst = np.array([reference[n].t for n in names])
-    s, R, t = umeyama(src, dst, with_scale=with_scale)
+    s, R, t = align_poses(result, reference, names, with_scale=with_scale)
     pos = np.linalg.norm(s * src @ R.T + t - dst, axis=1)
     ori = np.array([rotation_angle_deg(R @ result[n].R, reference[n].R) for n in names])
     return s, pos, ori
@@ -67,13 +96,14 @@ def _errors(result: Mapping[str, Pose], reference: Mapping[str, Pose], names, wi
 
 def evaluate(result: Mapping[str, Pose], reference: Mapping[str, Pose],
              cameras: list[str] | None = None) -> Accuracy:
-    """Compare camera poses; both map camera name → Pose. Needs >= 3 shared cameras."""
+    """Compare camera poses; both map camera name → Pose. Needs >= 2 shared cameras
+    (with two, or all on one line, the orientations take part in the alignment)."""
     names = cameras or sorted(set(result) & set(reference), key=natural_key)
     missing = [n for n in names if n not in result or n not in reference]
     if missing:
         raise ValueError(f"cameras missing from result or reference: {', '.join(missing)}")
-    if len(names) < 3:
-        raise ValueError(f"need at least 3 cameras in common to align, got {len(names)}")
+    if len(names) < MIN_CAMERAS:
+        raise ValueError(f"need at least {MIN_CAMERAS} cameras in common to align, got {len(names)}")
     _, pos, ori = _errors(result, reference, names, with_scale=False)
     scale, spos, sori = _errors(result, reference, names, with_scale=True)
     per = {n: (float(pos[i]), float(ori[i]), float(spos[i]), float(sori[i])) for i, n in enumerate(names)}

@@ -45,6 +45,7 @@ import yaml
 
 from .cameras import (CameraFileError, Extrinsics, Intrinsics, Pose, load_extrinsics, load_intrinsics,
                       natural_key)
+from .evaluate import MIN_CAMERAS, align_poses, evaluate
 from .geometry import quat_to_R, rotation_angle_deg
 from .session import SessionStore
 
@@ -363,9 +364,7 @@ def _parse_record(d: Any) -> CycleRecord | None:
 def _with_reference_error(c: CycleRecord, reference: Mapping[str, Extrinsics]) -> CycleRecord:
     from dataclasses import replace
 
-    from .evaluate import evaluate
-
-    if c.error_position is not None or len(set(c.poses) & set(reference)) < 3:
+    if c.error_position is not None or len(set(c.poses) & set(reference)) < MIN_CAMERAS:
         return c
     try:
         acc = evaluate(c.poses, {n: e.pose for n, e in reference.items()})
@@ -668,7 +667,7 @@ def camera_plot(data: SessionData, *, width: int = 900, height: int = 680) -> st
     main = final or sets[0][1]
     # The result's frame decides the floor; the reference is drawn aligned onto it when
     # it lives in another frame (rigid alignment, as the accuracy figures do).
-    if data.reference and final and len(set(final) & set(data.reference)) >= 3:
+    if data.reference and final and len(set(final) & set(data.reference)) >= MIN_CAMERAS:
         sets[0] = ("reference (aligned)", _align_to(sets[0][1], final), "#2ca02c", "4 3")
     B = floor_frame(main.values(), data.floor)
     allpts = np.array([p.t for _, poses, _, _ in sets for p in poses.values()])
@@ -754,11 +753,9 @@ def _hull(pts: list[tuple[float, float]]) -> list[tuple[float, float]]:
 
 
 def _align_to(src: Mapping[str, Pose], dst: Mapping[str, Pose]) -> dict[str, Pose]:
-    """src moved rigidly onto dst (Umeyama on the shared centres)."""
-    from .geometry import umeyama
-
+    """src moved rigidly onto dst (aligned on the shared cameras as the accuracy figures are)."""
     names = sorted(set(src) & set(dst), key=natural_key)
-    _, R, t = umeyama(np.array([src[n].t for n in names]), np.array([dst[n].t for n in names]), with_scale=False)
+    _, R, t = align_poses(src, dst, names, with_scale=False)
     return {n: Pose(R @ p.R, R @ p.t + t) for n, p in src.items()}
 
 
@@ -789,7 +786,6 @@ def _kpi(value: str, label: str, cls: str = "") -> str:
 
 def render_html(data: SessionData, *, title: str | None = None) -> str:
     """The report as one HTML document (no scripts, no external resources)."""
-    from .evaluate import evaluate
 
     title = title or f"Calibration report: {data.title}"
     cyc = data.cycles
@@ -797,7 +793,7 @@ def render_html(data: SessionData, *, title: str | None = None) -> str:
     final = data.final_poses()
     names = data.camera_names
     acc = None
-    if data.reference and final and len(set(final) & set(data.reference)) >= 3:
+    if data.reference and final and len(set(final) & set(data.reference)) >= MIN_CAMERAS:
         try:
             acc = evaluate(final, {n: e.pose for n, e in data.reference.items()})
         except ValueError as e:

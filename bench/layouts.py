@@ -35,6 +35,8 @@ sys.path.insert(0, str(REPO))
 
 HEIGHTS = (1.80, 1.65)
 LAYOUTS = {
+    "room2": ("room", {"cameras": 2}),
+    "room3": ("room", {"cameras": 3}),
     "room4": ("room", {"cameras": 4}),
     "room8": ("room", {"cameras": 8}),
     "corridor": ("corridor", {}),
