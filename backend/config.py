@@ -49,6 +49,10 @@ class PreprocessConfig(_Section):
                                     "(docs/bootstrap.md, Session 7)")
     max_persons: int = Field(10, ge=1)
     pixel_sigma: float = Field(2.0, gt=0, description="px: keypoint noise at confidence 1 when a message has no covariance")
+    min_pixel_sigma: float = Field(0.5, gt=0, description="px: floor of a joint's std from a message's covariance: "
+                                   "no detector places a joint better, and a zero variance (sent as a placeholder) "
+                                   "would make a joint an exact measurement that no pose can meet: from a "
+                                   "0.25 m / 10° start the lab stayed at its start")
     pixel_reference: tuple[PositiveInt, PositiveInt] | None = Field(
         (640, 480), description="image size (width, height) for which every px parameter of the engine is stated "
         "(PIXEL_FIELDS): each is multiplied by the square root of the cameras' median image area (of their keypoint "
@@ -381,7 +385,7 @@ class EngineConfig(_Section):
 
 # every parameter in pixels (at ``preprocess.pixel_reference``), by section
 PIXEL_FIELDS: dict[str, tuple[str, ...]] = {
-    "preprocess": ("pixel_sigma",),
+    "preprocess": ("pixel_sigma", "min_pixel_sigma"),
     "associate": ("gate_pixels", "relocalize_px"),
     "optimize": ("outlier_px",),
     "bootstrap": ("ransac_px", "frame_px", "check_px", "resect_px"),

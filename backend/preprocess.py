@@ -204,7 +204,7 @@ class Preprocessor:
         widened by the motion over the time offset of a non-interpolated view."""
         if v.cov is not None:
             c = v.cov[idx]
-            var = 0.5 * (c[..., 0] + c[..., 2])
+            var = np.maximum(0.5 * (c[..., 0] + c[..., 2]), self.cfg.min_pixel_sigma**2)
         else:
             conf = np.clip(kp[..., 2], 0.3, 1.0)
             var = (self.cfg.pixel_sigma * JOINT_NOISE[None, :] / conf) ** 2

@@ -209,6 +209,9 @@ def test_sigma_from_the_sensor_covariance_or_the_confidence(pre, lab_intrinsics)
     speed = np.full((1, 17), 100.0)
     [d] = p.view(_view("cam_4", [uv], intr.resolution, cov=cov, offset=0.04, speed=speed))
     assert np.allclose(d.sigma, np.sqrt(12.5 + 16.0))
+    # a zero (placeholder) covariance is no exact measurement: floored
+    [d] = p.view(_view("cam_4", [uv], intr.resolution, cov=np.zeros((1, 17, 3))))
+    assert np.allclose(d.sigma, PreprocessConfig().min_pixel_sigma)
 
 
 def test_frameset_keeps_provenance_and_leaves_out_empty_views(pre, lab_intrinsics):
