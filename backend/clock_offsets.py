@@ -57,7 +57,7 @@ from .associate import Hypothesis
 from .cameras import Intrinsics, undistort
 from .config import ClockConfig
 from .geometry import pose_local, project_normalised, so3_exp, triangulate_batch
-from .preprocess import unmeasured
+from .preprocess import ConfidenceScale, unmeasured
 
 log = logging.getLogger(__name__)
 
@@ -410,7 +410,7 @@ class _SensorTracks:
         self.last_stamp: float | None = None
         self.out_of_order = 0
 
-    def push(self, msg: KeypointMessage, intr: Intrinsics) -> None:
+    def push(self, msg: KeypointMessage, intr: Intrinsics, confidence_scale: float = 1.0) -> None:
         t = msg.stamp
         if self.last_stamp is not None and t <= self.last_stamp:
             self.out_of_order += 1
@@ -421,6 +421,8 @@ class _SensorTracks:
             return
         outside, folded = unmeasured(kp, msg.size, intr)
         kp[outside | folded, 2] = 0.0
+        if confidence_scale != 1.0:
+            kp[:, :, 2] = np.minimum(kp[:, :, 2] * confidence_scale, 1.0)
         conf = kp[:, BODY, 2] >= self.min_conf
         keep = conf.sum(1) >= 4
         kp, conf = kp[keep], conf[keep]
@@ -579,8 +581,11 @@ class ClockOffsetEstimator:
     """
 
     def __init__(self, config: ClockConfig, names: tuple[str, ...], intrinsics: Mapping[str, Intrinsics],
-                 min_confidence: float):
+                 min_confidence: float, confidence: ConfidenceScale | None = None):
+        """``confidence``: the sensors' confidence scales (the preprocessing's), applied
+        before ``min_confidence``."""
         self.cfg = config
+        self.confidence = confidence or ConfidenceScale(None)
         self.names = tuple(names)
         S = len(self.names)
         self.index = {n: i for i, n in enumerate(self.names)}
@@ -636,7 +641,7 @@ class ClockOffsetEstimator:
         intr = self._intr(msg.sensor, msg.size)
         if intr is None:
             return
-        self.tracks[c].push(msg, intr)
+        self.tracks[c].push(msg, intr, self.confidence.factor(msg.sensor))
 
     def add(self, hyps: Iterable[Hypothesis]) -> None:
         """Hypotheses of one frameset (time on the synchronised clock, timed with the

@@ -13,7 +13,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PositiveInt, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, PositiveInt, ValidationError, field_validator
 
 
 class _Section(BaseModel):
@@ -42,6 +42,13 @@ class SyncConfig(_Section):
 
 class PreprocessConfig(_Section):
     min_confidence: float = Field(0.6, ge=0, le=1)
+    confidence_reference: float | None = Field(
+        0.9, gt=0, le=1, description="the 90th percentile of a sensor's detected torso-joint confidences that "
+        "min_confidence is stated for (the paper's detector; the simulator's run 0.93-0.98). A detector's scores "
+        "are its own scale: a sensor whose run lower has its confidences scaled up to it (at most x3, once "
+        "200 of its torso joints were seen), so the threshold and the confidence noise model mean the same for "
+        "every detector. With 0.7x the simulator's scores the lab ended 0.13 m off (most persons dropped), with "
+        "0.6x it stayed at its start (docs/accuracy.md, Session 15). None: confidences taken as they are")
     min_box_distance: float = Field(0.03, ge=0, description="fraction of the image diagonal: persons whose boxes are "
                                     "closer are dropped (their keypoints mix). The paper's 100 px at 848x480 (0.1) "
                                     "dropped 88 % of the persons with 4 walkers in a 7 x 5 m room and left cameras "
@@ -59,6 +66,12 @@ class PreprocessConfig(_Section):
         "messages: the initial estimate's resolution, else the intrinsics') over this one's, "
         "since a detector's pixel errors grow with the image (a 1920x1080 network: x2.4). The default is VGA, the "
         "lab's median camera. None: the px values are taken as they are (EngineConfig.for_images)")
+
+    @field_validator("confidence_reference", "pixel_reference", mode="before")
+    @classmethod
+    def _none(cls, v: Any) -> Any:
+        # TOML has no null: `--set preprocess.confidence_reference=none` turns it off
+        return None if isinstance(v, str) and v.strip().lower() in ("none", "null", "off") else v
 
 
 class AssociateConfig(_Section):

@@ -94,7 +94,8 @@ class JoiningPipeline(Pipeline):
         self.unplaced = tuple(n for n in self.all_names if n not in self.names)
         self._unplaced_idx = frozenset(self.all_names.index(n) for n in self.unplaced)
         self.late_sync = Synchronizer(self.cfg.sync, self.all_names)
-        self.late_preprocess = Preprocessor(self.cfg.preprocess, self.all_names, self.all_intrinsics)
+        self.late_preprocess = Preprocessor(self.cfg.preprocess, self.all_names, self.all_intrinsics,
+                                            self.preprocess.confidence)
         # framesets (camera indices of all_names) in which an unplaced camera sees somebody
         self.late_frames: deque[Frame] = deque(maxlen=self.cfg.refine.archive_frames)
         self._late_pending: list[KeypointMessage] = []

@@ -115,7 +115,7 @@ class Pipeline:
         # moved cameras' adjustments: (data time due, camera, data time of its move)
         self._recalibrate_due: list[tuple[float, int, float]] = []
         self.clocks = ClockOffsetEstimator(self.cfg.clock, self.names, cameras.intrinsics,
-                                           self.cfg.preprocess.min_confidence)
+                                           self.cfg.preprocess.min_confidence, self.preprocess.confidence)
         # per camera: (frameset time from which, offset applied), to know how archived views were timed
         self._offset_history: list[list[tuple[float, float]]] = [[] for _ in self.names]
         # raw messages, to time the archived views again with the final offsets (backend/retime.py)
@@ -329,7 +329,8 @@ class Pipeline:
             idx = np.flatnonzero(self._stale(c, times) & (times >= cut))
             if not len(idx):
                 continue
-            pre = pre or Preprocessor(self.cfg.preprocess, self.names, self.cameras.intrinsics)
+            pre = pre or Preprocessor(self.cfg.preprocess, self.names, self.cameras.intrinsics,
+                                      self.preprocess.confidence)
             n = 0
             for k, v in zip(idx, self.raw.views(name, current, times[idx], self.cfg.sync)):
                 T, old = frames[k]

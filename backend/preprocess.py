@@ -65,9 +65,64 @@ class Detection:
         assert self.xy.shape == (17, 2) and self.sigma.shape == (17,)
 
 
+class ConfidenceScale:
+    """Per sensor, the factor that brings its detector's confidences to the scale that
+    ``min_confidence`` is stated for: ``reference`` over the 90th percentile of its
+    detected torso-joint confidences, between 1 and ``MAX_FACTOR``. Until a sensor has
+    sent ``MIN_JOINTS`` such joints, the factor of all sensors' joints together (one
+    detector on every sensor is the rule; a sensor that sees little would otherwise
+    lose its first minutes). The 90th percentile is what the detector says of a clearly
+    seen joint: occlusion, distance and the border lower the rest, not it (the
+    simulator's sensors: 0.93-0.98, also those with half their torso joints below 0.6)."""
+
+    BINS = 200
+    MIN_JOINTS = 200
+    MAX_FACTOR = 3.0
+    QUANTILE = 0.9
+    _ALL = ""  # the key of all sensors' joints together
+
+    def __init__(self, reference: float | None):
+        self.reference = reference
+        self.hist: dict[str, np.ndarray] = {}  # sensor (and _ALL) -> (BINS,) counts of confidences in (0, 1]
+        self._factor: dict[str, float] = {}
+
+    def observe(self, sensor: str, conf: np.ndarray) -> None:
+        """conf: (N,) detected (> 0) torso-joint confidences of one view, as sent."""
+        if self.reference is None or not len(conf):
+            return
+        counts = np.bincount(np.minimum((np.clip(conf, 0, 1) * self.BINS).astype(np.int64), self.BINS - 1),
+                             minlength=self.BINS)
+        for key in (sensor, self._ALL):
+            h = self.hist.get(key)
+            if h is None:
+                h = self.hist[key] = np.zeros(self.BINS, np.int64)
+            h += counts
+            n = int(h.sum())
+            if n >= self.MIN_JOINTS:
+                q = (int(np.searchsorted(np.cumsum(h), self.QUANTILE * n)) + 1) / self.BINS  # the bin's upper edge
+                self._factor[key] = float(np.clip(self.reference / q, 1.0, self.MAX_FACTOR))
+
+    def factor(self, sensor: str) -> float:
+        k = self._factor.get(sensor)
+        return self._factor.get(self._ALL, 1.0) if k is None else k
+
+    def take(self, other: "ConfidenceScale") -> None:
+        """Go on with another's scales, in place (other stages hold this one)."""
+        self.hist, self._factor = {k: h.copy() for k, h in other.hist.items()}, dict(other._factor)
+
+    def apply(self, sensor: str, conf: np.ndarray) -> np.ndarray:
+        """conf (...,) scaled (a copy), at most 1."""
+        k = self.factor(sensor)
+        return conf if k == 1.0 else np.minimum(conf * k, 1.0)
+
+
 class Preprocessor:
-    def __init__(self, config: PreprocessConfig, names: tuple[str, ...], intrinsics: Mapping[str, Intrinsics]):
+    def __init__(self, config: PreprocessConfig, names: tuple[str, ...], intrinsics: Mapping[str, Intrinsics],
+                 confidence: ConfidenceScale | None = None):
+        """``confidence``: the sensors' confidence scales, shared with another stage that
+        learnt them (a new one learns from this one's views)."""
         self.cfg = config
+        self.confidence = confidence or ConfidenceScale(config.confidence_reference)
         self.index = {n: i for i, n in enumerate(names)}
         self.intrinsics = dict(intrinsics)
         self._scaled: dict[tuple[str, tuple[int, int]], Intrinsics | None] = {}
@@ -88,6 +143,7 @@ class Preprocessor:
         """Go on with another preprocessor's counts (a pipeline rebuilt mid-session)."""
         for k in ("accepted", "rejected", "torso_seen", "torso_low", "joints_seen", "joints_outside", "joints_folded"):
             setattr(self, k, getattr(other, k))
+        self.confidence.take(other.confidence)
 
     def intrinsics_for(self, sensor: str, size: tuple[int, int]) -> Intrinsics | None:
         """The sensor's intrinsics at a message's resolution; None if the aspect differs."""
@@ -125,6 +181,9 @@ class Preprocessor:
         kp[outside | folded, 2] = 0.0
         torso = kp[:, TORSO, 2]
         detected = torso > 0
+        self.confidence.observe(v.sensor, torso[detected])
+        kp[..., 2] = self.confidence.apply(v.sensor, kp[..., 2])
+        torso = kp[:, TORSO, 2]
         confident = detected & (torso >= self.cfg.min_confidence)
         self.torso_seen[v.sensor] += int(detected.sum())
         self.torso_low[v.sensor] += int((detected & ~confident).sum())
@@ -167,8 +226,11 @@ class Preprocessor:
                             "the messages' `size` is not the pixel frame of their keypoints (a detector run at "
                             "another resolution than it reports?)")
             if n >= min_joints and share > warn_share:
+                k = self.confidence.factor(sensor)
                 warn.append(f"{100 * share:.0f} % of its torso keypoints are below preprocess.min_confidence "
-                            f"({self.cfg.min_confidence:g}) and dropped: few of its detections reach the calibration "
+                            f"({self.cfg.min_confidence:g}"
+                            + (f", its confidences scaled x{k:.2f}" if k != 1.0 else "")
+                            + ") and dropped: few of its detections reach the calibration "
                             "(people far, occluded or cut off by the image border; or a detector whose confidences run "
                             "lower, which needs a lower threshold)")
             folded = self.joints_folded[sensor] / m if m else 0.0
@@ -177,6 +239,7 @@ class Preprocessor:
                             "distortion polynomial stops growing towards the image border) and are dropped: "
                             "distortion coefficients fitted to the image's centre only?")
             out[sensor] = {"torso_keypoints": n, "below_confidence": round(share, 4),
+                           "confidence_scale": round(self.confidence.factor(sensor), 4),
                            "outside_image": round(outside, 4), "beyond_lens_model": round(folded, 4),
                            "warning": "; ".join(warn) or None}
         return out

@@ -37,6 +37,9 @@ def test_toml_file_and_set_overrides(tmp_path):
     assert c.optimize.robust == "huber" and c.refine.measurement == "marginal"
     assert EngineConfig.load(None, ["associate.max_distance=0.8"]).associate.max_distance == 0.8
     assert EngineConfig.load(None) == EngineConfig()
+    # TOML has no null: "none" turns an optional parameter off
+    c = EngineConfig.load(None, ["preprocess.confidence_reference=none", "preprocess.pixel_reference=null"])
+    assert c.preprocess.confidence_reference is None and c.preprocess.pixel_reference is None
 
 
 def test_unknown_keys_and_bad_values_are_errors_that_name_them(tmp_path):

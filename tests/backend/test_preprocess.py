@@ -108,22 +108,52 @@ def test_confidence_threshold_drops_joints_and_a_missing_torso_joint_drops_the_p
 
 
 def test_a_sensor_whose_torso_confidences_run_below_the_threshold_is_warned_about(pre, lab_intrinsics):
+    """Half its persons seen badly (the detector's clearly seen joints still score
+    high): no rescaling, most dropped, a warning."""
     p = pre()
     intr = lab_intrinsics["cam_4"]
     uv = _pixels(intr, _body([0.0, 0.0, 4.0]))
-    low = np.full(17, 0.45)  # a detector whose confidences run lower: every person dropped
-    ok = np.full(17, 0.9)
-    ok[[5, 11]] = 0.0  # one side of the torso not detected: missing, not low
-    for _ in range(60):
-        assert p.view(_view("cam_4", [uv], intr.resolution, conf=low)) == []
+    low = np.full(17, 0.45)
+    ok = np.full(17, 0.95)
+    ok0 = ok.copy()
+    ok0[[5, 11]] = 0.0  # one side of the torso not detected: missing, not low
+    for i in range(100):
+        p.view(_view("cam_4", [uv], intr.resolution, conf=ok if i % 5 < 2 else low))  # 60 % low
         p.view(_view("cam_0", [_pixels(lab_intrinsics["cam_0"], _body([0.0, 0.0, 4.0]))],
-                     lab_intrinsics["cam_0"].resolution, conf=ok))
+                     lab_intrinsics["cam_0"].resolution, conf=ok0))
     rep = p.confidence_report()
-    assert rep["cam_4"]["torso_keypoints"] == 240 and rep["cam_4"]["below_confidence"] == 1.0
+    assert rep["cam_4"]["torso_keypoints"] == 400 and rep["cam_4"]["below_confidence"] == 0.6
+    assert rep["cam_4"]["confidence_scale"] == 1.0
     assert "below preprocess.min_confidence (0.6)" in rep["cam_4"]["warning"]
-    assert rep["cam_0"]["torso_keypoints"] == 120 and rep["cam_0"]["below_confidence"] == 0.0
+    assert rep["cam_0"]["torso_keypoints"] == 200 and rep["cam_0"]["below_confidence"] == 0.0
     assert rep["cam_0"]["warning"] is None
     assert pre().confidence_report() == {}
+
+
+@pytest.mark.parametrize("level, factor, kept", [(0.45, 2.0, True), (0.15, 3.0, False)])
+def test_a_detector_whose_confidences_run_lower_is_scaled_to_the_threshold_s_scale(pre, lab_intrinsics, level,
+                                                                                   factor, kept):
+    """Every joint at ``level``: after 200 torso joints its confidences are scaled so
+    that their 90th percentile is confidence_reference (0.9), at most x3."""
+    p = pre()
+    intr = lab_intrinsics["cam_4"]
+    uv = _pixels(intr, _body([0.0, 0.0, 4.0]))
+    conf = np.full(17, level)
+    got = [p.view(_view("cam_4", [uv], intr.resolution, conf=conf)) for _ in range(60)]
+    assert got[:49] == [[]] * 49  # 196 torso joints: not yet
+    assert all(bool(g) == kept for g in got[49:])
+    rep = p.confidence_report()["cam_4"]
+    assert rep["confidence_scale"] == pytest.approx(factor, rel=0.02)
+    # a sensor that has sent too little yet takes all sensors' factor
+    assert p.confidence.factor("cam_0") == p.confidence.factor("cam_4")
+    if kept:  # the noise model sees the scaled confidence too
+        assert np.allclose(got[-1][0].sigma, PreprocessConfig().pixel_sigma * JOINT_NOISE / min(1.0, level * factor),
+                           rtol=0.02)
+    else:
+        assert "its confidences scaled x3.00" in rep["warning"]
+    # off: taken as they are
+    q = pre(PreprocessConfig(confidence_reference=None))
+    assert not any(q.view(_view("cam_4", [uv], intr.resolution, conf=conf)) for _ in range(60))
 
 
 def test_joints_outside_the_image_are_dropped_and_a_wrong_size_is_warned_about(pre, lab_intrinsics):
