@@ -331,6 +331,9 @@ def triangulate_views(R: np.ndarray, t: np.ndarray, cams: np.ndarray, xy: np.nda
     return X, n
 
 
+_TRIANGULATE_CHUNK = 16384  # points per batched DLT
+
+
 def triangulate_batch(R: np.ndarray, t: np.ndarray, cams: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Many points at once: cams (N, V) int and xy (N, V, 2) normalised, NaN = missing
     (padding); returns (N, 3) world points, NaN where fewer than 2 views or behind a
@@ -338,6 +341,9 @@ def triangulate_batch(R: np.ndarray, t: np.ndarray, cams: np.ndarray, xy: np.nda
     N, V, _ = xy.shape
     if N == 0:
         return np.zeros((0, 3))
+    if N > _TRIANGULATE_CHUNK:  # the temporaries are ~100 floats per view and point: bounded
+        return np.concatenate([triangulate_batch(R, t, cams[i:i + _TRIANGULATE_CHUNK], xy[i:i + _TRIANGULATE_CHUNK])
+                               for i in range(0, N, _TRIANGULATE_CHUNK)])
     valid = np.all(np.isfinite(xy), axis=2)  # (N, V)
     c = np.where(valid, cams, 0)
     Rt = np.transpose(R[c], (0, 1, 3, 2))  # (N, V, 3, 3) cam_R_world
@@ -347,7 +353,10 @@ def triangulate_batch(R: np.ndarray, t: np.ndarray, cams: np.ndarray, xy: np.nda
     ru = x[..., 0, None] * P[:, :, 2, :] - P[:, :, 0, :]
     rv = x[..., 1, None] * P[:, :, 2, :] - P[:, :, 1, :]
     A = np.concatenate([ru, rv], axis=1) * np.concatenate([valid, valid], axis=1)[..., None]  # (N, 2V, 4)
-    _, _, Vt = np.linalg.svd(A)
+    if A.shape[1] < 4:  # zero rows keep the null space and give the thin SVD its 4 x 4 Vt
+        A = np.concatenate([A, np.zeros((N, 4 - A.shape[1], 4))], axis=1)
+    # thin: the full U is (N, 2V, 2V), 1.9 GB for a 600 s run's scale check
+    _, _, Vt = np.linalg.svd(A, full_matrices=False)
     Xh = Vt[:, -1, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         X = Xh[:, :3] / Xh[:, 3:4]

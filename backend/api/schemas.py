@@ -224,7 +224,8 @@ class SensorOut(BaseModel):
         "note (why its last update left the estimate as it was, null when it was updated)")
     keypoints: dict[str, float | int] | None = Field(
         None, description="the running session's preprocessing of its detections: torso_keypoints detected, "
-        "below_confidence: the share of them under preprocess.min_confidence (dropped), outside_image: the share of all "
+        "below_confidence: the share of them under preprocess.min_confidence (dropped), confidence_scale: the "
+        "factor its confidences are scaled by (preprocess.confidence_reference), outside_image: the share of all "
         "its detected joints outside the message's size (dropped), beyond_lens_model: the share where its lens "
         "model folds back (dropped)")
     warnings: list[str] = Field(default_factory=list, description="a clock set apart from the other sensors' by more than "
