@@ -255,6 +255,12 @@ def calibrate(
         f"({c.cycles_rejected} rejected) in {wall:.1f} s = {span / max(wall, 1e-9):.1f}x real time",
         highlight=False,
     )
+    if c.rejected:
+        unknown = p.sync.unknown_sensors
+        console.print(f"[yellow]messages rejected: "
+                      + ", ".join(f"{k} {v}" for k, v in sorted(c.rejected.items(), key=lambda kv: -kv[1]))
+                      + (f" (sensors not in {intrinsics}: " + ", ".join(f"{n} {k}" for n, k in unknown.most_common())
+                         + ")" if unknown else "") + "[/]", highlight=False)
     for ln in late_lines:
         console.print(ln, highlight=False)
     if not_calibrated:

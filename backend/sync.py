@@ -189,6 +189,9 @@ def _interpolate(e0: Buffered, e1: Buffered, T: float, cache: dict) -> View:
     return View(m0.sensor, T, 0.0, m0.size, kp, boxes, cov, speed, True, m0.seq, np.array(i0, dtype=np.int64))
 
 
+_UNKNOWN_NAMES = 32
+
+
 class Synchronizer:
     """Per-sensor buffers → framesets on a regular grid of data time.
 
@@ -206,6 +209,9 @@ class Synchronizer:
         self._last_seq: dict[str, _Recent] = {s: _Recent(64) for s in self.sensors}
         self.next_time: float | None = None
         self.rejected: Counter = Counter()
+        # messages per unknown sensor name, the first _UNKNOWN_NAMES names (a typo in a
+        # sensor's id is named to the user; random names cannot grow it without bound)
+        self.unknown_sensors: Counter = Counter()
         self.framesets = 0
         self.framesets_rejected: Counter = Counter()
         self.latest_stamp: float | None = None
@@ -249,12 +255,15 @@ class Synchronizer:
         self.framesets = other.framesets
         self.framesets_rejected = Counter(other.framesets_rejected)
         self.rejected = Counter(other.rejected)
+        self.unknown_sensors = Counter(other.unknown_sensors)
 
     def push(self, msg: KeypointMessage, now: float | None = None) -> str | None:
         """Buffer one message (raw stamp: the sensor's offset is subtracted here);
         returns a rejection reason or None."""
         s = msg.sensor
         if s not in self._stamps:
+            if s in self.unknown_sensors or len(self.unknown_sensors) < _UNKNOWN_NAMES:
+                self.unknown_sensors[s] += 1
             return self._reject("unknown_sensor")
         raw = (msg.seq, msg.stamp)
         if self.offsets.get(s):

@@ -167,6 +167,24 @@ def test_a_broken_recording_is_reported_at_its_line(cli, files):
     assert "1 bad records skipped" in r.output and out.exists()
 
 
+def test_messages_of_sensors_the_camera_files_do_not_name_are_counted_and_named(cli, files, tmp_path):
+    d = files
+    lines = gzip.open(d / "rec.jsonl.gz", "rt").read().splitlines()
+    typo = []
+    for ln in lines[:40]:
+        rec = json.loads(ln)
+        if rec["sensor"] == WEST[0]:
+            rec["sensor"] = "cam11"  # a sensor whose id is not its camera's key
+            typo.append(json.dumps(rec))
+    rec_path = tmp_path / "typo.jsonl"
+    rec_path.write_text("\n".join(lines + typo) + "\n")
+    r = _invoke(cli, *_args(d, rec_path, tmp_path / "o.yaml", "--quiet", *_configured(d)))
+    assert r.exit_code == 0, r.output
+    flat = " ".join(r.output.split())
+    assert typo and f"messages rejected: unknown_sensor {len(typo)}" in flat
+    assert f"cam11 {len(typo)})" in flat
+
+
 def test_bad_inputs_give_one_clear_error(cli, files, tmp_path):
     d = files
     out = tmp_path / "o.yaml"
