@@ -47,8 +47,9 @@ class PreprocessConfig(_Section):
         "min_confidence is stated for (the paper's detector; the simulator's run 0.93-0.98). A detector's scores "
         "are its own scale: a sensor whose run lower has its confidences scaled up to it (at most x3, once "
         "200 of its torso joints were seen), so the threshold and the confidence noise model mean the same for "
-        "every detector. With 0.7x the simulator's scores the lab ended 0.13 m off (most persons dropped), with "
-        "0.6x it stayed at its start (docs/accuracy.md, Session 15). None: confidences taken as they are")
+        "every detector. With 0.7x the simulator's scores the lab ended 0.08 m off (a camera left at its start), "
+        "with 0.6x it stayed at its start; now 0.028 m as unscaled (docs/accuracy.md, Session 15). None: "
+        "confidences taken as they are")
     min_box_distance: float = Field(0.03, ge=0, description="fraction of the image diagonal: persons whose boxes are "
                                     "closer are dropped (their keypoints mix). The paper's 100 px at 848x480 (0.1) "
                                     "dropped 88 % of the persons with 4 walkers in a 7 x 5 m room and left cameras "

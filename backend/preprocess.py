@@ -111,7 +111,7 @@ class ConfidenceScale:
         self.hist, self._factor = {k: h.copy() for k, h in other.hist.items()}, dict(other._factor)
 
     def apply(self, sensor: str, conf: np.ndarray) -> np.ndarray:
-        """conf (...,) scaled (a copy), at most 1."""
+        """conf (...,) scaled, at most 1 (a new array unless the factor is 1)."""
         k = self.factor(sensor)
         return conf if k == 1.0 else np.minimum(conf * k, 1.0)
 

@@ -786,7 +786,6 @@ def _kpi(value: str, label: str, cls: str = "") -> str:
 
 def render_html(data: SessionData, *, title: str | None = None) -> str:
     """The report as one HTML document (no scripts, no external resources)."""
-
     title = title or f"Calibration report: {data.title}"
     cyc = data.cycles
     last = cyc[-1] if cyc else None
