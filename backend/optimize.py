@@ -595,7 +595,18 @@ def shape_covariance(R: np.ndarray, t: np.ndarray, joint: np.ndarray) -> np.ndar
         G[6 * k + 3:6 * k + 6, 0:3] = -Rt @ tx  # ω × t moves the centre
         G[6 * k + 3:6 * k + 6, 3:6] = Rt  # world translation
         G[6 * k + 3:6 * k + 6, 6] = Rt @ t[k]  # scale about the origin
-    P = np.eye(6 * K) - G @ np.linalg.pinv(G)
+    c = t - t.mean(0)
+    sv = np.linalg.svd(c, compute_uv=False) if K > 1 else np.zeros(3)
+    if K >= 3 and sv[1] > 1e-6 * max(sv[0], 1e-12):
+        P = np.eye(6 * K) - G @ np.linalg.pinv(G)
+    else:
+        # two cameras (or all on one line) leave a turn about their line to the
+        # orientations, as evaluate.align_poses does: the gauge's turn is taken out of
+        # the orientations and its shift and scale out of the centres; projected out
+        # unweighed, their relative translation went into the orientations (std 0.06 mm)
+        w = np.tile(np.r_[np.ones(3), np.full(3, 1e-6)], K)
+        Gw = G * w[:, None]
+        P = np.eye(6 * K) - G @ np.linalg.pinv(G.T @ Gw) @ Gw.T
     return P @ joint @ P.T
 
 

@@ -12,7 +12,7 @@ from backend.cameras import Pose
 from backend.config import AssociateConfig, OptimizeConfig, RefineConfig
 from backend.evaluate import evaluate
 from backend.geometry import rotation_angle_deg, so3_exp
-from backend.optimize import Problem, build_graph, residuals_px, solve
+from backend.optimize import Problem, build_graph, residuals_px, shape_covariance, solve
 from backend.preprocess import TORSO, Detection
 from backend.refine import initial_covariance
 
@@ -271,3 +271,45 @@ def test_problem_and_solution_survive_pickling(truth):
     np.testing.assert_allclose(s2.t, s1.t, atol=1e-12)
     np.testing.assert_allclose(s2.cov, s1.cov, rtol=1e-9, atol=1e-18)
     np.testing.assert_array_equal(s2.obs_per_camera, s1.obs_per_camera)
+
+
+def _gauge(R, t):
+    """(6K, 7) the similarity's directions in the poses' body-frame tangents (the same
+    construction as shape_covariance's, written out per camera)."""
+    K = len(R)
+    G = np.zeros((6 * K, 7))
+    for k in range(K):
+        for a in range(3):
+            w = np.eye(3)[a]
+            G[6 * k:6 * k + 3, a] = R[k].T @ w
+            G[6 * k + 3:6 * k + 6, a] = R[k].T @ np.cross(w, t[k])
+            G[6 * k + 3:6 * k + 6, 3 + a] = R[k].T @ w
+        G[6 * k + 3:6 * k + 6, 6] = R[k].T @ t[k]
+    return G
+
+
+@pytest.mark.parametrize("K", [2, 3, 5])
+def test_shape_covariance_removes_the_similarity_and_keeps_a_relative_move(K):
+    """Uncertainty along the gauge (the world's turn, shift, scale) is no shape
+    uncertainty; one camera's own move is. With two cameras the move of one across
+    their baseline stays in their centres (half each, as evaluate aligns them by their
+    orientations), not in their orientations."""
+    rng = np.random.default_rng(K)
+    R = np.array([so3_exp(rng.normal(size=3)) for _ in range(K)])
+    t = rng.uniform(-4, 4, (K, 3))
+    G = _gauge(R, t)
+    A = rng.normal(size=(7, 7))
+    assert np.abs(shape_covariance(R, t, G @ A @ A.T @ G.T)).max() < 1e-9
+    b = t[1] - t[0]
+    d = np.cross(b, rng.normal(size=3))
+    d *= 0.01 / np.linalg.norm(d)  # 1 cm across the line of cameras 0 and 1
+    v = np.zeros(6 * K)
+    v[9:12] = R[1].T @ d  # camera 1's centre moves, its orientation stays
+    S = shape_covariance(R, t, np.outer(v, v))
+    rot = np.sqrt(max(np.trace(S[:3, :3]), np.trace(S[6:9, 6:9])))
+    if K == 2:
+        assert rot < 1e-7  # not a turn of the orientations
+        assert np.sqrt(np.trace(S[3:6, 3:6])) == pytest.approx(0.005, rel=1e-3)
+        assert np.sqrt(np.trace(S[9:12, 9:12])) == pytest.approx(0.005, rel=1e-3)
+    else:  # a move of one camera is shape: part of it is left with that camera
+        assert np.sqrt(np.trace(S[9:12, 9:12])) > 0.002
