@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -256,11 +257,15 @@ def calibrate(
         highlight=False,
     )
     if c.rejected:
-        unknown = p.sync.unknown_sensors
-        console.print(f"[yellow]messages rejected: "
-                      + ", ".join(f"{k} {v}" for k, v in sorted(c.rejected.items(), key=lambda kv: -kv[1]))
-                      + (f" (sensors not in {intrinsics}: " + ", ".join(f"{n} {k}" for n, k in unknown.most_common())
-                         + ")" if unknown else "") + "[/]", highlight=False)
+        def by_sensor(reason: str) -> str:
+            top = p.sync.rejected_sensors.get(reason, Counter()).most_common()
+            more = f", {len(top) - 5} more" if len(top) > 5 else ""
+            return f" ({', '.join(f'{n} {k}' for n, k in top[:5])}{more})" if top else ""
+
+        console.print("[yellow]messages rejected: " + ", ".join(
+            f"{k} {v}{by_sensor(k)}" for k, v in sorted(c.rejected.items(), key=lambda kv: -kv[1]))
+            + (f"; unknown sensors are ids not in {intrinsics}" if "unknown_sensor" in c.rejected else "") + "[/]",
+            highlight=False)
     for ln in late_lines:
         console.print(ln, highlight=False)
     if not_calibrated:

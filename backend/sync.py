@@ -209,9 +209,11 @@ class Synchronizer:
         self._last_seq: dict[str, _Recent] = {s: _Recent(64) for s in self.sensors}
         self.next_time: float | None = None
         self.rejected: Counter = Counter()
-        # messages per unknown sensor name, the first _UNKNOWN_NAMES names (a typo in a
-        # sensor's id is named to the user; random names cannot grow it without bound)
-        self.unknown_sensors: Counter = Counter()
+        # per reason, the messages of each sensor (of unknown names the first
+        # _UNKNOWN_NAMES: a typo in a sensor's id is named to the user, random names
+        # cannot grow it without bound)
+        self.rejected_sensors: dict[str, Counter] = {}
+        self._unknown_names: set[str] = set()
         self.framesets = 0
         self.framesets_rejected: Counter = Counter()
         self.latest_stamp: float | None = None
@@ -255,33 +257,35 @@ class Synchronizer:
         self.framesets = other.framesets
         self.framesets_rejected = Counter(other.framesets_rejected)
         self.rejected = Counter(other.rejected)
-        self.unknown_sensors = Counter(other.unknown_sensors)
+        self.rejected_sensors = {k: Counter(v) for k, v in other.rejected_sensors.items()}
+        self._unknown_names = set(other._unknown_names)
 
     def push(self, msg: KeypointMessage, now: float | None = None) -> str | None:
         """Buffer one message (raw stamp: the sensor's offset is subtracted here);
         returns a rejection reason or None."""
         s = msg.sensor
         if s not in self._stamps:
-            if s in self.unknown_sensors or len(self.unknown_sensors) < _UNKNOWN_NAMES:
-                self.unknown_sensors[s] += 1
-            return self._reject("unknown_sensor")
+            if s not in self._unknown_names and len(self._unknown_names) >= _UNKNOWN_NAMES:
+                return self._reject("unknown_sensor")
+            self._unknown_names.add(s)
+            return self._reject("unknown_sensor", s)
         raw = (msg.seq, msg.stamp)
         if self.offsets.get(s):
             msg = replace(msg, stamp=msg.stamp - self.offsets[s])
         if now is not None:
             if msg.stamp > now + self.cfg.max_stamp_future:
-                return self._reject("stamp_in_future")
+                return self._reject("stamp_in_future", s)
             if msg.stamp < now - self.cfg.max_stamp_past:
-                return self._reject("stamp_too_old")
+                return self._reject("stamp_too_old", s)
         if self.next_time is not None and msg.stamp < self.next_time - self.cfg.wait - 1.0:
-            return self._reject("late")
+            return self._reject("late", s)
         if raw in self._last_seq[s]:
-            return self._reject("duplicate")
+            return self._reject("duplicate", s)
         self._last_seq[s].add(raw)
         stamps, msgs = self._stamps[s], self._msgs[s]
         i = bisect.bisect_right(stamps, msg.stamp)
         if i > 0 and stamps[i - 1] == msg.stamp:
-            return self._reject("duplicate")
+            return self._reject("duplicate", s)
         stamps.insert(i, msg.stamp)
         msgs.insert(i, Buffered.of(msg))
         if self.latest_stamp is None or msg.stamp > self.latest_stamp:
@@ -291,8 +295,10 @@ class Synchronizer:
             self.next_time = np.ceil(msg.stamp / step) * step + step
         return None
 
-    def _reject(self, reason: str) -> str:
+    def _reject(self, reason: str, sensor: str | None = None) -> str:
         self.rejected[reason] += 1
+        if sensor is not None:
+            self.rejected_sensors.setdefault(reason, Counter())[sensor] += 1
         return reason
 
     def pop_ready(self, now: float) -> list[Frameset]:

@@ -181,8 +181,8 @@ def test_messages_of_sensors_the_camera_files_do_not_name_are_counted_and_named(
     r = _invoke(cli, *_args(d, rec_path, tmp_path / "o.yaml", "--quiet", *_configured(d)))
     assert r.exit_code == 0, r.output
     flat = " ".join(r.output.split())
-    assert typo and f"messages rejected: unknown_sensor {len(typo)}" in flat
-    assert f"cam11 {len(typo)})" in flat
+    assert typo and f"messages rejected: unknown_sensor {len(typo)} (cam11 {len(typo)})" in flat
+    assert "unknown sensors are ids not in" in flat
 
 
 def test_bad_inputs_give_one_clear_error(cli, files, tmp_path):

@@ -213,11 +213,14 @@ def test_bad_messages_are_rejected_with_their_reason():
     assert sync.push(_msg("a", 9, now + 2.0), now + 5.0) == "late"
     assert dict(sync.rejected) == {"duplicate": 2, "unknown_sensor": 1, "stamp_in_future": 1,
                                    "stamp_too_old": 1, "late": 1}
+    assert sync.rejected_sensors == {"duplicate": {"a": 2}, "unknown_sensor": {"zz": 1}, "stamp_in_future": {"b": 1},
+                                     "stamp_too_old": {"b": 1}, "late": {"a": 1}}
     # unknown sensors are named, the first 32 names (random ids must not grow it)
     for k in range(100):
         assert sync.push(_msg(f"x{k % 50}", k, now + 4.5), now + 5.0) == "unknown_sensor"
-    assert sync.unknown_sensors["zz"] == 1 and sync.unknown_sensors["x0"] == 2
-    assert len(sync.unknown_sensors) == 32 and sync.rejected["unknown_sensor"] == 101
+    unknown = sync.rejected_sensors["unknown_sensor"]
+    assert unknown["zz"] == 1 and unknown["x0"] == 2 and "x40" not in unknown
+    assert len(unknown) == 32 and sync.rejected["unknown_sensor"] == 101
 
 
 def test_out_of_order_arrivals_give_the_in_order_framesets():
