@@ -139,6 +139,10 @@ class OptimizeConfig(_Section):
     min_triangulation_angle: float = Field(2.0, ge=0, description="deg: landmarks whose rays meet at a smaller angle carry no pose information and are left out")
     outlier_rounds: int = Field(2, ge=0, description="solve, drop views (one person in one camera) that reproject badly, solve again")
     outlier_px: float = Field(15.0, gt=0, description="px: a view whose median joint residual exceeds this (and 4x the median view residual) is an outlier")
+    batch_view_check: bool = Field(True, description="before an adjustment over all data, a view that the other views of "
+                                   "its hypothesis (>= 3 views) miss by more than the outlier limit plus 3 stds of the "
+                                   "poses is dropped (a camera seen little followed two wrong views 1.2 m off; "
+                                   "docs/accuracy.md, Session 15)")
     bones: Literal["off", "auto", "batch", "all"] = Field(
         "auto", description="people keep their size: tie the bone lengths of each person's hypotheses to one unknown "
         "length per bone and person (docs/bones.md); 'batch': in the first and the final adjustment (for camera chains "

@@ -239,6 +239,59 @@ def hypotheses_and_persons(p: Problem) -> tuple[list[Hypothesis], np.ndarray]:
     return hyps, person
 
 
+def _drop_inconsistent_views(hyps: list[Hypothesis], person: np.ndarray, p: Problem
+                             ) -> tuple[list[Hypothesis], np.ndarray]:
+    """Before a batch's first solve: in each hypothesis of >= 3 views, a view that the
+    others' triangulation misses by more than the outlier limit plus 3 stds of the poses
+    (``p.pose_px``, this camera's and the others' worst) is a wrong association, and it
+    is dropped. The outlier rounds look only after a solve, and a camera seen little
+    follows its wrong views there: its right ones, mostly of two views, cannot hold it
+    (docs/accuracy.md, Session 15). A camera the filter is unsure of has a wide limit,
+    so the batch can still put it right. person: (H,) as ``hypotheses_and_persons``."""
+    pose_px = np.asarray(p.pose_px, dtype=np.float64)
+    sub, where = [], []
+    for i, h in enumerate(hyps):
+        if len(h.cams) >= 3:
+            for k in range(len(h.cams)):
+                rest = np.delete(np.arange(len(h.cams)), k)
+                sub.append(Hypothesis(h.time, h.cams[rest], h.xy[rest], h.sigma[rest], h.com))
+                where.append((i, k))
+    if not sub:
+        return hyps, person
+    from .associate import triangulate_hypotheses
+
+    X = triangulate_hypotheses(sub, p.R, p.t)  # (N, 17, 3) from the other views
+    miss = np.full(len(sub), np.nan)
+    for n, ((i, k), Xn) in enumerate(zip(where, X)):
+        c = int(hyps[i].cams[k])
+        Xc = (Xn - p.t[c]) @ p.R[c]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            e = np.linalg.norm(Xc[:, :2] / Xc[:, 2:3] - hyps[i].xy[k], axis=1) * p.focal[c]
+        e = e[np.isfinite(e) & (Xc[:, 2] > 0)]
+        if len(e) >= 4:
+            miss[n] = float(np.median(e))
+    if not np.isfinite(miss).any():
+        return hyps, person
+    base = max(p.config.outlier_px, 4.0 * float(np.nanmedian(miss)))
+    drop: dict[int, list[int]] = {}
+    for n, (i, k) in enumerate(where):
+        cams = hyps[i].cams
+        limit = base + 3.0 * (pose_px[cams[k]] + np.delete(pose_px[cams], k).max())
+        if miss[n] > limit:
+            drop.setdefault(i, []).append(k)
+    out, keep_person = [], []
+    for i, h in enumerate(hyps):
+        ks = drop.get(i)
+        if ks and len(ks) == 1 and len(h.cams) - 1 >= 2:  # one view at odds with the rest
+            rest = np.delete(np.arange(len(h.cams)), ks[0])
+            h = Hypothesis(h.time, h.cams[rest], h.xy[rest], h.sigma[rest], h.com)
+        elif ks:  # several at odds: no telling which
+            continue
+        out.append(h)
+        keep_person.append(person[i])
+    return out, np.asarray(keep_person, np.int64)
+
+
 def residuals_px(R, t, landmarks, obs_cam, obs_lm, obs_xy, focal) -> np.ndarray:
     """(M,) reprojection error in pixels (inf for points behind the camera)."""
     if len(obs_cam) == 0:
@@ -265,6 +318,8 @@ def solve(p: Problem) -> Solution:
     t0 = time.perf_counter()
     C = len(p.R)
     hyps, person = hypotheses_and_persons(p)
+    if p.kind == "batch" and p.pose_px is not None and p.config.batch_view_check:
+        hyps, person = _drop_inconsistent_views(hyps, person, p)
     person = person if (person >= 0).any() else None
     g = build_graph(hyps, p.R, p.t, p.config)
     R, t = p.R, p.t

@@ -12,7 +12,7 @@ from backend.cameras import Pose
 from backend.config import AssociateConfig, OptimizeConfig, RefineConfig
 from backend.evaluate import evaluate
 from backend.geometry import rotation_angle_deg, so3_exp
-from backend.optimize import Problem, build_graph, residuals_px, shape_covariance, solve
+from backend.optimize import Problem, _drop_inconsistent_views, build_graph, residuals_px, shape_covariance, solve
 from backend.preprocess import TORSO, Detection
 from backend.refine import initial_covariance
 
@@ -313,3 +313,37 @@ def test_shape_covariance_removes_the_similarity_and_keeps_a_relative_move(K):
         assert np.sqrt(np.trace(S[9:12, 9:12])) == pytest.approx(0.005, rel=1e-3)
     else:  # a move of one camera is shape: part of it is left with that camera
         assert np.sqrt(np.trace(S[9:12, 9:12])) > 0.002
+
+
+def test_a_batch_drops_a_view_its_hypothesis_s_other_views_miss_before_the_first_solve():
+    """One camera's view of the wrong person in a hypothesis of >= 3 views: dropped when
+    the camera's pose is known, kept when it is not (the batch may have to put it right);
+    right views stay; two views at odds drop the hypothesis."""
+    R, t = rig()
+    bodies = people(6, seed=4)
+    hyps = hypotheses(R, t, bodies, noise_px=1.0)
+    wrong = [i for i, h in enumerate(hyps) if len(h.cams) >= 4][:2]
+    other = {i: bodies[(i + 1) % len(bodies)] for i in wrong}
+    bad = list(hyps)
+    for n, i in enumerate(wrong):  # the first wrong in one view, the second in two
+        h = hyps[i]
+        xy = h.xy.copy()
+        for k in range(n + 1):
+            xy[k] = observe(R, t, int(h.cams[k]), other[i])
+        bad[i] = Hypothesis(h.time, h.cams, xy, h.sigma, h.com)
+    person = np.arange(len(bad))
+    known = np.full(C, 2.0)  # px: poses known to a couple of px
+    p = problem(R, t, bad, kind="batch", pose_px=known)
+    out, pers = _drop_inconsistent_views(list(bad), person, p)
+    first = wrong[0]
+    assert [len(h.cams) for h in out if h.time == first] == [len(hyps[first].cams) - 1]
+    assert hyps[first].cams[0] not in next(h.cams for h in out if h.time == first)
+    assert wrong[1] not in pers and len(out) == len(bad) - 1
+    for h in out:  # every other hypothesis as it was
+        if h.time not in wrong:
+            assert len(h.cams) == len(hyps[int(h.time)].cams)
+    # a camera the filter is unsure of keeps its view: the batch may be what puts it right
+    unsure = known.copy()
+    unsure[hyps[first].cams[0]] = 500.0
+    out, _ = _drop_inconsistent_views(list(bad), person, problem(R, t, bad, kind="batch", pose_px=unsure))
+    assert [len(h.cams) for h in out if h.time == first] == [len(hyps[first].cams)]
