@@ -26,7 +26,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .associate import Associator, Hypothesis
+from .associate import Associator, Hypothesis, triangulate_hypotheses
 from .config import AssociateConfig, OptimizeConfig
 from .geometry import rotation_angle_deg, triangulate_batch
 from .people import label_persons, segments
@@ -239,6 +239,11 @@ def hypotheses_and_persons(p: Problem) -> tuple[list[Hypothesis], np.ndarray]:
     return hyps, person
 
 
+def _without_view(h: Hypothesis, k: int) -> Hypothesis:
+    rest = np.delete(np.arange(len(h.cams)), k)
+    return Hypothesis(h.time, h.cams[rest], h.xy[rest], h.sigma[rest], h.com)
+
+
 def _drop_inconsistent_views(hyps: list[Hypothesis], person: np.ndarray, p: Problem
                              ) -> tuple[list[Hypothesis], np.ndarray]:
     """Before a batch's first solve: in each hypothesis of >= 3 views, a view that the
@@ -249,19 +254,11 @@ def _drop_inconsistent_views(hyps: list[Hypothesis], person: np.ndarray, p: Prob
     (docs/accuracy.md, Session 15). A camera the filter is unsure of has a wide limit,
     so the batch can still put it right. person: (H,) as ``hypotheses_and_persons``."""
     pose_px = np.asarray(p.pose_px, dtype=np.float64)
-    sub, where = [], []
-    for i, h in enumerate(hyps):
-        if len(h.cams) >= 3:
-            for k in range(len(h.cams)):
-                rest = np.delete(np.arange(len(h.cams)), k)
-                sub.append(Hypothesis(h.time, h.cams[rest], h.xy[rest], h.sigma[rest], h.com))
-                where.append((i, k))
-    if not sub:
+    where = [(i, k) for i, h in enumerate(hyps) if len(h.cams) >= 3 for k in range(len(h.cams))]
+    if not where:
         return hyps, person
-    from .associate import triangulate_hypotheses
-
-    X = triangulate_hypotheses(sub, p.R, p.t)  # (N, 17, 3) from the other views
-    miss = np.full(len(sub), np.nan)
+    X = triangulate_hypotheses([_without_view(hyps[i], k) for i, k in where], p.R, p.t)  # (N, 17, 3)
+    miss = np.full(len(where), np.nan)
     for n, ((i, k), Xn) in enumerate(zip(where, X)):
         c = int(hyps[i].cams[k])
         Xc = (Xn - p.t[c]) @ p.R[c]
@@ -276,18 +273,14 @@ def _drop_inconsistent_views(hyps: list[Hypothesis], person: np.ndarray, p: Prob
     drop: dict[int, list[int]] = {}
     for n, (i, k) in enumerate(where):
         cams = hyps[i].cams
-        limit = base + 3.0 * (pose_px[cams[k]] + np.delete(pose_px[cams], k).max())
-        if miss[n] > limit:
+        if miss[n] > base + 3.0 * (pose_px[cams[k]] + np.delete(pose_px[cams], k).max()):
             drop.setdefault(i, []).append(k)
     out, keep_person = [], []
     for i, h in enumerate(hyps):
-        ks = drop.get(i)
-        if ks and len(ks) == 1 and len(h.cams) - 1 >= 2:  # one view at odds with the rest
-            rest = np.delete(np.arange(len(h.cams)), ks[0])
-            h = Hypothesis(h.time, h.cams[rest], h.xy[rest], h.sigma[rest], h.com)
-        elif ks:  # several at odds: no telling which
+        ks = drop.get(i, [])
+        if len(ks) > 1:  # several views at odds with the rest: no telling which
             continue
-        out.append(h)
+        out.append(_without_view(h, ks[0]) if ks else h)
         keep_person.append(person[i])
     return out, np.asarray(keep_person, np.int64)
 
