@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections import Counter
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -258,7 +257,7 @@ def calibrate(
     )
     if c.rejected:
         def by_sensor(reason: str) -> str:
-            top = p.sync.rejected_sensors.get(reason, Counter()).most_common()
+            top = p.sync.rejected_sensors[reason].most_common() if reason in p.sync.rejected_sensors else []
             more = f", {len(top) - 5} more" if len(top) > 5 else ""
             return f" ({', '.join(f'{n} {k}' for n, k in top[:5])}{more})" if top else ""
 

@@ -8,7 +8,7 @@ from typing import Mapping
 import numpy as np
 
 from .cameras import Pose, natural_key
-from .geometry import rotation_angle_deg, umeyama
+from .geometry import centres_fix_rotation, rotation_angle_deg, umeyama
 
 
 MIN_CAMERAS = 2  # an alignment needs two cameras' poses (or three centres)
@@ -66,10 +66,9 @@ def _align(src: np.ndarray, dst: np.ndarray, src_R: np.ndarray, dst_R: np.ndarra
     fix the rotation (two cameras, or all on one line: any turn about the line fits), the
     rotation is the chordal mean of dst_R·src_Rᵀ, i.e. the orientations fix it, and the
     scale is the ratio of the centres' spreads."""
-    xs, xd = src - src.mean(0), dst - dst.mean(0)
-    sv = np.linalg.svd(xs, compute_uv=False)
-    if len(src) >= 3 and sv[1] > 1e-6 * max(sv[0], 1e-12):
+    if centres_fix_rotation(src):
         return umeyama(src, dst, with_scale=with_scale)
+    xs, xd = src - src.mean(0), dst - dst.mean(0)
     U, _, Vt = np.linalg.svd(np.einsum("nij,nkj->ik", dst_R, src_R))
     R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
     ns, nd = float(np.sum(xs**2)), float(np.sum(xd**2))

@@ -171,6 +171,16 @@ def hat_batch(v: np.ndarray) -> np.ndarray:
     return out
 
 
+def centres_fix_rotation(centres: np.ndarray) -> bool:
+    """Whether points (N, 3) (camera centres) fix a rotation: three or more, not all on
+    one line (two, or a line, leave any turn about the line free)."""
+    c = np.asarray(centres, dtype=np.float64)
+    if len(c) < 3:
+        return False
+    sv = np.linalg.svd(c - c.mean(0), compute_uv=False)
+    return bool(sv[1] > 1e-6 * max(sv[0], 1e-12))
+
+
 def umeyama(src: np.ndarray, dst: np.ndarray, *, with_scale: bool) -> tuple[float, np.ndarray, np.ndarray]:
     """Least-squares (s, R, t) with dst ≈ s·R·src + t.
 

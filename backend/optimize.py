@@ -28,7 +28,7 @@ import numpy as np
 
 from .associate import Associator, Hypothesis, triangulate_hypotheses
 from .config import AssociateConfig, OptimizeConfig
-from .geometry import rotation_angle_deg, triangulate_batch
+from .geometry import centres_fix_rotation, rotation_angle_deg, triangulate_batch
 from .people import label_persons, segments
 from .preprocess import Detection
 from .selection import select_spaced
@@ -643,9 +643,7 @@ def shape_covariance(R: np.ndarray, t: np.ndarray, joint: np.ndarray) -> np.ndar
         G[6 * k + 3:6 * k + 6, 0:3] = -Rt @ tx  # ω × t moves the centre
         G[6 * k + 3:6 * k + 6, 3:6] = Rt  # world translation
         G[6 * k + 3:6 * k + 6, 6] = Rt @ t[k]  # scale about the origin
-    c = t - t.mean(0)
-    sv = np.linalg.svd(c, compute_uv=False) if K > 1 else np.zeros(3)
-    if K >= 3 and sv[1] > 1e-6 * max(sv[0], 1e-12):
+    if centres_fix_rotation(t):
         P = np.eye(6 * K) - G @ np.linalg.pinv(G)
     else:
         # two cameras (or all on one line) leave a turn about their line to the
