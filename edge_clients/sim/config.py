@@ -85,6 +85,13 @@ class SimConfig:
         otherwise it is guessed with large noise and low confidence.
       pixel_decimals: pixel coordinates and confidences are rounded to this many decimals
         (None: full float64); ignored when ``noise`` is False.
+      surface_offset: m; a detector's keypoints are not joint centres but where annotators
+        put them on the body's outline: seen from the front or back, a shoulder's keypoint
+        lies this far out from the joint, seen from the side on it (the lateral offset
+        perpendicular to the camera's ray; hips 1.25x, elbows and knees 0.5x, wrists and
+        ankles 0.25x, the head 0). Triangulated from two views, such keypoints disagree by
+        up to this much: a systematic, view-dependent error that no noise model states.
+        0 (the default) puts keypoints on the joints. Off when ``noise`` is False.
       intrinsics_error: the real lenses differ from the calibration files the backend
         gets: relative std of the focal length (the principal point moves by this times
         half the image width, in px). Off when ``noise`` is False; the truth keeps the
@@ -139,6 +146,7 @@ class SimConfig:
     hidden_drop: float = 0.5
     pixel_decimals: int | None = 3
     intrinsics_error: float = 0.002
+    surface_offset: float = 0.0
     # scenarios
     clock_offsets: tuple[tuple[str, float], ...] = ()
     clock_drifts: tuple[tuple[str, float], ...] = ()
@@ -203,7 +211,7 @@ class SimConfig:
                 bad(name, f"a probability in [0, 1], got {p}")
         for name in ("noise_scale", "clock_std", "drift_std", "delay_jitter", "frame_jitter",
                      "false_rate", "sigma_torso", "sigma_head", "sigma_limb", "sigma_extremity",
-                     "intrinsics_error"):
+                     "intrinsics_error", "surface_offset"):
             if getattr(self, name) < 0:
                 bad(name, f"must be >= 0, got {getattr(self, name)}")
 

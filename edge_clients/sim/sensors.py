@@ -99,6 +99,12 @@ def bump_poses(name: str, pose: Pose, cfg: SimConfig) -> list[tuple[float, np.nd
     return out
 
 
+# surface_offset per COCO joint, signed by side (+ left): head 0, shoulders 1, elbows and
+# knees 0.5, wrists and ankles 0.25, hips 1.25 (a hip's keypoint is put on the outline
+# of the pelvis, well outside the joint).
+_SURFACE_SIDE = np.array([0, 0, 0, 0, 0, 1, -1, 0.5, -0.5, 0.25, -0.25, 1.25, -1.25, 0.5, -0.5, 0.25, -0.25])
+
+
 def _sigmoid(x):
     return 1.0 / (1.0 + np.exp(-x))
 
@@ -223,7 +229,7 @@ class SensorSim:
             return []
         cfg, (w, h) = self.cfg, self.size
         rng = self.det
-        uv, depth = project(J.reshape(-1, 3), self.intr, self.pose)
+        uv, depth = project(self._keypoints_3d(J).reshape(-1, 3), self.intr, self.pose)
         uv = uv.reshape(n, P, 17, 2)
         depth = depth.reshape(n, P, 17)
         fov = in_fov(self.pose.to_camera(J.reshape(-1, 3)), self.fov).reshape(n, P, 17)
@@ -418,6 +424,21 @@ class SensorSim:
             hit = dist < R[fi, pi, 0]
             out[fi[hit], pi[hit], ji[hit]] = True
         return out
+
+    def _keypoints_3d(self, J: np.ndarray) -> np.ndarray:
+        """(n, P, 17, 3): the 3D points this camera's detector reports for the joints J:
+        the joints moved out along the body's left-right axis by ``surface_offset``
+        (times the joint's factor), the part of that move across the camera's ray (a
+        silhouette's outline seen from the front is the widest, from the side none)."""
+        r = self.cfg.surface_offset
+        if r <= 0 or not self.cfg.noise or J.shape[1] == 0:
+            return J
+        lat = 0.5 * ((J[:, :, 5] - J[:, :, 6]) + (J[:, :, 11] - J[:, :, 12]))  # right to left
+        lat /= np.maximum(np.linalg.norm(lat, axis=-1, keepdims=True), 1e-9)
+        ray = J - self.pose.t
+        ray /= np.maximum(np.linalg.norm(ray, axis=-1, keepdims=True), 1e-9)
+        across = lat[:, :, None] - np.sum(lat[:, :, None] * ray, -1, keepdims=True) * ray  # (n, P, 17, 3)
+        return J + (r * _SURFACE_SIDE)[:, None] * across
 
     def _face_away(self, J: np.ndarray) -> np.ndarray:
         """(n, P, 17): nose and eyes of a face seen from behind, the far ear in profile."""

@@ -285,6 +285,32 @@ def test_a_person_behind_another_is_occluded(scene):
     assert occ[0, 1, [11, 12, 13, 14]].all()  # rear person
 
 
+def test_keypoints_lie_on_the_outline_a_camera_sees(scene):
+    """surface_offset: seen from the front, a hip's keypoint lies 1.25 x the offset out
+    from the joint along the body's left-right axis; seen from the side, far less (only the
+    offset's part across the ray shows); the head's keypoints never move."""
+    name = "cam_9"
+    intr, pose = scene.intrinsics[name], scene.poses[name]
+    floor = scene.floor
+    cam = floor.to_floor(pose.t)
+    view = floor.to_floor(pose.t + pose.R[:, 2]) - cam
+    d = view[:2] / np.linalg.norm(view[:2])
+    body = Body(height=1.8, hips_w=0.27, shoulders_w=0.32, arm_swing=0.0, lean=0.0, foot_w=0.1, bob=0.0)
+    z1, pos = np.zeros(1), (cam[:2] + 3.0 * d)[None]
+    facing = math.atan2(-d[1], -d[0])  # towards the camera
+    J = np.stack([floor.to_world(pose_joints(body, pos, z1 + h, z1, z1, z1, z1, z1, z1, z1 + 1, z1, z1))[0]
+                  for h in (facing, facing + math.pi / 2)])[:, None]  # (2 headings, 1 person, 17, 3)
+    s = SensorSim(name, scene.names.index(name), intr, pose, SimConfig(surface_offset=0.04), None, floor.R, floor.origin)
+    moved = np.linalg.norm(s._keypoints_3d(J) - J, axis=-1)[:, 0]  # (2, 17)
+    # front: the hips' move is 1.25 x 4 cm less the small part along the slanted ray
+    assert 0.045 < moved[0, 11] <= 0.05 and 0.045 < moved[0, 12] <= 0.05
+    # side view: what is left is the part across the ray that looks down at the hips
+    assert moved[1, 11] < 0.5 * moved[0, 11] and moved[1, 12] < 0.5 * moved[0, 12]
+    assert np.all(moved[:, :5] == 0)
+    off = SensorSim(name, scene.names.index(name), intr, pose, SimConfig(), None, floor.R, floor.origin)
+    assert off._keypoints_3d(J) is J
+
+
 def test_directions_outside_the_lens_model_are_not_seen(scene):
     intr, pose = scene.intrinsics["cam_4"], scene.poses["cam_4"]
     lim = fov_limit(intr)
