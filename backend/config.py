@@ -184,9 +184,13 @@ class RefineConfig(_Section):
 
 
 class MonitorConfig(_Section):
-    """Cameras that move after they converged (backend/monitor.py; experimental, off by default: docs/monitor.md)."""
+    """Cameras that move after they converged (backend/monitor.py, docs/monitor.md)."""
 
-    enabled: bool = Field(False, description="watch converged cameras, flag those the data say moved and calibrate them again")
+    enabled: bool | Literal["live"] = Field(
+        "live", description="watch converged cameras, flag those the data say moved and calibrate them again; "
+        "\"live\" (the default): in the service's sessions (extrcal serve, extrcal demo), not offline (extrcal "
+        "calibrate, the benches), where a camera rarely moves within a recording and the watch's hold of converged "
+        "cameras costs an ordinary calibration about a tenth of its shape accuracy (docs/monitor.md)")
     start_fraction: float = Field(0.6, ge=0, le=1, description="share of the calibrated cameras that must have converged "
                                   "before the watch begins (1: the session converged)")
     bin_seconds: float = Field(5.0, gt=0, description="s of data per resection of a watched camera (one sample of the change test)")
@@ -389,6 +393,13 @@ class EngineConfig(_Section):
                 d[section][name] *= s
         d["preprocess"]["pixel_reference"] = None
         return EngineConfig.from_dict(d)
+
+    def live(self) -> "EngineConfig":
+        """This config as a live session of the service runs it: ``monitor.enabled =
+        "live"`` becomes true (everywhere else it counts as false)."""
+        if self.monitor.enabled != "live":
+            return self
+        return self.model_copy(update={"monitor": self.monitor.model_copy(update={"enabled": True})})
 
     def merged(self, overrides: dict[str, Any]) -> "EngineConfig":
         """A copy with a nested dict of overrides applied (validated)."""

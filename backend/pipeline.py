@@ -553,7 +553,7 @@ class Pipeline:
                 self.observations_batch = solution.obs_per_camera.copy()
             else:
                 self.observations += np.where(active, solution.obs_per_camera, 0)
-            if problem.kind == "cycle" and self.cfg.monitor.enabled:
+            if problem.kind == "cycle" and self.cfg.monitor.enabled is True:  # "live": the service's sessions
                 alarms = self._monitor()
         else:
             self.cycles_rejected += 1
@@ -841,7 +841,7 @@ class Pipeline:
         p.first_passes = int(snapshot.get("first_passes", 2))
         p.monitor.alarms = [Alarm(float(a[0]), int(a[1]), *map(float, a[2:])) for a in snapshot.get("moved", [])]
         p.watched = np.array(snapshot.get("watched", [False] * len(p.names)), dtype=bool)
-        if config.monitor.enabled:  # held from the first cycle after the restart, not the monitor's first turn
+        if config.monitor.enabled is True:  # held from the first cycle after the restart, not the monitor's first turn
             rf.held = p.watched & config.monitor.hold
         rf.batched = np.array(snapshot.get("batched", [False] * len(p.names)), dtype=bool)
         p.observations = np.array(snapshot["observations"], dtype=np.int64)

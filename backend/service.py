@@ -1257,7 +1257,7 @@ class Service:
         if resolved["intrinsics"] is None:
             raise SessionInputError("intrinsics: give intrinsics_yaml (the file's text) or intrinsics (a configured file name)")
         try:
-            cfg = self.base_config.merged(config) if config else self.base_config
+            cfg = (self.base_config.merged(config) if config else self.base_config).live()
         except ConfigError as e:
             raise SessionInputError(f"config: {e}") from None
         except (TypeError, AttributeError) as e:

@@ -151,6 +151,8 @@ def test_session_lifecycle_with_configured_files(svc, client, lab_body):
     d = svc.settings.state_dir / "sessions" / sid
     rec = json.loads((d / "session.json").read_text())
     assert rec["state"] == "stopped" and (d / "result.yaml").is_file() and (d / "snapshot.json").is_file()
+    cfg = json.loads((d / "config.json").read_text())
+    assert cfg["select"]["scope"] == 30 and cfg["monitor"]["enabled"] is True  # a live session watches its cameras
     assert yaml.safe_load((d / "intrinsics.yaml").read_text()) == yaml.safe_load(
         (svc.settings.camera_files["lab_intrinsics"]).read_text())
 

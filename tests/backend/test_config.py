@@ -125,3 +125,14 @@ def test_every_px_parameter_is_scaled():
             if name != "pixel_reference" and ("px" in name or "pixel" in name or text.strip() in ("px", "... up to this (px)")):
                 found.add((section, name))
     assert found == {(s, n) for s, names in PIXEL_FIELDS.items() for n in names}
+
+
+def test_the_monitor_watches_live_sessions_by_default_and_nothing_else():
+    cfg = EngineConfig()
+    assert cfg.monitor.enabled == "live" and cfg.live().monitor.enabled is True
+    off = cfg.merged({"monitor": {"enabled": False}})
+    assert off.live().monitor.enabled is False and off.live() is off
+    assert EngineConfig.load(None, ["monitor.enabled=true"]).monitor.enabled is True
+    assert EngineConfig.load(None, ['monitor.enabled="live"']).monitor.enabled == "live"
+    with pytest.raises(ConfigError, match="monitor.enabled"):
+        EngineConfig.load(None, ['monitor.enabled="sometimes"'])

@@ -502,6 +502,17 @@ def test_the_monitor_watches_converged_cameras_and_holds_them(watching):
     assert q.monitor.alarms == p.monitor.alarms and q.state().cameras[2].moved_at == 12.5
 
 
+def test_offline_the_default_monitor_does_not_watch(lab, watching):
+    """monitor.enabled = "live" (the default) is the service's: the same 30 s offline, with
+    the cameras converged as in the watching pipeline, watch and hold nothing."""
+    cams, _, msgs = lab
+    cfg = EngineConfig().merged({"refine": _EASY})
+    assert cfg.monitor.enabled == "live"
+    p = run_offline(cams, cfg, msgs, seed=0, finish=False)
+    assert any(p.refiner.converged(c) for c in range(len(p.names))) and watching[3].watched.any()
+    assert not p.watched.any() and not p.refiner.held.any()
+
+
 def test_a_moved_camera_is_calibrated_again_by_an_adjustment_with_the_others_held(watching):
     """After the monitor's resections, one adjustment over the data since the move
     calibrates the moved camera with the watched ones held exactly where they were."""
