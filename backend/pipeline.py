@@ -524,6 +524,7 @@ class Pipeline:
         accepted = reason == ""
         change_t = change_r = 0.0
         alarms: list[str] = []
+        recalibrated: tuple[str, ...] = ()
         batch = problem.kind == "batch"
         first = problem.kind == "first"  # the posterior of all data so far, but not the final word
         if accepted and problem.kind == "relocalize":
@@ -538,6 +539,8 @@ class Pipeline:
                                       final=True)
             change_t = float(upd.changed_translation.max())
             change_r = float(upd.changed_rotation.max())
+            if not any(c in problem.moved for _, c, _ in self._recalibrate_due):  # its last adjustment
+                recalibrated = tuple(self.names[c] for c in problem.moved)
         elif accepted:
             if first:
                 active = solution.active & ~self._beyond_prior(problem, solution)
@@ -575,6 +578,7 @@ class Pipeline:
             max_change_rotation=change_r,
             reprojection_px=float(np.median(finite)) if len(finite) else float("nan"),
             moved_cameras=tuple(alarms),
+            recalibrated=recalibrated,
             starved=not accepted and solution.reason == NOTHING_TO_SOLVE,
         )
         self.last_report = report

@@ -38,6 +38,7 @@ from collections import Counter, deque
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
+from datetime import datetime, timezone
 from typing import TYPE_CHECKING, Any, AsyncIterator, Callable
 
 import numpy as np
@@ -984,6 +985,8 @@ class Service:
                         "calibrating it again", rec.id, name)
             self.events.publish("camera_moved", {"session": rec.id, "camera": name, "data_time": state.data_time,
                                                  "cycle": report.cycle})
+        if report.recalibrated and self._tg is not None:
+            self._tg.create_task(self._record_recalibration(s, report), name=f"version {rec.id} {report.cycle}")
         self._write_cycle(rec, report, state, acc)
         if self.events.subscribers:
             self.events.publish("hypotheses", {"session": rec.id, "persons": s.pipeline.skeletons()})
@@ -1538,6 +1541,28 @@ class Service:
         else:
             self._publish_calibration(s)
 
+    async def _record_recalibration(self, s: ActiveSession, report: "CycleReport") -> None:
+        """Cameras the monitor found moved are calibrated again: the running session's
+        network as it is now becomes the active version (by the monitor, saying which
+        camera moved and when), so the history has every accepted calibration, not only
+        the sessions' ends. The publication keeps showing the session's live estimate."""
+        rec, state = s.record, s.state
+        doc = self.calibration_dict(s)
+        text = dump_extrinsics(state.extrinsics(s.resolutions), comment=_result_comment(rec, state))
+        flagged = {c.name: c.moved_at for c in state.cameras}
+        why = "; ".join(f"{n} moved (flagged at {_utc(flagged.get(n))} of data time) and was calibrated again"
+                        for n in report.recalibrated) + f" (session {rec.id}, cycle {report.cycle})"
+        try:
+            meta = await asyncio.to_thread(self.versions.record, doc, text, s.inputs.intrinsics_yaml, by="monitor",
+                                           reason=why, activate=True)
+        except OSError as e:
+            log.error("could not record the re-calibration of %s as a version: %s", ", ".join(report.recalibrated), e)
+            self.writer.error = self.writer.error or f"calibration history: {e}"
+            return
+        log.info("session %s: %s; version %d", rec.id, why, meta["version"])
+        self.events.publish("calibration", {"version": meta["version"], "by": "monitor", "reason": why,
+                                            "session": rec.id})
+
     def _publish_doc(self, doc: dict[str, Any]) -> None:
         pub = self._publisher
         if pub is None:
@@ -1745,6 +1770,11 @@ class Service:
 
 def _copy_record(rec: SessionRecord) -> SessionRecord:
     return SessionRecord.from_dict(rec.to_dict())
+
+
+def _utc(stamp: float | None) -> str:
+    return "an unknown time" if stamp is None else \
+        datetime.fromtimestamp(stamp, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
 
 
 def _result_comment(rec: SessionRecord, state: "CalibrationState") -> str:

@@ -86,6 +86,9 @@ class CycleReport:
     max_change_rotation: float  # deg
     reprojection_px: float  # median reprojection error of the cycle's projections after the solve
     moved_cameras: tuple[str, ...] = ()  # converged cameras the monitor found moved in this cycle
+    # moved cameras this cycle calibrated again for good (the last adjustment over their
+    # data since the move): the network has a new calibration, which the service versions
+    recalibrated: tuple[str, ...] = ()
     # rejected with nothing to solve (no landmark placed: garbled data, or none that fits the
     # estimate); not the optimizer failing, so a session is not failed for such cycles
     starved: bool = False
@@ -94,6 +97,7 @@ class CycleReport:
         d = asdict(self)
         d["cameras"] = list(self.cameras)
         d["moved_cameras"] = list(self.moved_cameras)
+        d["recalibrated"] = list(self.recalibrated)
         return d
 
 

@@ -538,6 +538,7 @@ def test_a_moved_camera_is_calibrated_again_by_an_adjustment_with_the_others_hel
     assert problem.kind == "recalibrate" and problem.moved == (c,) and len(problem.frames) > 100
     report = p.apply(problem, solve(problem))
     assert report.accepted, report.reason
+    assert report.recalibrated == (p.names[c],)  # its last adjustment: a new calibration to version
     np.testing.assert_array_equal(p.refiner.t[others], t_o)
     np.testing.assert_array_equal(p.refiner.R[others], R_o)
     assert np.linalg.norm(t_off - t_est) > 0.05 and rotation_angle_deg(R_off, R_est) > 0.9
