@@ -260,16 +260,22 @@ def test_walls_hide_like_a_brute_force_ray_cast(scene):
     assert np.all(area.coverage[area.targets] >= 2)
 
 
+def _looking_along(scene, name: str):
+    """A camera's lens and pose, the floor, the camera's floor point and the unit floor
+    direction (2,) it looks along."""
+    intr, pose = scene.intrinsics[name], scene.poses[name]
+    floor = scene.floor
+    cam = floor.to_floor(pose.t)
+    view = floor.to_floor(pose.t + pose.R[:, 2]) - cam
+    return intr, pose, floor, cam, view[:2] / np.linalg.norm(view[:2])
+
+
 def test_a_person_behind_another_is_occluded(scene):
     """Two people in a line from a camera: the rear one's hips and knees are hidden (its
     shoulders show beside the front one's head: the camera hangs at 2.5 m), the front
     one's are not."""
     name = "cam_9"
-    intr, pose = scene.intrinsics[name], scene.poses[name]
-    floor = scene.floor
-    cam = floor.to_floor(pose.t)
-    view = floor.to_floor(pose.t + pose.R[:, 2]) - cam
-    d = view[:2] / np.linalg.norm(view[:2])
+    intr, pose, floor, cam, d = _looking_along(scene, name)
     body = Body(height=1.8, hips_w=0.27, shoulders_w=0.32, arm_swing=0.3, lean=0.05, foot_w=0.1, bob=0.02)
     z1 = np.zeros(1)
     Js = []
@@ -290,11 +296,7 @@ def test_keypoints_lie_on_the_outline_a_camera_sees(scene):
     from the joint along the body's left-right axis; seen from the side, far less (only the
     offset's part across the ray shows); the head's keypoints never move."""
     name = "cam_9"
-    intr, pose = scene.intrinsics[name], scene.poses[name]
-    floor = scene.floor
-    cam = floor.to_floor(pose.t)
-    view = floor.to_floor(pose.t + pose.R[:, 2]) - cam
-    d = view[:2] / np.linalg.norm(view[:2])
+    intr, pose, floor, cam, d = _looking_along(scene, name)
     body = Body(height=1.8, hips_w=0.27, shoulders_w=0.32, arm_swing=0.0, lean=0.0, foot_w=0.1, bob=0.0)
     z1, pos = np.zeros(1), (cam[:2] + 3.0 * d)[None]
     facing = math.atan2(-d[1], -d[0])  # towards the camera

@@ -47,6 +47,26 @@ def publish_room(endpoint: str, site: str, cams: tuple[str, ...], persons: int, 
             pub.publish(m)
 
 
+WEST = ("cam_11", "cam_12", "cam_13", "cam_14", "cam_15", "cam_16", "cam_17")  # the lab's west room
+
+
+def west_room_service(state_dir: Path, lab: Path, site: str, speed: float) -> tuple[Any, str, str, dict]:
+    """A service on free loopback ports for the west room's cameras, its data clock at
+    ``speed``: (settings, Zenoh endpoint, the cameras' intrinsics YAML, true extrinsics)."""
+    import yaml
+
+    from backend.cameras import load_extrinsics
+    from backend.settings import ServiceSettings
+    from proto.transport import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    settings = ServiceSettings.load(None, http={"port": 0}, zenoh={"listen": (endpoint,)}, state_dir=state_dir,
+                                    site=site, clock="data", speed=speed)
+    intr = yaml.safe_load((lab / "intrinsics.yaml").read_text())
+    truth = {k: e for k, e in load_extrinsics(lab / "reference.yaml").items() if k in WEST}
+    return settings, endpoint, yaml.safe_dump({c: intr[c] for c in WEST}), truth
+
+
 def poll(client: Any, path: str, pred: Callable[[dict], bool], timeout: float, what: str,
          seen: list | None = None) -> dict:
     """GET ``path`` until ``pred`` holds (every 0.25 s), else fail saying ``what`` and the last

@@ -19,20 +19,17 @@ from pathlib import Path
 
 import httpx
 import pytest
-import yaml
 
-from backend.cameras import dump_extrinsics, load_extrinsics, parse_extrinsics
+from backend.cameras import dump_extrinsics, parse_extrinsics
 from backend.evaluate import evaluate
 from backend.service import ServiceThread
-from proto.transport import free_port
 from backend.settings import ServiceSettings
-from live_sim import SensorProcess, publish_room
+from live_sim import WEST, SensorProcess, publish_room, west_room_service
 from live_sim import poll as _poll
 
 pytestmark = pytest.mark.slow
 
 SPEED = 5.0  # simulated seconds per wall second
-WEST = ("cam_11", "cam_12", "cam_13", "cam_14", "cam_15", "cam_16", "cam_17")
 HEIGHTS = (1.96, 1.70)
 # the first attempt at 40 s of data, the last before accepting anything at 60 s: a short test
 BOOT = {"bootstrap": {"live_first": 40.0, "live_interval": 20.0, "max_seconds": 60.0}}
@@ -47,12 +44,8 @@ class Sensors(SensorProcess):
 def _setup(tmp_path: Path, lab_dir: Path, site: str, config: dict) -> tuple[ServiceSettings, str, dict, dict]:
     """Settings of a service on a free loopback port, its endpoint, the true poses of WEST
     and a session body without an initial estimate (the walkers' heights known)."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    settings = ServiceSettings.load(None, http={"port": 0}, zenoh={"listen": (endpoint,)}, state_dir=tmp_path,
-                                    site=site, clock="data", speed=SPEED)
-    intr = yaml.safe_load((lab_dir / "intrinsics.yaml").read_text())
-    truth = {k: e for k, e in load_extrinsics(lab_dir / "reference.yaml").items() if k in WEST}
-    body = {"name": "no initial estimate", "intrinsics_yaml": yaml.safe_dump({c: intr[c] for c in WEST}),
+    settings, endpoint, intrinsics_yaml, truth = west_room_service(tmp_path, lab_dir, site, SPEED)
+    body = {"name": "no initial estimate", "intrinsics_yaml": intrinsics_yaml,
             "reference_yaml": dump_extrinsics(truth), "person_height": list(HEIGHTS), "config": config}
     return settings, endpoint, truth, body
 

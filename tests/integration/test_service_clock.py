@@ -10,20 +10,16 @@ from pathlib import Path
 
 import httpx
 import pytest
-import yaml
 
-from backend.cameras import dump_extrinsics, load_extrinsics, parse_extrinsics
+from backend.cameras import dump_extrinsics, parse_extrinsics
 from backend.evaluate import evaluate
 from backend.service import ServiceThread
-from backend.settings import ServiceSettings
-from live_sim import SensorProcess, publish_room
+from live_sim import WEST, SensorProcess, publish_room, west_room_service
 from live_sim import poll as _poll
-from proto.transport import free_port
 
 pytestmark = pytest.mark.slow
 
 SPEED = 4.0
-WEST = ("cam_11", "cam_12", "cam_13", "cam_14", "cam_15", "cam_16", "cam_17")
 HEIGHTS = (1.96, 1.70)
 LATE, OFFSET = "cam_13", 0.12  # s its stamps are ahead of capture
 
@@ -36,13 +32,9 @@ class Sensors(SensorProcess):
 
 
 def test_a_sensor_with_a_bad_clock_is_timed_and_its_archive_timed_again(tmp_path, lab_dir):
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
     site = "clock"
-    settings = ServiceSettings.load(None, http={"port": 0}, zenoh={"listen": (endpoint,)}, state_dir=tmp_path,
-                                    site=site, clock="data", speed=SPEED)
-    intr = yaml.safe_load((lab_dir / "intrinsics.yaml").read_text())
-    truth = {k: e for k, e in load_extrinsics(lab_dir / "reference.yaml").items() if k in WEST}
-    body = {"intrinsics_yaml": yaml.safe_dump({c: intr[c] for c in WEST}), "initial_yaml": dump_extrinsics(truth),
+    settings, endpoint, intrinsics_yaml, truth = west_room_service(tmp_path, lab_dir, site, SPEED)
+    body = {"intrinsics_yaml": intrinsics_yaml, "initial_yaml": dump_extrinsics(truth),
             "reference_yaml": dump_extrinsics(truth), "config": {"clock": {"estimate": True}}}
     seen: list[dict] = []
     with ServiceThread(settings) as st, httpx.Client(base_url=st.url, timeout=60) as client:

@@ -17,23 +17,19 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-import yaml
 
-from backend.cameras import dump_extrinsics, load_extrinsics, parse_extrinsics
+from backend.cameras import dump_extrinsics, parse_extrinsics
 from backend.geometry import rotation_angle_deg, umeyama
 from backend.perturb import perturb_extrinsics
 from backend.service import ServiceThread
-from backend.settings import ServiceSettings
 from edge_clients.sim import SimConfig
 from edge_clients.sim.sensors import bump_poses
-from live_sim import SensorProcess, publish_room
+from live_sim import WEST, SensorProcess, publish_room, west_room_service
 from live_sim import poll as _poll
-from proto.transport import free_port
 
 pytestmark = pytest.mark.slow
 
 SPEED = 4.0
-WEST = ("cam_11", "cam_12", "cam_13", "cam_14", "cam_15", "cam_16", "cam_17")
 HEIGHTS = (1.85, 1.70)
 BUMPED, BUMP_AT, TURN = "cam_14", 150.0, 3.0  # s of data, degrees about a random axis
 SIM = {"bumps": ((BUMP_AT, BUMPED, 0.0, TURN),)}
@@ -68,13 +64,9 @@ def _events(url: str, out: list, stop: threading.Event) -> None:
 
 
 def test_a_camera_bumped_after_convergence_is_flagged_calibrated_again_and_versioned(tmp_path, lab_dir):
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
     site = "monitor"
-    settings = ServiceSettings.load(None, http={"port": 0}, zenoh={"listen": (endpoint,)}, state_dir=tmp_path,
-                                    site=site, clock="data", speed=SPEED)
-    intr = yaml.safe_load((lab_dir / "intrinsics.yaml").read_text())
-    truth = {k: e for k, e in load_extrinsics(lab_dir / "reference.yaml").items() if k in WEST}
-    body = {"name": "monitored", "intrinsics_yaml": yaml.safe_dump({c: intr[c] for c in WEST}),
+    settings, endpoint, intrinsics_yaml, truth = west_room_service(tmp_path, lab_dir, site, SPEED)
+    body = {"name": "monitored", "intrinsics_yaml": intrinsics_yaml,
             "initial_yaml": dump_extrinsics(perturb_extrinsics(truth, 0.05, 2.0, seed=3)), "config": CONFIG}
     events: list = []
     stop = threading.Event()
