@@ -18,7 +18,10 @@ KEEPALIVE = 15.0  # s between comment lines, so proxies keep the stream open
             response_class=StreamingResponse,
             responses={200: {"content": {"text/event-stream": {}},
                              "description": "events `hello` (current status), `status` (every second), "
-                                            "`cycle` (after every cycle), `session` (state changes), `service`"}})
+                                            "`cycle` (after every cycle), `session` (state changes), `service`, "
+                                            "`camera_moved` (the monitor flagged a converged camera), `calibration` "
+                                            "(a version was recorded by the monitor or activated), `hypotheses` "
+                                            "(the persons of a cycle, for the dashboard)"}})
 async def events(service: ServiceDep, request: Request) -> StreamingResponse:
     """Server-sent events, one JSON object per `data:` line. A slow client loses its
     oldest events; `dropped` in the next event says how many."""
