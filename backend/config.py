@@ -126,6 +126,14 @@ class SelectConfig(_Section):
                               "walkers: a camera 1.6 m off, docs/accuracy.md, Session 11); it keeps its pose, its "
                               "uncertainty grows by the process noise, and later cycles associate it again. Unless "
                               "most cameras the cycle moved went that far. 0: off")
+    first_cycle_gate: float = Field(16.0, ge=0, description="χ² (6 dof, p ≈ 0.014): a camera no cycle or adjustment has "
+                                    "calibrated yet, which a cycle would move further than this from its prior on fewer "
+                                    "than first_cycle_observations projections, keeps its start: a few views of a camera "
+                                    "still at its rough start are the likeliest wrong associations (a camera put 0.85 m / "
+                                    "28° off by 3 views, docs/accuracy.md, Session 16); a cycle with more of its views "
+                                    "decides. 0: off")
+    first_cycle_observations: int = Field(100, ge=0, description="projections of a not yet calibrated camera that let a "
+                                          "cycle move it beyond first_cycle_gate")
 
 
 class OptimizeConfig(_Section):

@@ -604,7 +604,14 @@ class Pipeline:
         """(C,) bool the cameras a cycle put further from the filter's prediction (the
         cycle's prior) than ``select.cycle_gate`` allows, when they are a minority of the
         cameras it moved (``_gated``); counted per camera in ``cycle_gated``."""
-        far, moves = _gated(problem, solution, self.cfg.select.cycle_gate)
+        sel = self.cfg.select
+        far, moves = _gated(problem, solution, sel.cycle_gate)
+        if sel.first_cycle_gate > 0:  # a camera not yet calibrated: a thin cycle's big move is not taken
+            fresh = (self.refiner.cycles == 0) & ~self.refiner.batched & (solution.obs_per_camera
+                                                                         < sel.first_cycle_observations)
+            far_first, moves_first = _gated(problem, solution, sel.first_cycle_gate)
+            far |= far_first & fresh
+            moves = moves or moves_first
         for c in np.flatnonzero(far):
             log.debug("cycle %d would have moved %s %.2f m / %.1f° (χ² %.0f against its predicted std): not taken",
                       problem.cycle, self.names[c], *moves[c])

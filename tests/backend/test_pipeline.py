@@ -12,7 +12,7 @@ from backend.cameras import CameraSet, Extrinsics
 from backend.config import EngineConfig
 from backend.evaluate import evaluate
 from backend.geometry import pose_retract, rotation_angle_deg
-from backend.optimize import NOTHING_TO_SOLVE, hypotheses_and_persons, solve
+from backend.optimize import NOTHING_TO_SOLVE, Problem, Solution, hypotheses_and_persons, solve
 from backend.perturb import perturb_extrinsics
 from backend.monitor import Alarm
 from backend.pipeline import Pipeline, run_offline
@@ -437,9 +437,11 @@ def test_the_first_gate_trusts_the_data_when_most_cameras_go_that_far(lab):
     cov = np.tile(np.diag([np.radians(10.0) ** 2] * 3 + [0.25 ** 2] * 3), (C, 1, 1))
     problem = SimpleNamespace(prior_R=R0, prior_t=t0, prior_cov=cov)
     t_far = t0 + np.array([2.0, 0.0, 0.0])  # 8 std
-    one = SimpleNamespace(active=np.ones(C, bool), R=R0, t=np.where(np.arange(C)[:, None] == 1, t_far, t0))
+    many = np.full(C, 1000)  # projections: enough for any first move (select.first_cycle_observations)
+    one = SimpleNamespace(active=np.ones(C, bool), R=R0, t=np.where(np.arange(C)[:, None] == 1, t_far, t0),
+                          obs_per_camera=many)
     assert p._beyond_prior(problem, one).tolist() == [c == 1 for c in range(C)]
-    every = SimpleNamespace(active=np.ones(C, bool), R=R0, t=t_far)
+    every = SimpleNamespace(active=np.ones(C, bool), R=R0, t=t_far, obs_per_camera=many)
     assert not p._beyond_prior(problem, every).any()
     assert p.first_gated == [cams.names[1]]
     # the cycles' gate (against the predicted state) decides alike
@@ -500,6 +502,35 @@ def test_the_monitor_watches_converged_cameras_and_holds_them(watching):
     p.monitor.alarms.append(Alarm(12.5, 2, 50.0, 0.03, 0.1, 7.5))
     q = Pipeline.restore(cams, cfg, json.loads(json.dumps(p.snapshot())))
     assert q.monitor.alarms == p.monitor.alarms and q.state().cameras[2].moved_at == 12.5
+
+
+def test_a_thin_cycle_does_not_make_a_camera_s_first_big_move(lab):
+    """select.first_cycle_gate: a cycle that would move a camera no cycle has calibrated
+    yet 0.85 m / 28° (χ² ~20 against the initial std: within cycle_gate's 40) on 30
+    projections leaves it at its start; on 150 projections, or for a camera already
+    calibrated, the move is taken (cycle_gate decides); a small first move is taken."""
+    cams = lab[0]
+    p = Pipeline(cams, EngineConfig())
+    rf, C = p.refiner, len(p.names)
+    P = rf.predicted_covariance()
+    problem = Problem(cycle=5, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(), prior_cov=P,
+                      focal=p.focal, config=p.cfg.optimize)
+    R, t = rf.R.copy(), rf.t.copy()
+    big = np.r_[np.radians([0.0, 28.0, 0.0]), 0.6, 0.6, 0.0]  # 28°, 0.85 m
+    small = np.r_[np.radians([0.0, 2.0, 0.0]), 0.05, 0.0, 0.0]
+    for c, step in ((0, big), (1, big), (2, small), (3, small), (4, small), (5, small)):
+        R[c], t[c] = pose_retract(R[c], t[c], step)
+    obs = np.array([30, 150, 30, 300, 300, 300, 300, 300][:C])
+    sol = Solution(ok=True, reason="", R=R, t=t, cov=P.copy(), cov_shape=P.copy(), active=np.ones(C, bool),
+                   obs_per_camera=obs, hypotheses=20, residual_px=np.ones(10), initial_error=2.0, final_error=1.0,
+                   iterations=5, seconds=0.1)
+    far = p._beyond_prediction(problem, sol)
+    assert far[0] and not far[1:].any()  # the thin big move only
+    rf.cycles[0] = 1  # calibrated before: only cycle_gate (40) judges it
+    assert not p._beyond_prediction(problem, sol).any()
+    rf.cycles[0] = 0
+    off = Pipeline(cams, EngineConfig().merged({"select": {"first_cycle_gate": 0}}))
+    assert not off._beyond_prediction(problem, sol).any()
 
 
 def test_offline_the_default_monitor_does_not_watch(lab, watching):
