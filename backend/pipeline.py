@@ -602,8 +602,10 @@ class Pipeline:
 
     def _beyond_prediction(self, problem: Problem, solution: Solution) -> np.ndarray:
         """(C,) bool the cameras a cycle put further from the filter's prediction (the
-        cycle's prior) than ``select.cycle_gate`` allows, when they are a minority of the
-        cameras it moved (``_gated``); counted per camera in ``cycle_gated``."""
+        cycle's prior) than ``select.cycle_gate`` allows, or, for a camera not calibrated
+        yet and seen on fewer than ``select.first_cycle_observations`` projections, than
+        ``select.first_cycle_gate``; when they are a minority of the cameras it moved
+        (``_gated``); counted per camera in ``cycle_gated``."""
         sel = self.cfg.select
         far, moves = _gated(problem, solution, sel.cycle_gate)
         if sel.first_cycle_gate > 0:  # a camera not yet calibrated: a thin cycle's big move is not taken
