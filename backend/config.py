@@ -228,6 +228,12 @@ class MonitorConfig(_Section):
     reopen_std_translation: float = Field(0.10, gt=0, description="m: the flagged camera's uncertainty from then on")
     reopen_std_rotation: float = Field(5.0, gt=0, description="deg")
 
+    @property
+    def on(self) -> bool:
+        """Whether the pipeline watches: ``"live"`` is on only once ``EngineConfig.live()``
+        made it true (the service's sessions)."""
+        return self.enabled is True
+
 
 class BootstrapConfig(_Section):
     """Calibration without an initial estimate (backend/bootstrap.py, docs/bootstrap.md)."""

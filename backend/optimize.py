@@ -258,15 +258,14 @@ def _drop_inconsistent_views(hyps: list[Hypothesis], person: np.ndarray, p: Prob
     if not where:
         return hyps, person
     X = triangulate_hypotheses([_without_view(hyps[i], k) for i, k in where], p.R, p.t)  # (N, 17, 3)
-    miss = np.full(len(where), np.nan)
-    for n, ((i, k), Xn) in enumerate(zip(where, X)):
-        c = int(hyps[i].cams[k])
-        Xc = (Xn - p.t[c]) @ p.R[c]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            e = np.linalg.norm(Xc[:, :2] / Xc[:, 2:3] - hyps[i].xy[k], axis=1) * p.focal[c]
-        e = e[np.isfinite(e) & (Xc[:, 2] > 0)]
-        if len(e) >= 4:
-            miss[n] = float(np.median(e))
+    N, J = X.shape[:2]
+    cam = np.repeat([int(hyps[i].cams[k]) for i, k in where], J)
+    xy = np.stack([hyps[i].xy[k] for i, k in where]).reshape(-1, 2)
+    e = residuals_px(p.R, p.t, X.reshape(-1, 3), cam, np.arange(N * J), xy, p.focal).reshape(N, J)
+    e[~np.isfinite(e)] = np.nan  # behind the camera, or a joint not seen
+    seen = np.isfinite(e).sum(1) >= 4
+    miss = np.full(N, np.nan)
+    miss[seen] = np.nanmedian(e[seen], axis=1)
     if not np.isfinite(miss).any():
         return hyps, person
     base = max(p.config.outlier_px, 4.0 * float(np.nanmedian(miss)))

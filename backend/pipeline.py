@@ -65,21 +65,28 @@ def _from_prior(R0: np.ndarray, t0: np.ndarray, P: np.ndarray, R: np.ndarray, t:
     return float(np.linalg.norm(t - t0)), float(np.degrees(np.linalg.norm(delta[:3]))), chi2
 
 
-def _gated(problem: Problem, solution: Solution, gate: float) -> tuple[np.ndarray, dict[int, tuple[float, float, float]]]:
-    """(C,) bool the cameras the solution put further than χ² ``gate`` (6 dof) from the
-    problem's prior, and each moved camera's (m, deg, χ²) from it. None is far when the
-    gate is off (0), or when most of the cameras it moved went that far: then the stated
-    uncertainty is what is wrong, not the data. NaN (a singular prior) is not far."""
-    far = np.zeros(len(solution.R), bool)
-    if gate <= 0:
-        return far, {}
-    idx = np.flatnonzero(solution.active)
-    moves = {c: _from_prior(problem.prior_R[c], problem.prior_t[c], problem.prior_cov[c], solution.R[c],
-                            solution.t[c]) for c in idx}
+Moves = dict[int, tuple[float, float, float]]
+
+
+def _moves(problem: Problem, solution: Solution) -> Moves:
+    """Each camera the solution moved: its (m, deg, χ²) from the problem's prior."""
+    return {int(c): _from_prior(problem.prior_R[c], problem.prior_t[c], problem.prior_cov[c], solution.R[c],
+                                solution.t[c]) for c in np.flatnonzero(solution.active)}
+
+
+def _gated(moves: Moves, C: int, gate: float) -> np.ndarray:
+    """(C,) bool the cameras ``moves`` put further than χ² ``gate`` (6 dof) from their
+    prior. None is far when the gate is off (0), or when most of the cameras moved went
+    that far: then the stated uncertainty is what is wrong, not the data. NaN (a singular
+    prior) is not far."""
+    far = np.zeros(C, bool)
+    if gate <= 0 or not moves:
+        return far
+    idx = np.fromiter(moves, dtype=np.int64)
     far[idx] = [moves[c][2] > gate for c in idx]
     if far.sum() * 2 > len(idx):
         far[:] = False
-    return far, moves
+    return far
 
 
 class Pipeline:
@@ -556,7 +563,7 @@ class Pipeline:
                 self.observations_batch = solution.obs_per_camera.copy()
             else:
                 self.observations += np.where(active, solution.obs_per_camera, 0)
-            if problem.kind == "cycle" and self.cfg.monitor.enabled is True:  # "live": the service's sessions
+            if problem.kind == "cycle" and self.cfg.monitor.on:
                 alarms = self._monitor()
         else:
             self.cycles_rejected += 1
@@ -592,7 +599,8 @@ class Pipeline:
         outvote a camera's prior and put it metres off with a small std, and the cycles
         after it then associate to the wrong pose. Left at its start, the next pass, with
         the others about right, associates it again."""
-        far, moves = _gated(problem, solution, self.cfg.select.first_gate)
+        moves = _moves(problem, solution)
+        far = _gated(moves, len(solution.R), self.cfg.select.first_gate)
         for c in np.flatnonzero(far):
             log.warning("the first adjustment put %s %.2f m from its initial estimate (χ² %.0f against its stated "
                         "std): kept at its start, the next cycles associate it again", self.names[c], moves[c][0],
@@ -606,14 +614,12 @@ class Pipeline:
         yet and seen on fewer than ``select.first_cycle_observations`` projections, than
         ``select.first_cycle_gate``; when they are a minority of the cameras it moved
         (``_gated``); counted per camera in ``cycle_gated``."""
-        sel = self.cfg.select
-        far, moves = _gated(problem, solution, sel.cycle_gate)
-        if sel.first_cycle_gate > 0:  # a camera not yet calibrated: a thin cycle's big move is not taken
-            fresh = (self.refiner.cycles == 0) & ~self.refiner.batched & (solution.obs_per_camera
-                                                                         < sel.first_cycle_observations)
-            far_first, moves_first = _gated(problem, solution, sel.first_cycle_gate)
-            far |= far_first & fresh
-            moves = moves or moves_first
+        sel, C = self.cfg.select, len(solution.R)
+        moves = _moves(problem, solution)
+        # a camera not yet calibrated: a thin cycle's big move is not taken
+        fresh = (self.refiner.cycles == 0) & ~self.refiner.batched & (solution.obs_per_camera
+                                                                     < sel.first_cycle_observations)
+        far = _gated(moves, C, sel.cycle_gate) | (_gated(moves, C, sel.first_cycle_gate) & fresh)
         for c in np.flatnonzero(far):
             log.debug("cycle %d would have moved %s %.2f m / %.1f° (χ² %.0f against its predicted std): not taken",
                       problem.cycle, self.names[c], *moves[c])
@@ -854,7 +860,7 @@ class Pipeline:
         p.first_passes = int(snapshot.get("first_passes", 2))
         p.monitor.alarms = [Alarm(float(a[0]), int(a[1]), *map(float, a[2:])) for a in snapshot.get("moved", [])]
         p.watched = np.array(snapshot.get("watched", [False] * len(p.names)), dtype=bool)
-        if config.monitor.enabled is True:  # held from the first cycle after the restart, not the monitor's first turn
+        if config.monitor.on:  # held from the first cycle after the restart, not the monitor's first turn
             rf.held = p.watched & config.monitor.hold
         rf.batched = np.array(snapshot.get("batched", [False] * len(p.names)), dtype=bool)
         p.observations = np.array(snapshot["observations"], dtype=np.int64)

@@ -1524,40 +1524,41 @@ class Service:
         active calibration (one stopped before its first cycle only holds the initial
         estimate: recorded, not activated). The publication follows the active version."""
         rec, state = s.record, s.state
-        doc = self.calibration_dict(s)
-        text = dump_extrinsics(state.extrinsics(s.resolutions), comment=_result_comment(rec, state))
         activate = state.cycle > 0
         why = f"session {rec.id} {rec.reason} after {state.cycle} cycles" + (
             "" if activate else " (no cycle ran: recorded, not activated)")
-        try:
-            await asyncio.to_thread(self.versions.record, doc, text, s.inputs.intrinsics_yaml,
-                                    by=f"session {rec.id}", reason=why, activate=activate)
-        except OSError as e:
-            log.error("could not record the calibration of session %s as a version: %s", rec.id, e)
-            self.writer.error = self.writer.error or f"calibration history: {e}"
+        await self._store_version(s, by=f"session {rec.id}", reason=why, activate=activate)
         active = self.versions.active_doc()
         if active is not None:
             self._publish_doc(active)
         else:
             self._publish_calibration(s)
 
+    async def _store_version(self, s: ActiveSession, *, by: str, reason: str, activate: bool) -> dict[str, Any] | None:
+        """The session's calibration as it is now, recorded as a version (its metadata);
+        None when the history cannot be written (logged, shown as a storage error)."""
+        rec, state = s.record, s.state
+        doc = self.calibration_dict(s)
+        text = dump_extrinsics(state.extrinsics(s.resolutions), comment=_result_comment(rec, state))
+        try:
+            return await asyncio.to_thread(self.versions.record, doc, text, s.inputs.intrinsics_yaml, by=by,
+                                           reason=reason, activate=activate)
+        except OSError as e:
+            log.error("could not record the calibration of session %s as a version: %s", rec.id, e)
+            self.writer.error = self.writer.error or f"calibration history: {e}"
+            return None
+
     async def _record_recalibration(self, s: ActiveSession, report: "CycleReport") -> None:
         """Cameras the monitor found moved are calibrated again: the running session's
         network as it is now becomes the active version (by the monitor, saying which
         camera moved and when), so the history has every accepted calibration, not only
         the sessions' ends. The publication keeps showing the session's live estimate."""
-        rec, state = s.record, s.state
-        doc = self.calibration_dict(s)
-        text = dump_extrinsics(state.extrinsics(s.resolutions), comment=_result_comment(rec, state))
-        flagged = {c.name: c.moved_at for c in state.cameras}
+        rec = s.record
+        flagged = {c.name: c.moved_at for c in s.state.cameras}
         why = "; ".join(f"{n} moved (flagged at {_utc(flagged.get(n))} of data time) and was calibrated again"
                         for n in report.recalibrated) + f" (session {rec.id}, cycle {report.cycle})"
-        try:
-            meta = await asyncio.to_thread(self.versions.record, doc, text, s.inputs.intrinsics_yaml, by="monitor",
-                                           reason=why, activate=True)
-        except OSError as e:
-            log.error("could not record the re-calibration of %s as a version: %s", ", ".join(report.recalibrated), e)
-            self.writer.error = self.writer.error or f"calibration history: {e}"
+        meta = await self._store_version(s, by="monitor", reason=why, activate=True)
+        if meta is None:
             return
         log.info("session %s: %s; version %d", rec.id, why, meta["version"])
         self.events.publish("calibration", {"version": meta["version"], "by": "monitor", "reason": why,
