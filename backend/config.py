@@ -134,6 +134,12 @@ class SelectConfig(_Section):
                                     "decides. 0: off")
     first_cycle_observations: int = Field(100, ge=0, description="projections of a not yet calibrated camera that let a "
                                           "cycle move it beyond first_cycle_gate")
+    dispute_cycles: int = Field(5, ge=0, description="cycles in a row that refuse a camera's move (cycle_gate) before an "
+                                "adjustment over the archived frames it sees someone in, its prior re-opened, decides "
+                                "between its estimate and the cycles: either their associations or its stated std is "
+                                "wrong (a first adjustment left a camera 13° off with a 2° std and the gate held it "
+                                "there, docs/accuracy.md, Session 17); each verdict for the estimate doubles the next "
+                                "run needed. 0: off")
 
 
 class OptimizeConfig(_Section):

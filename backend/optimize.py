@@ -67,9 +67,9 @@ class Problem:
     fill: bool = False  # after the spaced hypotheses, the others up to max_hypotheses (``select_spaced``)
     seed: int = 0
     marginals: bool = True
-    kind: str = "cycle"  # cycle | first | batch | relocalize | recalibrate
+    kind: str = "cycle"  # cycle | first | batch | relocalize | recalibrate | dispute
     lost: tuple[int, ...] = ()  # relocalize: the cameras to find again
-    moved: tuple[int, ...] = ()  # recalibrate: the cameras calibrated again (the others held by tight priors)
+    moved: tuple[int, ...] = ()  # recalibrate: the cameras calibrated again (the others held by tight priors); dispute: the camera in question
 
     def __post_init__(self) -> None:
         C = len(self.R)

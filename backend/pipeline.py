@@ -143,6 +143,10 @@ class Pipeline:
         self.first_passes = 0  # passes of the first adjustment done (select.first_scope)
         self.first_gated: list[str] = []  # cameras a first pass put implausibly far, kept at their start
         self.cycle_gated: Counter = Counter()  # per camera: cycles whose move of it was not taken (select.cycle_gate)
+        self.disputes = np.zeros(C, dtype=np.int64)  # per camera: cycles in a row that refused its move
+        self.confirmed = np.zeros(C, dtype=np.int64)  # per camera: dispute adjustments that kept its estimate
+        self.disputed: list[int] = []  # cameras due for a dispute adjustment (select.dispute_cycles)
+        self.redone: list[str] = []  # cameras a dispute adjustment put elsewhere
         self.relocalized: list[str] = []
         self.final_batch_start: str | None = None  # the final batch kept: from the "estimate" or the "start"
         self.scale_heights = None if scale_heights is None else tuple(float(h) for h in scale_heights)
@@ -394,6 +398,8 @@ class Pipeline:
             self.cycle += 1
             horizon = self.frames[-1][0] - 180.0 if self.frames else 0.0
             p = self._relocalize_problem(lost, self._timed_frames(f for f in self.frames if f[0] >= horizon))
+        elif self.disputed:
+            p = self._dispute_problem(self.disputed.pop(0))
         elif any(due <= now for due, _, _ in self._recalibrate_due):
             k = next(i for i, (due, _, _) in enumerate(self._recalibrate_due) if due <= now)
             _, cam, since = self._recalibrate_due.pop(k)
@@ -454,6 +460,21 @@ class Pipeline:
         pose_px = p.pose_px.copy()
         pose_px[cam] = np.inf  # where it went is what this adjustment is to find
         return replace(p, prior_R=rf.R.copy(), prior_t=rf.t.copy(), prior_cov=P, kind="recalibrate", moved=(cam,),
+                       pose_px=pose_px)
+
+    def _dispute_problem(self, cam: int) -> Problem:
+        """A camera the cycles keep disagreeing with (``_count_disputes``) decided by an
+        adjustment over the archived frames in which it sees someone, re-associated, its
+        own prior re-opened to the start's std and its views not gated by its pose; the
+        others' priors their filtered state. Only that camera's result is taken (``_settle``)."""
+        rf = self.refiner
+        P = rf.predicted_covariance()
+        P[cam] = rf.P0[cam]
+        frames = (f for f in self.frames if any(d.cam == cam for v in f[1] for d in v))
+        p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2, frames)
+        pose_px = p.pose_px.copy()
+        pose_px[cam] = np.inf
+        return replace(p, prior_R=rf.R.copy(), prior_t=rf.t.copy(), prior_cov=P, kind="dispute", moved=(cam,),
                        pose_px=pose_px)
 
     def _relocalize_problem(self, lost, frames) -> Problem:
@@ -538,6 +559,9 @@ class Pipeline:
             for c in np.flatnonzero(solution.active):
                 self.refiner.relocate(c, solution.R[c], solution.t[c])
                 self.relocalized.append(self.names[c])
+        elif problem.kind == "dispute":
+            self._settle(problem.moved[0], solution if accepted else None)
+            self.cycles_rejected += not accepted
         elif accepted and problem.kind == "recalibrate":
             # the moved camera's posterior over the data since its move; the held keep theirs
             only = np.zeros(len(self.names), bool)
@@ -624,7 +648,45 @@ class Pipeline:
             log.debug("cycle %d would have moved %s %.2f m / %.1f° (χ² %.0f against its predicted std): not taken",
                       problem.cycle, self.names[c], *moves[c])
             self.cycle_gated[self.names[c]] += 1
+        self._count_disputes(solution.active & ~self.refiner.held, far)
         return far
+
+    def _count_disputes(self, seen: np.ndarray, refused: np.ndarray) -> None:
+        """A camera whose move ``select.dispute_cycles`` cycles in a row refused is due for
+        a dispute adjustment (``_dispute_problem``): one refused cycle is a bad association,
+        a run of them says its stated uncertainty may be wrong (a pass of the first
+        adjustment can leave a camera far off with a small std), and the gate would hold it
+        there. Each adjustment that kept its estimate doubles the run the next one needs."""
+        n = self.cfg.select.dispute_cycles
+        self.disputes[seen & ~refused] = 0
+        self.disputes[seen & refused] += 1
+        if n <= 0:
+            return
+        for c in np.flatnonzero(self.disputes >= n * 2 ** np.minimum(self.confirmed, 10)):
+            log.info("%d cycles in a row would have moved %s further than its std allows: an adjustment over its "
+                     "archived views decides", self.disputes[c], self.names[c])
+            if c not in self.disputed:
+                self.disputed.append(int(c))
+            self.disputes[c] = 0
+
+    def _settle(self, c: int, solution: Solution | None) -> None:
+        """A dispute adjustment's verdict on camera c: beyond ``select.cycle_gate`` of its
+        estimate, the estimate was wrong and the camera starts over from the adjustment's
+        pose and covariance; within it (or no verdict), the cycles' associations were what
+        was wrong and the estimate stays."""
+        rf = self.refiner
+        if solution is not None and solution.active[c] and np.all(np.isfinite(solution.cov[c])):
+            m, deg, chi2 = _from_prior(rf.R[c], rf.t[c], rf.predicted_covariance()[c], solution.R[c], solution.t[c])
+            if chi2 > self.cfg.select.cycle_gate:
+                log.warning("%s was %.2f m / %.1f° off (χ² %.0f against its std), an adjustment over its archived "
+                            "views says: it starts over from there", self.names[c], m, deg, chi2)
+                rf.recalibrated(c, solution.R[c], solution.t[c], solution.cov[c])
+                self.confirmed[c] = 0
+                self.redone.append(self.names[c])
+                return
+            log.info("%s: an adjustment over its archived views keeps its estimate (%.2f m / %.1f° from it, χ² %.0f)",
+                     self.names[c], m, deg, chi2)
+        self.confirmed[c] += 1
 
     def _monitor(self) -> list[str]:
         """The monitor's turn after a cycle: watch the converged cameras, flag moved ones
