@@ -471,7 +471,9 @@ class Pipeline:
         P = rf.predicted_covariance()
         P[cam] = rf.P0[cam]
         frames = (f for f in self.frames if any(d.cam == cam for v in f[1] for d in v))
-        p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2, frames)
+        # its own seed: a dispute must not change what the run's other draws select
+        p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2, frames,
+                                seed=self.cycle * 7919 + cam)
         pose_px = p.pose_px.copy()
         pose_px[cam] = np.inf
         return replace(p, prior_R=rf.R.copy(), prior_t=rf.t.copy(), prior_cov=P, kind="dispute", moved=(cam,),
@@ -517,7 +519,7 @@ class Pipeline:
         return (self.refiner.cycles == 0) & (det >= a.lost_min_detections) & (assoc < a.lost_ratio * det)
 
     def _batch_problem(self, max_hypotheses: int, spacing: float, frames: Iterable | None = None, *,
-                       final: bool = False) -> Problem:
+                       final: bool = False, seed: int | None = None) -> Problem:
         """Every archived frame (or ``frames``), re-associated in the solve with the current
         estimate; prior = the start (the initial estimate, or the data's shape aligned onto
         it) with its covariance, so the result is the honest posterior of all the data.
@@ -536,7 +538,7 @@ class Pipeline:
                        # keep its views to be put right; the solve's outlier rounds drop bad ones
                        gate_px=None, pose_px=self._pose_px(), max_hypotheses=max_hypotheses,
                        spacing=spacing, fill=final and self.cfg.refine.batch_fill,
-                       seed=int(self.rng.integers(2**31)), kind="batch")
+                       seed=int(self.rng.integers(2**31)) if seed is None else seed, kind="batch")
 
     def apply(self, problem: Problem, solution: Solution) -> CycleReport:
         """Fold a solved cycle into the estimate (or reject it, keeping the estimate)."""
