@@ -319,11 +319,16 @@ class BootstrapConfig(_Section):
 class ClockConfig(_Section):
     """Sensor clock offsets estimated from the data (backend/clock_offsets.py, docs/clock_offsets.md)."""
 
-    estimate: bool = Field(False, description="estimate each sensor's clock offset from its keypoints and apply confident "
-                           "ones beyond NTP's spread (the service runs the estimate in a thread; docs/clock_offsets.md). "
-                           "Off by default: live it doubles the service's CPU (0.16 -> 0.31 cores for 20 cameras at 30 Hz, "
-                           "0.61 -> 1.13 for 100, with the loop's p99 lag 31 -> 301 ms); turn it on where clocks or stamps are "
-                           "suspect (every recording calibrated as accurately as with synchronised clocks, session 13)")
+    estimate: bool | Literal["auto"] = Field(
+        "auto", description="estimate each sensor's clock offset from its keypoints and apply confident ones beyond NTP's "
+        "spread (the service runs the estimate in a thread; docs/clock_offsets.md). It costs CPU (live: 0.16 -> 0.31 cores "
+        "for 20 cameras at 30 Hz, 0.61 -> 1.13 for 100, the loop's p99 lag 31 -> 301 ms), so \"auto\" (the default) starts "
+        "it only once a sensor's stamps run more than auto_lead apart from the others' as they arrive; true: from the "
+        "start; false: never")
+    auto_lead: float = Field(0.05, gt=0, description="s: with estimate = \"auto\", the median over 10-60 s of a sensor's "
+                             "newest stamp minus the median of all sensors' newest stamps (sampled every 0.5 s of data) "
+                             "beyond which estimation starts (synchronised sensors: within 30 ms, their network delays and "
+                             "frame rates; docs/clock_offsets.md, Session 17)")
     max_offset: float = Field(0.25, gt=0, le=2.0, description="s: largest offset searched (relative to the synchronised clock)")
     interval: float = Field(10.0, gt=0, description="s of data time between estimates")
     settled_interval: float = Field(60.0, ge=0, description="s: a synchronised sensor (nothing applied, "

@@ -332,8 +332,9 @@ class SensorTable:
             off = d["clock_offset"]
             if off is not None and typical is not None and len(offsets) >= 3 and abs(off - typical) > max_offset:
                 warnings.append(f"clock {1000 * (typical - off):+.0f} ms from the other sensors' "
-                                f"(limit {1000 * max_offset:.0f} ms): check its NTP, or let sessions estimate it from "
-                                "the data (config clock.estimate = true)")
+                                f"(limit {1000 * max_offset:.0f} ms): check its NTP; sessions estimate it from the data "
+                                "once its stamps run more than clock.auto_lead apart (clock.estimate = auto, the "
+                                "default; true: from the start)")
             lat = d["latency"]
             if lat is not None and lat["median"] > max_latency:
                 warnings.append(f"messages arrive {1000 * lat['median']:.0f} ms after capture, later than "

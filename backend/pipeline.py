@@ -126,8 +126,14 @@ class Pipeline:
         # per camera: (frameset time from which, offset applied), to know how archived views were timed
         self._offset_history: list[list[tuple[float, float]]] = [[] for _ in self.names]
         # raw messages, to time the archived views again with the final offsets (backend/retime.py)
-        self.raw = (RawArchive(self.names, self.cfg.clock.retime_seconds)
-                    if self.cfg.clock.estimate and self.cfg.clock.retime_seconds > 0 else None)
+        self.raw: RawArchive | None = None
+        self.estimating = False  # the clock offsets' estimate runs (clock.estimate; "auto": once the stamps say so)
+        self._leads: dict[str, deque[float]] = {}  # per sensor: its newest stamp minus all sensors' median, sampled
+        self._last_lead: float | None = None
+        self._lead_samples = 0
+        self._spans: dict[str, list] = {}  # per sensor: [first stamp, messages], for its frame period
+        if self.cfg.clock.estimate is True:
+            self._start_estimating()
         self.retimed: dict[str, int] = {}  # sensor -> archived views timed again at the end
         # preprocessed framesets, re-associated with a better estimate by warm-up and final batch
         self.frames: deque[tuple[float, tuple[tuple[Detection, ...], ...]]] = deque(
@@ -184,11 +190,13 @@ class Pipeline:
         if reason is not None:
             self.rejected[reason] += 1
             return reason
-        if self.cfg.clock.estimate:
+        if self.estimating:
             self.clocks.push(msg)
             if self.raw is not None:
                 self.raw.push(msg)
         self.last_seen[msg.sensor] = msg.stamp
+        span = self._spans.setdefault(msg.sensor, [msg.stamp, 0])  # its first stamp, messages since
+        span[1] += 1
         stamp = msg.stamp - self.sync.offset(msg.sensor)
         if arrival is None and (self.clock is None or stamp > self.clock):
             self.clock = stamp
@@ -216,6 +224,8 @@ class Pipeline:
         if self.clock is None or now > self.clock:
             self.clock = now
         new = 0
+        if not self.estimating and self.cfg.clock.estimate == "auto":
+            self._watch_stamps(now)
         R, t = self.refiner.R, self.refiner.t
         job = self.clock_job(now) if clock_offsets else None
         if job is not None:
@@ -245,7 +255,7 @@ class Pipeline:
         hyps = self.associate(time, views, R, t, gate, pose_px)
         self.queue.extend(hyps)
         self.monitor.add(hyps)
-        if self.cfg.clock.estimate:
+        if self.estimating:
             self.clocks.add(hyps)
         for v in views:
             self.detected[v[0].cam] += len(v)
@@ -256,6 +266,42 @@ class Pipeline:
             if len(h.cams) >= self.cfg.associate.min_views_unsettled:
                 self.associated_multi[h.cams] += 1
         return len(hyps)
+
+    def _start_estimating(self) -> None:
+        self.estimating = True
+        if self.raw is None and self.cfg.clock.retime_seconds > 0:
+            self.raw = RawArchive(self.names, self.cfg.clock.retime_seconds)
+
+    def _watch_stamps(self, now: float) -> None:
+        """``clock.estimate = "auto"``: every 0.5 s of data, each sensor's newest stamp
+        (plus half its frame period: how old its newest frame is on average) minus the
+        median of all sensors' (those heard from in the last 2 s), as the messages arrive,
+        live and in a recording alike. Synchronised sensors differ by their network and
+        detector delays; a clock off by more shows as its median over the last minute (at
+        least 10 s) beyond ``clock.auto_lead``, and the estimate starts. A few float ops
+        per sensor twice a second: nothing against the estimate's own cost."""
+        if self._last_lead is not None and now - self._last_lead < 0.5:
+            return
+        self._last_lead = now
+        spans = self._spans
+        fresh = {s: t + (0.5 * (t - spans[s][0]) / (spans[s][1] - 1) if spans.get(s, (0, 0))[1] > 1 else 0.0)
+                 for s, t in self.last_seen.items() if now - t < 2.0}
+        if len(fresh) < 3:
+            return
+        mid = float(np.median(list(fresh.values())))
+        for s, t in fresh.items():
+            self._leads.setdefault(s, deque(maxlen=120)).append(t - mid)
+        self._lead_samples += 1
+        if self._lead_samples % 10:
+            return  # the medians every 5 s
+        far = {s: float(np.median(d)) for s, d in self._leads.items() if len(d) >= 20}
+        far = {s: v for s, v in far.items() if abs(v) > self.cfg.clock.auto_lead}
+        if far:
+            log.warning("the stamps of %s run %s from the other sensors' as they arrive: estimating the sensors' clock "
+                        "offsets from the data from now on, %.0f s into it (clock.estimate = auto)", ", ".join(far),
+                        ", ".join(f"{1000 * v:+.0f} ms" for v in far.values()),
+                        now - min(f for f, _ in self._spans.values()))
+            self._start_estimating()
 
     def clock_job(self, now: float | None) -> ClockJob | None:
         """The clock offsets' estimate when due (``clock.estimate``, every
@@ -740,7 +786,7 @@ class Pipeline:
             self._release_pending()
         if self.clock is not None:
             self.advance(self.clock + self.cfg.sync.wait + 1.0 / self.cfg.sync.rate)
-            if self.cfg.clock.estimate and self._calibrated():
+            if self.estimating and self._calibrated():
                 self._retime(self.clocks.update(self.clock, self.refiner.R, self.refiner.t, flush=True,
                                                 P=self.refiner.S))
             self.retime_archive()
@@ -753,7 +799,7 @@ class Pipeline:
             self.apply(p, solve(p))
         if self.cfg.refine.final_batch and self.frames:
             self.batch_adjust()
-            if self.cfg.clock.estimate and self._calibrated():  # the offsets as the final poses see them
+            if self.estimating and self._calibrated():  # the offsets as the final poses see them
                 self.clocks.reestimate(self.clock, self.refiner.R, self.refiner.t, P=self.refiner.S)
         if self.scale_heights is not None and self.scale_check is None and self.frames and self.cycle > 0:
             try:
@@ -851,7 +897,7 @@ class Pipeline:
         calibrated = [c for c in cams if c.cycles > 0 or c.moved_at is not None]
         converged = bool(calibrated) and all(c.converged for c in calibrated)
         return CalibrationState(self.clock, self.cycle, tuple(cams), converged, self.counters(), self.last_report,
-                                clocks=self.clocks.clocks() if self.cfg.clock.estimate else (),
+                                clocks=self.clocks.clocks() if self.estimating else (),
                                 scale_check=self.scale_check.to_dict() if self.scale_check is not None else None)
 
     def skeletons(self, n: int = 4) -> list[list[list[float] | None]]:
@@ -889,6 +935,7 @@ class Pipeline:
             "observations_batch": self.observations_batch.tolist(),
             "clock": self.clock,
             "clock_offsets": {n: float(o) for n, o in zip(self.names, self.clocks.applied) if o},
+            "clock_estimating": self.estimating,
             "scale_heights": None if self.scale_heights is None else list(self.scale_heights),
             "scale_check": self.scale_check.to_dict() if self.scale_check is not None else None,
         }
@@ -930,7 +977,9 @@ class Pipeline:
         p.observations = np.array(snapshot["observations"], dtype=np.int64)
         p.observations_batch = np.array(snapshot.get("observations_batch", [0] * len(p.names)), dtype=np.int64)
         applied = {n: float(o) for n, o in snapshot.get("clock_offsets", {}).items() if n in p.names}
-        if config.clock.estimate:  # the data timed as before the restart
+        if snapshot.get("clock_estimating", bool(applied)) and config.clock.estimate is not False:
+            p._start_estimating()  # the data timed as before the restart
+        if p.estimating:
             p.clocks.set_applied(applied)
             for n, o in applied.items():
                 p.sync.set_offset(n, o)

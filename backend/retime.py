@@ -9,7 +9,8 @@ synchronised clocks (docs/clock_offsets.md, session 8: seed 1's cam_5). Keeping 
 sensor's raw detections for ``clock.retime_seconds`` lets the archive be interpolated
 again at the final offsets instead.
 
-Only with ``clock.estimate`` (without it no offset ever changes). Memory: one entry per
+Only while the clock offsets are estimated (``clock.estimate``; "auto": from the moment the
+stamps start it), without which no offset ever changes. Memory: one entry per
 message, its keypoints as the synchroniser holds them (bench/clock_offsets.py prints it).
 """
 

@@ -2,21 +2,23 @@
 
 The 20-camera lab, 2 persons (1.96 m, 1.70 m), 180 s; 5 of the 20 sensors get constant
 clock offsets (``SimConfig.clock_offsets``, default -200, -100, +50, +120, +200 ms). The
-offline pipeline (``backend.pipeline.run_offline``) runs three times from the same
+offline pipeline (``backend.pipeline.run_offline``) runs up to six times from the same
 initial estimate (0.25 m / 10°, ``backend.perturb``):
 
 - offsets, estimation on (``clock.estimate = true``);
 - synchronised clocks (the same seed without the offsets), estimation on: what it
   invents when there is nothing to find;
 - synchronised clocks, estimation off;
-- offsets, estimation off.
+- offsets, estimation off;
+- offsets and synchronised clocks with ``clock.estimate = "auto"`` (the default: the
+  estimate starts when a sensor's stamps run apart from the others' as they arrive).
 
-Printed (for both estimated runs): per sensor the true offset (relative to the median sensor, as reported), the
+Printed (for the estimated runs): per sensor the true offset (relative to the median sensor, as reported), the
 estimate, its std, the error and the offset applied; then the calibration error of each
 run (``backend.evaluate``: rigid position / orientation, shape position, mean over all 20
 cameras and over the 5 offset ones).
 
-    python bench/clock_offsets.py                       # seed 1, all four runs
+    python bench/clock_offsets.py                       # seed 1, all six runs
     python bench/clock_offsets.py --seed 2 --duration 120 --json out.json
     python bench/clock_offsets.py --runs "offsets, estimated" --drifts cam_5=1e-4   # a drifting clock too
     python bench/clock_offsets.py --sim noise_scale=2 --set clock.retime_seconds=0  # other detector, other setting
@@ -46,7 +48,7 @@ from bench.accuracy import lab_dir, simulate  # noqa: E402
 DEFAULT_OFFSETS = {"cam_2": -0.200, "cam_5": -0.100, "cam_9": 0.050, "cam_13": 0.120, "cam_17": 0.200}
 
 
-def run(recording: Path, seed: int, estimate: bool, start: tuple[float, float], overrides: list[str] = ()) -> dict:
+def run(recording: Path, seed: int, estimate: bool | str, start: tuple[float, float], overrides: list[str] = ()) -> dict:
     from backend.cameras import CameraSet, load_extrinsics, load_intrinsics
     from backend.config import EngineConfig
     from backend.evaluate import evaluate
@@ -67,6 +69,7 @@ def run(recording: Path, seed: int, estimate: bool, start: tuple[float, float], 
     acc = evaluate(state.poses(), ref)
     raw = (len(p.raw), len(pickle.dumps(p.raw)) / 1e6) if p.raw is not None else (0, 0.0)
     return {"seconds": seconds, "accuracy": acc.to_dict(), "clocks": {c.sensor: c.to_dict() for c in state.clocks},
+            "estimated": p.estimating,
             "retimed": dict(p.retimed), "raw_messages": raw[0], "raw_mb": raw[1]}
 
 
@@ -132,24 +135,27 @@ def main() -> None:
         "synchronised clocks, estimated": (rec_sync, True),
         "synchronised clocks": (rec_sync, False),
         "offsets, not estimated": (rec_off, False),
+        "offsets, auto": (rec_off, "auto"),
+        "synchronised clocks, auto": (rec_sync, "auto"),
     }
     keep = [k for k in plan if a.runs == "all" or k in a.runs.split(";")]
     runs = {k: run(plan[k][0], a.seed, plan[k][1], start, a.set) for k in keep}
     for name, tr_all, off in (("offsets, estimated", true, offsets),
-                              ("synchronised clocks, estimated", true_sync, {})):
-        if name in runs:
+                              ("synchronised clocks, estimated", true_sync, {}), ("offsets, auto", true, offsets)):
+        if name in runs and runs[name]["estimated"]:
             table(name, runs[name]["clocks"], tr_all, off, a)
     print()
     print("| run | rigid position (m) | orientation (°) | shape position (m) | offset sensors: position (m) / orientation (°) "
-          "| views timed again | raw messages kept (MB pickled) | wall s |")
-    print("|---|---|---|---|---|---|---|---|")
+          "| estimate ran | views timed again | raw messages kept (MB pickled) | wall s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name, r in runs.items():
         acc = r["accuracy"]
         pc = acc["per_camera"]
         po = np.mean([pc[n]["position"] for n in offsets])
         oo = np.mean([pc[n]["orientation"] for n in offsets])
         print(f"| {name} | {acc['position']['mean']:.4f} | {acc['orientation']['mean']:.3f} | "
-              f"{acc['shape_position']['mean']:.4f} | {po:.4f} / {oo:.3f} | {sum(r['retimed'].values())} | "
+              f"{acc['shape_position']['mean']:.4f} | {po:.4f} / {oo:.3f} | {'yes' if r['estimated'] else 'no'} | "
+              f"{sum(r['retimed'].values())} | "
               f"{r['raw_messages']} ({r['raw_mb']:.0f}) | {r['seconds']:.0f} |")
     if a.json:
         a.json.write_text(json.dumps({"true": true, "runs": runs}, indent=1))

@@ -220,7 +220,8 @@ class SensorOut(BaseModel):
     clock_offset: float | None = Field(description="min(arrival − stamp) over the window: the sensor clock's lag behind ours plus the fastest transport delay")
     time_offset: dict[str, float | int | str | None] | None = Field(
         None, description="the running session's estimate of this sensor's clock offset from the data "
-        "(clock.estimate): offset and std s relative to the median sensor, applied s, blocks, drift_warnings, "
+        "(clock.estimate; \"auto\", the default: once a sensor's stamps run apart from the others'): offset and std "
+        "s relative to the median sensor, applied s, blocks, drift_warnings, "
         "note (why its last update left the estimate as it was, null when it was updated)")
     keypoints: dict[str, float | int] | None = Field(
         None, description="the running session's preprocessing of its detections: torso_keypoints detected, "

@@ -375,7 +375,7 @@ def test_retime_leaves_archived_views_timed_otherwise_out_until_taken_back(short
 
 
 def test_estimation_off_applies_nothing():
-    assert EngineConfig().clock.estimate is False  # opt-in: its CPU in the live service (docs/clock_offsets.md)
+    assert EngineConfig().clock.estimate == "auto"  # started by stamps that run apart (its CPU: docs/clock_offsets.md)
     cfg = EngineConfig.from_dict({"clock": {"estimate": False}})
     est = ClockOffsetEstimator(cfg.clock, ("a",), {"a": load_intrinsics(LAB / "intrinsics.yaml")["cam_0"]}, 0.6)
     assert not est.due(1000.0)
@@ -596,3 +596,31 @@ def test_the_row_median_is_numpys_nanmedian():
         a[rng.random(a.shape) < 0.5] = np.nan
         a[:, 3] = rng.normal(size=len(a))  # every row has a value
         np.testing.assert_array_equal(_row_nanmedian(a), np.nanmedian(a, axis=1))
+
+
+@pytest.mark.parametrize("offsets, starts", [({"cam_9": 0.09}, True), ({"cam_9": -0.15}, True), ({}, False)])
+def test_auto_starts_the_estimate_when_a_sensor_s_stamps_run_apart(offsets, starts):
+    """clock.estimate = "auto" (the default): a sensor 90 ms late or 150 ms early shows in
+    its stamps as they arrive, and the estimate starts within 20 s of data (a warning
+    names the sensor); with every clock synchronised it never starts, and nothing of it
+    runs (no records, no raw archive, no clocks in the state)."""
+    cams, msgs = six_cameras(30.0, 4, offsets)
+    cfg = EngineConfig.from_dict({"refine": {"final_batch": False}})
+    assert cfg.clock.estimate == "auto"
+    p = Pipeline(cams, cfg)
+    started = None
+    for msg in msgs:
+        p.push(msg)
+        if p.clock is not None:
+            p.advance(p.clock)
+            if started is None and p.estimating:
+                started = p.clock - msgs[0].stamp
+    assert (started is not None) == starts, started
+    if starts:
+        assert started < 20.0 and p.raw is not None and p.clocks.records
+        q = Pipeline.restore(cams, cfg, p.snapshot())
+        assert q.estimating  # a restarted session goes on estimating
+    else:
+        assert p.raw is None and not p.clocks.records and p.state().clocks == ()
+        off = Pipeline.restore(cams, cfg, p.snapshot())
+        assert not off.estimating

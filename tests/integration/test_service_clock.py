@@ -1,8 +1,9 @@
-"""A sensor whose clock is 120 ms off, on a live service with the clock offsets' estimate
-on (real Zenoh on loopback, real uvicorn, the estimate in the service's thread, the final
-batch in its solver process): `/status` shows its offset applied, the session's final
-batch times its archived views again with it (backend/retime.py), and the result is
-within the bars. The engine's own figures are bench/clock_offsets.py's."""
+"""A sensor whose clock is 120 ms off, on a live service with the default configuration
+(real Zenoh on loopback, real uvicorn): its stamps as they arrive start the clock offsets'
+estimate (`clock.estimate = "auto"`), which runs in the service's thread; `/status` shows
+its offset applied, the session's final batch (in its solver process) times its archived
+views again with it (backend/retime.py), and the result is within the bars. The engine's
+own figures are bench/clock_offsets.py's."""
 
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ def test_a_sensor_with_a_bad_clock_is_timed_and_its_archive_timed_again(tmp_path
     site = "clock"
     settings, endpoint, intrinsics_yaml, truth = west_room_service(tmp_path, lab_dir, site, SPEED)
     body = {"intrinsics_yaml": intrinsics_yaml, "initial_yaml": dump_extrinsics(truth),
-            "reference_yaml": dump_extrinsics(truth), "config": {"clock": {"estimate": True}}}
+            "reference_yaml": dump_extrinsics(truth)}  # the default config: clock.estimate = "auto"
     seen: list[dict] = []
     with ServiceThread(settings) as st, httpx.Client(base_url=st.url, timeout=60) as client:
         with Sensors(endpoint, site, lab_dir):
