@@ -325,7 +325,7 @@ class ClockConfig(_Section):
         "for 20 cameras at 30 Hz, 0.61 -> 1.13 for 100, the loop's p99 lag 31 -> 301 ms), so \"auto\" (the default) starts "
         "it only once a sensor's stamps run more than auto_lead apart from the others' as they arrive; true: from the "
         "start; false: never")
-    auto_lead: float = Field(0.05, gt=0, description="s: with estimate = \"auto\", the median over 10-60 s of a sensor's "
+    auto_lead: float = Field(0.06, gt=0, description="s: with estimate = \"auto\", the median over 10-60 s of a sensor's "
                              "newest stamp minus the median of all sensors' newest stamps (sampled every 0.5 s of data) "
                              "beyond which estimation starts (synchronised sensors: within 30 ms, their network delays and "
                              "frame rates; docs/clock_offsets.md, Session 17)")

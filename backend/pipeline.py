@@ -516,7 +516,7 @@ class Pipeline:
         rf = self.refiner
         P = rf.predicted_covariance()
         P[cam] = rf.P0[cam]
-        frames = (f for f in self.frames if any(d.cam == cam for v in f[1] for d in v))
+        frames = (f for f in self.frames if any(v[0].cam == cam for v in f[1]))  # a view: one camera's detections
         # its own seed: a dispute must not change what the run's other draws select
         p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2, frames,
                                 seed=self.cycle * 7919 + cam)
@@ -723,6 +723,8 @@ class Pipeline:
         pose and covariance; within it (or no verdict), the cycles' associations were what
         was wrong and the estimate stays."""
         rf = self.refiner
+        if rf.held[c]:  # watched since its dispute began: the monitor judges it now
+            return
         if solution is not None and solution.active[c] and np.all(np.isfinite(solution.cov[c])):
             m, deg, chi2 = _from_prior(rf.R[c], rf.t[c], rf.predicted_covariance()[c], solution.R[c], solution.t[c])
             if chi2 > self.cfg.select.cycle_gate:
