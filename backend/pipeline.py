@@ -131,7 +131,8 @@ class Pipeline:
         self._leads: dict[str, deque[float]] = {}  # per sensor: its newest stamp minus all sensors' median, sampled
         self._last_lead: float | None = None
         self._lead_samples = 0
-        self._spans: dict[str, list] = {}  # per sensor: [first stamp, messages], for its frame period
+        self._periods: dict[str, list[float]] = {}  # per sensor: [last stamp, its frame period (s, average)]
+        self._first_stamp: float | None = None
         if self.cfg.clock.estimate is True:
             self._start_estimating()
         self.retimed: dict[str, int] = {}  # sensor -> archived views timed again at the end
@@ -195,8 +196,7 @@ class Pipeline:
             if self.raw is not None:
                 self.raw.push(msg)
         self.last_seen[msg.sensor] = msg.stamp
-        span = self._spans.setdefault(msg.sensor, [msg.stamp, 0])  # its first stamp, messages since
-        span[1] += 1
+        self._frame_period(msg.sensor, msg.stamp)
         stamp = msg.stamp - self.sync.offset(msg.sensor)
         if arrival is None and (self.clock is None or stamp > self.clock):
             self.clock = stamp
@@ -272,6 +272,17 @@ class Pipeline:
         if self.raw is None and self.cfg.clock.retime_seconds > 0:
             self.raw = RawArchive(self.names, self.cfg.clock.retime_seconds)
 
+    def _frame_period(self, sensor: str, stamp: float) -> None:
+        """A sensor's frame period: the running mean of the steps between its stamps, a
+        gap (a pause, a restart) left out."""
+        if self._first_stamp is None:
+            self._first_stamp = stamp
+        p = self._periods.setdefault(sensor, [stamp, 0.0])
+        step = stamp - p[0]
+        if 0.0 < step < 1.0:
+            p[1] = step if p[1] == 0.0 else 0.95 * p[1] + 0.05 * step
+        p[0] = stamp
+
     def _watch_stamps(self, now: float) -> None:
         """``clock.estimate = "auto"``: every 0.5 s of data, each sensor's newest stamp
         (plus half its frame period: how old its newest frame is on average) minus the
@@ -283,9 +294,8 @@ class Pipeline:
         if self._last_lead is not None and now - self._last_lead < 0.5:
             return
         self._last_lead = now
-        spans = self._spans
-        fresh = {s: t + (0.5 * (t - spans[s][0]) / (spans[s][1] - 1) if spans.get(s, (0, 0))[1] > 1 else 0.0)
-                 for s, t in self.last_seen.items() if now - t < 2.0}
+        periods = self._periods
+        fresh = {s: t + 0.5 * periods.get(s, (0.0, 0.0))[1] for s, t in self.last_seen.items() if now - t < 2.0}
         if len(fresh) < 3:
             return
         mid = float(np.median(list(fresh.values())))
@@ -300,7 +310,7 @@ class Pipeline:
             log.warning("the stamps of %s run %s from the other sensors' as they arrive: estimating the sensors' clock "
                         "offsets from the data from now on, %.0f s into it (clock.estimate = auto)", ", ".join(far),
                         ", ".join(f"{1000 * v:+.0f} ms" for v in far.values()),
-                        now - min(f for f, _ in self._spans.values()))
+                        now - self._first_stamp)
             self._start_estimating()
 
     def clock_job(self, now: float | None) -> ClockJob | None:

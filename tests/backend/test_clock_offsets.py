@@ -624,3 +624,22 @@ def test_auto_starts_the_estimate_when_a_sensor_s_stamps_run_apart(offsets, star
         assert p.raw is None and not p.clocks.records and p.state().clocks == ()
         off = Pipeline.restore(cams, cfg, p.snapshot())
         assert not off.estimating
+
+
+def test_auto_is_not_started_by_a_sensor_that_paused():
+    """A sensor silent for a minute (a reboot) and back, its clock synchronised: its frame
+    period is the steps between its stamps with the gap left out, so its stamps do not
+    look ahead of the others' when it is back (a period over its whole span did: 0.1 s
+    instead of 0.033, half of it added to its newest stamp)."""
+    cams, msgs = six_cameras(90.0, 4, {})
+    t0 = msgs[0].stamp
+    quiet = SIX[2]
+    msgs = [m for m in msgs if not (m.sensor == quiet and 5.0 < m.stamp - t0 < 65.0)]
+    p = Pipeline(cams, EngineConfig.from_dict({"refine": {"final_batch": False}}))
+    for msg in msgs:
+        p.push(msg)
+        if p.clock is not None:
+            p._watch_stamps(p.clock)
+    assert not p.estimating
+    assert p._periods[quiet][1] == pytest.approx(np.median(np.diff([m.stamp for m in msgs if m.sensor == quiet])),
+                                                 rel=0.2)
