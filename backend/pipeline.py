@@ -196,7 +196,8 @@ class Pipeline:
             if self.raw is not None:
                 self.raw.push(msg)
         self.last_seen[msg.sensor] = msg.stamp
-        self._frame_period(msg.sensor, msg.stamp)
+        if self._watching_stamps:
+            self._frame_period(msg.sensor, msg.stamp)
         stamp = msg.stamp - self.sync.offset(msg.sensor)
         if arrival is None and (self.clock is None or stamp > self.clock):
             self.clock = stamp
@@ -224,7 +225,7 @@ class Pipeline:
         if self.clock is None or now > self.clock:
             self.clock = now
         new = 0
-        if not self.estimating and self.cfg.clock.estimate == "auto":
+        if self._watching_stamps:
             self._watch_stamps(now)
         R, t = self.refiner.R, self.refiner.t
         job = self.clock_job(now) if clock_offsets else None
@@ -271,6 +272,11 @@ class Pipeline:
         self.estimating = True
         if self.raw is None and self.cfg.clock.retime_seconds > 0:
             self.raw = RawArchive(self.names, self.cfg.clock.retime_seconds)
+
+    @property
+    def _watching_stamps(self) -> bool:
+        """``clock.estimate = "auto"`` and the estimate not started yet."""
+        return not self.estimating and self.cfg.clock.estimate == "auto"
 
     def _frame_period(self, sensor: str, stamp: float) -> None:
         """A sensor's frame period: the running mean of the steps between its stamps, a
@@ -507,32 +513,32 @@ class Pipeline:
         its move, the watched cameras held (tight priors), its own prior the monitor's
         resection with the uncertainty re-opened: the resection a bin at a time took the
         others' points as given; the adjustment weighs every view, as the session did."""
-        rf = self.refiner
-        P = rf.predicted_covariance()
         m = self.cfg.monitor
-        P[cam] = np.diag([np.radians(m.reopen_std_rotation) ** 2] * 3 + [m.reopen_std_translation ** 2] * 3)
-        p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2,
-                                (f for f in self.frames if f[0] >= since))
-        pose_px = p.pose_px.copy()
-        pose_px[cam] = np.inf  # where it went is what this adjustment is to find
-        return replace(p, prior_R=rf.R.copy(), prior_t=rf.t.copy(), prior_cov=P, kind="recalibrate", moved=(cam,),
-                       pose_px=pose_px)
+        cov = np.diag([np.radians(m.reopen_std_rotation) ** 2] * 3 + [m.reopen_std_translation ** 2] * 3)
+        return self._one_camera_problem(cam, cov, (f for f in self.frames if f[0] >= since), "recalibrate")
 
     def _dispute_problem(self, cam: int) -> Problem:
         """A camera the cycles keep disagreeing with (``_count_disputes``) decided by an
         adjustment over the archived frames in which it sees someone, re-associated, its
         own prior re-opened to the start's std and its views not gated by its pose; the
         others' priors their filtered state. Only that camera's result is taken (``_settle``)."""
-        rf = self.refiner
-        P = rf.predicted_covariance()
-        P[cam] = rf.P0[cam]
         frames = (f for f in self.frames if any(v[0].cam == cam for v in f[1]))  # a view: one camera's detections
         # its own seed: a dispute must not change what the run's other draws select
-        p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2, frames,
-                                seed=self.cycle * 7919 + cam)
+        return self._one_camera_problem(cam, self.refiner.P0[cam], frames, "dispute", seed=self.cycle * 7919 + cam)
+
+    def _one_camera_problem(self, cam: int, cov: np.ndarray, frames: Iterable, kind: str, *,
+                            seed: int | None = None) -> Problem:
+        """An adjustment over ``frames`` (re-associated, up to ``refine.batch_size``
+        hypotheses) for camera ``cam``: its prior the estimate with covariance ``cov`` (6, 6),
+        its views not gated by its pose (where it is is what the adjustment is to find); the
+        others' priors their filtered state."""
+        rf = self.refiner
+        P = rf.predicted_covariance()
+        P[cam] = cov
+        p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2, frames, seed=seed)
         pose_px = p.pose_px.copy()
         pose_px[cam] = np.inf
-        return replace(p, prior_R=rf.R.copy(), prior_t=rf.t.copy(), prior_cov=P, kind="dispute", moved=(cam,),
+        return replace(p, prior_R=rf.R.copy(), prior_t=rf.t.copy(), prior_cov=P, kind=kind, moved=(cam,),
                        pose_px=pose_px)
 
     def _relocalize_problem(self, lost, frames) -> Problem:
