@@ -392,7 +392,7 @@ class Service:
         self.handoff: HandOff | None = None
         self._status_snapshot: dict[str, Any] | None = None  # published by status(), read by any thread
         self._status_pub: dict[str, Any] | None = None
-        self._status_stale = False  # a session started or ended since the last snapshot (``active``)
+        self._status_stale = False  # the session changed so that older snapshots must not be served (``_changed``)
         self._status_asked = -math.inf  # monotonic time of the last /status from the HTTP thread
         # Zenoh links of this session (routers, peers), checked every LINK_CHECK s; the wall
         # time they all went, while endpoints to connect to are configured
@@ -417,8 +417,7 @@ class Service:
     @active.setter
     def active(self, s: ActiveSession | None) -> None:
         self._active = s
-        self._changed()
-        self._status_stale = True  # a session started or ended: no snapshot from before is served
+        self._changed(stale=True)  # a session started or ended: no snapshot from before is served
         if self.handoff is not None:  # sensors outside the session are refused on Zenoh's threads
             self.handoff.accept(None if s is None else s.sensors)
 
@@ -956,6 +955,7 @@ class Service:
         s.state = state
         rec = s.record
         rec.cycles = state.cycle
+        was = rec.state
         if report.accepted:
             s.failures = 0
             s.last_accepted = report.cycle
@@ -985,6 +985,8 @@ class Service:
                         "calibrating it again", rec.id, name)
             self.events.publish("camera_moved", {"session": rec.id, "camera": name, "data_time": state.data_time,
                                                  "cycle": report.cycle})
+        if rec.state is not was or report.moved_cameras or report.recalibrated:
+            self._changed(stale=True)
         if report.recalibrated and self._tg is not None:
             self._tg.create_task(self._record_recalibration(s, report), name=f"version {rec.id} {report.cycle}")
         self._write_cycle(rec, report, state, acc)
@@ -1044,10 +1046,15 @@ class Service:
         self._changed()
         self.writer.submit(self.store.save_record, _copy_record(s.record))
 
-    def _changed(self) -> None:
-        """A session started, stopped or changed state: the published status is out of date
-        (an operator's GET /status right after POST /sessions must show it)."""
+    def _changed(self, *, stale: bool = False) -> None:
+        """The session's record changed: the published status is out of date. ``stale``:
+        so much that no snapshot from before may be served either, however busy the loop
+        (a session started or ended, its state changed, a camera was found moved): an
+        operator told of it by POST /sessions, /sessions/{id} or /events must see it in
+        /status too."""
         self._status_pub = None
+        if stale:
+            self._status_stale = True
 
     def _persist(self, s: ActiveSession, *, snapshot: bool, note: str | None = None) -> None:
         rec = s.record
