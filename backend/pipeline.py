@@ -155,6 +155,10 @@ class Pipeline:
         self.disputed: list[int] = []  # cameras due for a dispute adjustment (select.dispute_cycles)
         self.redone: list[str] = []  # cameras a dispute adjustment put elsewhere
         self.relocalized: list[str] = []
+        # per camera: (data time, why) it last started over from a pose found elsewhere
+        # (a dispute adjustment, a re-localisation); the cycle's report lists those since the last
+        self.restarted: dict[int, tuple[float, str]] = {}
+        self._restarted_new: list[str] = []
         self.final_batch_start: str | None = None  # the final batch kept: from the "estimate" or the "start"
         self.scale_heights = None if scale_heights is None else tuple(float(h) for h in scale_heights)
         self.scale_check: ScaleCheck | None = None
@@ -353,6 +357,7 @@ class Pipeline:
                 if pose is not None:  # the camera where the clock's estimate put it
                     rf.relocate(c, *pose)
                     self.relocalized.append(name)
+                    self._restart_noted(c, "relocalized after its clock offset was applied")
             self.sync.set_offset(name, new)
             self._offset_history[c].append((start, new))
 
@@ -623,6 +628,7 @@ class Pipeline:
             for c in np.flatnonzero(solution.active):
                 self.refiner.relocate(c, solution.R[c], solution.t[c])
                 self.relocalized.append(self.names[c])
+                self._restart_noted(c, "relocalized: lost, found elsewhere")
         elif problem.kind == "dispute":
             self._settle(problem.moved[0], solution if accepted else None)
             self.cycles_rejected += not accepted
@@ -674,8 +680,10 @@ class Pipeline:
             reprojection_px=float(np.median(finite)) if len(finite) else float("nan"),
             moved_cameras=tuple(alarms),
             recalibrated=recalibrated,
+            restarted=tuple(dict.fromkeys(self._restarted_new)),
             starved=not accepted and solution.reason == NOTHING_TO_SOLVE,
         )
+        self._restarted_new.clear()
         self.last_report = report
         return report
 
@@ -749,10 +757,18 @@ class Pipeline:
                 rf.recalibrated(c, solution.R[c], solution.t[c], solution.cov[c])
                 self.confirmed[c] = 0
                 self.redone.append(self.names[c])
+                self._restart_noted(c, f"disputed: {m:.2f} m / {deg:.1f}° off, an adjustment over its archived "
+                                       f"views said")
                 return
             log.info("%s: an adjustment over its archived views keeps its estimate (%.2f m / %.1f° from it, χ² %.0f)",
                      self.names[c], m, deg, chi2)
         self.confirmed[c] += 1
+
+    def _restart_noted(self, c: int, why: str) -> None:
+        if not why.startswith("disputed"):  # _settle has said it, with the figures
+            log.warning("%s started over from a pose found elsewhere: %s", self.names[c], why)
+        self.restarted[c] = (float(self.clock or 0.0), why)
+        self._restarted_new.append(self.names[c])
 
     def _monitor(self) -> list[str]:
         """The monitor's turn after a cycle: watch the converged cameras, flag moved ones
@@ -910,6 +926,8 @@ class Pipeline:
                 observations=int(self.observations[c] + self.observations_batch[c]), cycles=int(rf.cycles[c]),
                 change_translation=ct, change_rotation=cr, converged=rf.converged(c),
                 last_seen=self.last_seen.get(n), moved_at=moved.get(c),
+                restarted_at=self.restarted[c][0] if c in self.restarted else None,
+                restart_reason=self.restarted[c][1] if c in self.restarted else None,
             ))
         # a camera found moved counts while it is calibrated again (its cycles start over)
         calibrated = [c for c in cams if c.cycles > 0 or c.moved_at is not None]
@@ -947,6 +965,7 @@ class Pipeline:
             "cycle": self.cycle,
             "first_passes": self.first_passes,
             "moved": [[a.time, a.cam, a.chi2, a.translation, a.rotation, a.since] for a in self.monitor.alarms],
+            "restarted": [[c, t, why] for c, (t, why) in self.restarted.items()],
             "watched": self.watched.tolist(),
             "batched": rf.batched.tolist(),
             "observations": self.observations.tolist(),
@@ -988,6 +1007,7 @@ class Pipeline:
         # a snapshot from before first passes existed had its first cycles long ago
         p.first_passes = int(snapshot.get("first_passes", 2))
         p.monitor.alarms = [Alarm(float(a[0]), int(a[1]), *map(float, a[2:])) for a in snapshot.get("moved", [])]
+        p.restarted = {int(c): (float(t), str(why)) for c, t, why in snapshot.get("restarted", [])}
         p.watched = np.array(snapshot.get("watched", [False] * len(p.names)), dtype=bool)
         if config.monitor.on:  # held from the first cycle after the restart, not the monitor's first turn
             rf.held = p.watched & config.monitor.hold

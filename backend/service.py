@@ -985,7 +985,13 @@ class Service:
                         "calibrating it again", rec.id, name)
             self.events.publish("camera_moved", {"session": rec.id, "camera": name, "data_time": state.data_time,
                                                  "cycle": report.cycle})
-        if rec.state is not was or report.moved_cameras or report.recalibrated:
+        why = {c.name: c.restart_reason for c in state.cameras}
+        for name in report.restarted:
+            log.info("session %s: camera %s started over from a pose found elsewhere (%s)", rec.id, name,
+                        why.get(name))
+            self.events.publish("camera_restarted", {"session": rec.id, "camera": name, "reason": why.get(name),
+                                                     "data_time": state.data_time, "cycle": report.cycle})
+        if rec.state is not was or report.moved_cameras or report.recalibrated or report.restarted:
             self._changed(stale=True)
         if report.recalibrated and self._tg is not None:
             self._tg.create_task(self._record_recalibration(s, report), name=f"version {rec.id} {report.cycle}")

@@ -34,6 +34,10 @@ class CameraState:
     converged: bool
     last_seen: float | None  # data time of its last message
     moved_at: float | None = None  # data time the monitor last found it moved (re-calibrated since)
+    # data time it last started over from a pose found elsewhere (a dispute adjustment over
+    # its archived views, a re-localisation), and why
+    restarted_at: float | None = None
+    restart_reason: str | None = None
 
     @property
     def std_translation(self) -> float:
@@ -63,6 +67,8 @@ class CameraState:
             "converged": self.converged,
             "last_seen": self.last_seen,
             "moved_at": self.moved_at,
+            "restarted_at": self.restarted_at,
+            "restart_reason": self.restart_reason,
         }
 
 
@@ -89,6 +95,9 @@ class CycleReport:
     # moved cameras this cycle calibrated again for good (the last adjustment over their
     # data since the move): the network has a new calibration, which the service versions
     recalibrated: tuple[str, ...] = ()
+    # cameras that started over from a pose found elsewhere since the last report (a dispute
+    # adjustment said their estimate was wrong, or they were re-localised)
+    restarted: tuple[str, ...] = ()
     # rejected with nothing to solve (no landmark placed: garbled data, or none that fits the
     # estimate); not the optimizer failing, so a session is not failed for such cycles
     starved: bool = False
@@ -98,6 +107,7 @@ class CycleReport:
         d["cameras"] = list(self.cameras)
         d["moved_cameras"] = list(self.moved_cameras)
         d["recalibrated"] = list(self.recalibrated)
+        d["restarted"] = list(self.restarted)
         return d
 
 

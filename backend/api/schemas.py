@@ -107,6 +107,10 @@ class CameraOut(BaseModel):
     last_seen: float | None = Field(description="stamp of its last accepted message")
     moved_at: float | None = Field(None, description="data time the monitor last found this converged camera moved "
                                    "(bumped): its uncertainty was re-opened and it is calibrated again")
+    restarted_at: float | None = Field(None, description="data time this camera last started over from a pose found "
+                                       "elsewhere: an adjustment over its archived views found the estimate the cycles "
+                                       "kept wrong (a dispute), or it was re-localised")
+    restart_reason: str | None = Field(None, description="why it started over, with how far it was off")
 
 
 SessionStateName = Literal["waiting_for_data", "calibrating", "converged", "stopped", "failed"]

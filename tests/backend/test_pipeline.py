@@ -661,8 +661,9 @@ def test_a_disputed_camera_whose_adjustment_agrees_keeps_its_estimate(lab):
     near = rf.R.copy(), rf.t.copy()
     near[0][c], near[1][c] = pose_retract(rf.R[c], rf.t[c], np.r_[np.radians([0.2, 0.0, 0.0]), 0.01, 0.0, 0.0])
     before = rf.P[c].copy(), rf.t[c].copy()
-    p.apply(dispute, replace(sol, R=near[0], t=near[1]))
+    kept = p.apply(dispute, replace(sol, R=near[0], t=near[1]))
     assert np.array_equal(rf.P[c], before[0]) and np.array_equal(rf.t[c], before[1]) and not p.redone
+    assert kept.restarted == () and p.state().cameras[c].restarted_at is None
     for k in range(2 * n - 1):
         p._beyond_prediction(problem, sol)
     assert not p.disputed  # twice the run now
@@ -670,5 +671,14 @@ def test_a_disputed_camera_whose_adjustment_agrees_keeps_its_estimate(lab):
     assert p.disputed == [c]
     # the verdict far from the estimate: the camera starts over from there
     dispute = p.next_problem(p.clock)
-    p.apply(dispute, sol)
+    report = p.apply(dispute, sol)
     assert p.redone == [p.names[c]] and np.allclose(rf.t[c], t[c]) and rf.cycles[c] == 0
+    # ... and says so: in the cycle's report once, in the camera's state until it starts over again
+    assert report.restarted == (p.names[c],) and report.to_dict()["restarted"] == [p.names[c]]
+    cam = p.state().cameras[c]
+    assert cam.restarted_at == 100.0 and cam.restart_reason.startswith("disputed: 0.20 m / 6.")
+    assert cam.to_dict()["restart_reason"] == cam.restart_reason
+    back = Pipeline.restore(cams, EngineConfig(), p.snapshot()).state().cameras[c]
+    assert (back.restarted_at, back.restart_reason) == (cam.restarted_at, cam.restart_reason)
+    p.disputed.append(c)
+    assert p.apply(p.next_problem(p.clock), replace(sol, R=rf.R.copy(), t=rf.t.copy())).restarted == ()

@@ -19,7 +19,9 @@ KEEPALIVE = 15.0  # s between comment lines, so proxies keep the stream open
             responses={200: {"content": {"text/event-stream": {}},
                              "description": "events `hello` (current status), `status` (every second), "
                                             "`cycle` (after every cycle), `session` (state changes), `service`, "
-                                            "`camera_moved` (the monitor flagged a converged camera), `calibration` "
+                                            "`camera_moved` (the monitor flagged a converged camera), "
+                                            "`camera_restarted` (a camera started over from a pose found elsewhere: "
+                                            "a dispute adjustment or a re-localisation), `calibration` "
                                             "(a version was recorded by the monitor or activated), `hypotheses` "
                                             "(the persons of a cycle, for the dashboard)"}})
 async def events(service: ServiceDep, request: Request) -> StreamingResponse:
