@@ -301,7 +301,8 @@ class BootstrapConfig(_Section):
     auto_sigma: float = Field(1.5, gt=0, description="with_initial='auto' starts from the data's shape when the initial "
                               "estimate's RMS distance from it exceeds this many of its stated std (refine.initial_std_*)")
     refuse_sigma: float = Field(6.0, gt=0, description="a bootstrap pose further from the initial estimate than this many "
-                                "of its stated std (refine.initial_std_*) is not used: one of the two is grossly wrong")
+                                "of its stated std (refine.initial_std_*), or of the cameras' lower quartile distance when "
+                                "that is larger, is not used: one of the two is grossly wrong")
     live_first: float = Field(60.0, gt=0, description="live service (backend/live_bootstrap.py): s of data before the "
                               "first bootstrap attempt of a session without an initial estimate")
     live_interval: float = Field(30.0, gt=0, description="s of data between attempts (until one is accepted)")

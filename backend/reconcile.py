@@ -17,9 +17,11 @@ Per camera, the two are compared after the alignment:
 - *agrees*: within ``bootstrap.agree_translation`` / ``agree_rotation`` (or 3x the
   bootstrap's own std): the initial estimate already has the data's shape there;
 - *refused*: further than ``bootstrap.refuse_sigma`` times the initial estimate's stated
-  std (``refine.initial_std_*``): one of the two is grossly wrong (a pair chained wrongly
-  in the bootstrap, a camera swapped in the floor plan); that camera starts from the
-  initial estimate and the pipeline's association and re-localisation decide;
+  std (``refine.initial_std_*``), or times the cameras' lower quartile distance when that
+  is larger (an estimate off everywhere by more than it states singles out no camera): one
+  of the two is grossly wrong (a pair chained wrongly in the bootstrap, a camera swapped
+  in the floor plan); that camera starts from the initial estimate and the pipeline's
+  association and re-localisation decide;
 - *overruled*: refused, but the data hold the bootstrap's pose (its last bundle
   adjustment has as many observations of the camera and reprojects them as well as the
   others'), and only a few cameras are refused (two, or a quarter; at least as many and
@@ -217,8 +219,24 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
         tol_t = np.fmax(b.agree_translation, 3 * np.nan_to_num(st, nan=0.0))
         tol_r = np.fmax(b.agree_rotation, 3 * np.nan_to_num(sr, nan=0.0))
         agrees = both & (np.nan_to_num(dt, nan=np.inf) <= tol_t) & (np.nan_to_num(dr, nan=np.inf) <= tol_r)
-        refused = both & ((np.nan_to_num(dt) > b.refuse_sigma * rc.initial_std_translation)
-                          | (np.nan_to_num(dr) > b.refuse_sigma * rc.initial_std_rotation))
+        # gross against the initial estimate's stated std, or against how far its cameras
+        # are off the data typically when that is more (the lower quartile: the better
+        # cameras' error, which gross errors of up to three quarters of them do not raise):
+        # an estimate whose every camera is 1.5 m / 45° off (stated 0.25 m / 10°) cannot
+        # single out a camera the bootstrap got wrong, and refusing half of them by its std
+        # left them there (the lab: 0.40 m shape, 11 of 20 refused; from 3 m / 90° every
+        # camera was refused and the run failed)
+        lim_t, lim_r = b.refuse_sigma * rc.initial_std_translation, b.refuse_sigma * rc.initial_std_rotation
+        typical_t, typical_r = float(np.quantile(al.dt, 0.25)), float(np.quantile(al.dr, 0.25))
+        # ... but only when the alignment is sound: the initial estimate's orientations then
+        # scatter about the aligned bootstrap's, their mean turn less than the typical one
+        # (the lab 1.5 m / 45° and 3 m / 90° off: 5-13° and 14-32°). A frame fitted to
+        # centres of which most are wrong (cameras swapped) turns them all alike (175°
+        # against 121°), and there a gross error is the alignment's, not the estimate's
+        if _frame_angle(R0[idx], al.R) < typical_r:
+            lim_t = max(lim_t, b.refuse_sigma * typical_t)
+            lim_r = max(lim_r, b.refuse_sigma * typical_r)
+        refused = both & ((np.nan_to_num(dt) > lim_t) | (np.nan_to_num(dr) > lim_r))
         return al, dt, dr, st, sr, agrees, refused
 
     out = compare(None)
@@ -259,6 +277,13 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
         if use[c]:
             R[c], t[c] = Ra[i], ta[i]
     return Reconciled(tuple(names), R, t, dt, dr, agrees, refused, use, aligned, float(s), mode, st, sr, overruled)
+
+
+def _frame_angle(R0: np.ndarray, R: np.ndarray) -> float:
+    """deg: the mean rotation (chordal L2) between orientations R0 (N, 3, 3) and R (N, 3, 3)."""
+    from scipy.spatial.transform import Rotation
+
+    return float(np.degrees(Rotation.from_matrix(np.einsum("nij,nkj->nik", R0, R)).mean().magnitude()))
 
 
 def _held_by_data(boot: BootstrapResult, bi: np.ndarray) -> np.ndarray:

@@ -86,6 +86,31 @@ def test_the_data_shape_is_aligned_onto_a_rough_initial_estimate_and_a_wrong_cam
     assert "refused" in rec.summary() and "cam_5" in rec.summary()
 
 
+@pytest.mark.parametrize("metres, degrees", [(1.5, 45.0), (3.0, 90.0)])
+def test_an_initial_estimate_off_everywhere_by_more_than_it_states_singles_out_no_camera(metres, degrees):
+    """Every camera 1.5 m / 45° (3 m / 90°) off, the stated std 0.25 m / 10°: six times
+    that std is about each camera's own error, so refusing by it refused half (all) of
+    them and left them where they were. Against the cameras' typical error none is gross:
+    every camera starts from the data's shape, in the estimate's frame."""
+    rng = RNG(5)
+    names = [f"cam_{i}" for i in range(16)]
+    R, t = _network(rng, 16)
+    axes = rng.normal(size=(16, 3))
+    R0 = np.stack([so3_exp(np.radians(degrees) * v / np.linalg.norm(v)) @ r for v, r in zip(axes, R)])
+    d = rng.normal(size=(16, 3))
+    t0 = t + metres * d / np.linalg.norm(d, axis=1, keepdims=True)
+    Rb, tb = _similar(R, t, 0.31, so3_exp([0.0, 0.0, 2.0]), np.array([3.0, 1.0, 0.0]))
+    cfg = EngineConfig()
+    rec = reconcile(_boot(names, Rb, tb), names, R0, t0, cfg)
+    assert not rec.refused.any() and rec.from_bootstrap.all()
+    shape = {n: Pose(rec.R[c], rec.t[c]) for c, n in enumerate(names)}
+    acc = evaluate(shape, {n: Pose(R[c], t[c]) for c, n in enumerate(names)})
+    assert acc.shape_position.max < 1e-6 and acc.position.mean < 0.5 * metres
+    # by the stated std alone several of them would have been refused
+    assert (rec.translation > cfg.bootstrap.refuse_sigma * cfg.refine.initial_std_translation).sum() \
+        + (rec.rotation > cfg.bootstrap.refuse_sigma * cfg.refine.initial_std_rotation).sum() >= 4
+
+
 def test_an_initial_estimate_the_data_confirm_is_kept():
     rng = RNG(1)
     names = [f"cam_{i}" for i in range(8)]
