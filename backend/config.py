@@ -300,6 +300,12 @@ class BootstrapConfig(_Section):
     agree_rotation: float = Field(0.5, ge=0, description="deg ... and its orientation within this (or 3x the std)")
     auto_sigma: float = Field(1.5, gt=0, description="with_initial='auto' starts from the data's shape when the initial "
                               "estimate's RMS distance from it exceeds this many of its stated std (refine.initial_std_*)")
+    auto_translation: float = Field(0.375, gt=0, description="m: ... and whatever its stated std, when that RMS distance "
+                                    "exceeds this (or auto_rotation): from further off, the paper's first adjustments lose "
+                                    "cameras even when told the std honestly (the association cuts rays to depth intervals "
+                                    "about a person wide; lab from 0.75 m / 20° stated as such: 0.19 m / 0.15 m on 2 of 3 "
+                                    "seeds against 0.02 m / 0.07 m from the data's shape)")
+    auto_rotation: float = Field(15.0, gt=0, description="deg")
     refuse_sigma: float = Field(6.0, gt=0, description="a bootstrap pose further from the initial estimate than this many "
                                 "of its stated std (refine.initial_std_*), or of the cameras' lower quartile distance when "
                                 "that is larger, is not used: one of the two is grossly wrong")

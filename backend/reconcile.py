@@ -33,7 +33,9 @@ Per camera, the two are compared after the alignment:
 
 ``bootstrap.with_initial``: 'never' (the paper's way), 'always' (start from the aligned
 bootstrap for every camera it placed and did not refuse), 'auto' (the same, but only when
-some camera does not agree: an initial estimate the data confirm is left exactly as it is).
+the initial estimate is further off the data than it states (``auto_sigma``) or than the
+paper's first adjustments cope with (``auto_translation`` / ``auto_rotation``): an initial
+estimate the data confirm is left exactly as it is).
 """
 
 from __future__ import annotations
@@ -262,12 +264,15 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
     usable = both & ~refused
     # 'auto' starts from the data's shape only when the initial estimate is further off than
     # it claims: the case where the first adjustment, which trusts the stated std, loses
-    # cameras. An estimate within its std is left alone (the paper's way reaches the limit
-    # from it, and a bootstrap mistake cannot spoil it).
+    # cameras; or further off than that adjustment copes with at all. An estimate within
+    # its std is left alone (the paper's way reaches the limit from it, and a bootstrap
+    # mistake cannot spoil it).
     k = both & ~refused
     rms_t = float(np.sqrt(np.mean(dt[k] ** 2))) if k.any() else 0.0
     rms_r = float(np.sqrt(np.mean(dr[k] ** 2))) if k.any() else 0.0
     off = rms_t > b.auto_sigma * rc.initial_std_translation or rms_r > b.auto_sigma * rc.initial_std_rotation
+    # ... or further off than the paper's way copes with, however honestly its std is stated
+    off = off or rms_t > b.auto_translation or rms_r > b.auto_rotation
     if mode == "never" or (mode == "auto" and (agrees[both].all() or not off)):
         use = overruled.copy()
     else:
