@@ -309,6 +309,12 @@ class BootstrapConfig(_Section):
     refuse_sigma: float = Field(6.0, gt=0, description="a bootstrap pose further from the initial estimate than this many "
                                 "of its stated std (refine.initial_std_*), or of the cameras' lower quartile distance when "
                                 "that is larger, is not used: one of the two is grossly wrong")
+    live_check: bool = Field(True, description="live service: a session with an initial estimate (not told "
+                             "distrust_initial) checks it against the data once, after max_seconds of data: a "
+                             "bootstrap on the archived frames, reconciled as with_initial says; when the data's shape "
+                             "is to be used (the estimate rougher than it states or than auto_translation / "
+                             "auto_rotation, or cameras swapped), the session goes on from there with every frame "
+                             "archived (the solver pauses the cycles while the bootstrap runs)")
     live_first: float = Field(60.0, gt=0, description="live service (backend/live_bootstrap.py): s of data before the "
                               "first bootstrap attempt of a session without an initial estimate")
     live_interval: float = Field(30.0, gt=0, description="s of data between attempts (until one is accepted)")

@@ -330,6 +330,9 @@ class ActiveSession:
     # the optimizer's last failure in this session (None: none yet); replaced, never changed
     solver_fault: dict[str, Any] | None = None
     last_accepted: int | None = None  # the last cycle folded into the estimate
+    # the live check of the initial estimate found it rough: the pipeline from the data's
+    # shape, swapped in by the optimizer between cycles (``Service._check_initial``)
+    checked: Any = None
     idle: asyncio.Event = field(default_factory=asyncio.Event)  # no cycle in flight
     clock_idle: asyncio.Event = field(default_factory=asyncio.Event)  # no clock offset estimate in flight
     done: asyncio.Event = field(default_factory=asyncio.Event)  # stopped or failed, persisted
@@ -761,7 +764,17 @@ class Service:
         while not self._closing:
             await asyncio.sleep(self.settings.tick)
             s = self.active
-            if s is None or s.finishing or self._closing or not isinstance(s.pipeline, Collector):
+            if s is None or s.finishing or self._closing:
+                continue
+            if not isinstance(s.pipeline, Collector):
+                if self._check_due(s):
+                    try:
+                        await self._check_initial(s)
+                    except Exception:  # the check is a bonus: the session goes on from its initial estimate
+                        log.exception("the live check of the initial estimate failed")
+                        s.record.initial_check = {"phase": "done", "used": False,
+                                                  "note": "the check failed (see the log): the initial estimate kept"}
+                        self._save_record(s)
                 continue
             try:
                 await self._bootstrap_turn(s, s.pipeline)
@@ -807,6 +820,88 @@ class Service:
             return
         with self.work.measure("bootstrap_handover"):
             self._hand_over(s, col, h)
+
+    def _check_due(self, s: ActiveSession) -> bool:
+        """A session with an initial estimate it was not told to distrust, not checked yet
+        (``bootstrap.live_check``), with ``bootstrap.max_seconds`` of frames archived."""
+        b, rec, p = s.inputs.config.bootstrap, s.record, s.pipeline
+        if not b.live_check or b.with_initial == "never" or s.inputs.initial_yaml is None or rec.bootstrap is not None:
+            return False
+        if (rec.initial_check or {}).get("phase") == "done" or s.checked is not None or not rec.state.active:
+            return False
+        frames = getattr(p, "frames", None)
+        return bool(frames) and frames[-1][0] - frames[0][0] >= b.max_seconds
+
+    async def _check_initial(self, s: ActiveSession) -> None:
+        """The initial estimate against the data's shape, as ``extrcal calibrate`` does it
+        (backend/reconcile.py): a bootstrap on the archived frames in the solver process
+        (the cycles wait for it), reconciled with the initial estimate. When the data's
+        shape is to be used, a pipeline from it with every frame archived is built in a
+        thread and the optimizer swaps it in between cycles (``_swap_checked``); else the
+        session goes on as it was."""
+        from .live_bootstrap import BootstrapJob, Handover, run_job
+
+        rec, p, cfg = s.record, s.pipeline, s.inputs.config
+        frames = tuple(p.frames)
+        span = frames[-1][0] - frames[0][0]
+        if p.clocks.applied.any():  # archived views timed with offsets a new pipeline would not know
+            rec.initial_check = {"phase": "done", "used": False, "data_seconds": span,
+                                 "note": "not checked: clock offsets were applied before it was due"}
+            self._save_record(s)
+            return
+        seen = np.zeros(len(p.names), dtype=np.int64)
+        for _, views in frames:
+            for v in views:
+                if v:
+                    seen[v[0].cam] += 1
+        job = BootstrapJob(1, frames, tuple(p.names), p.focal.copy(), cfg, tuple(p.scale_heights or ()),
+                           rec.seed, span, seen, True)
+        rec.initial_check = {"phase": "running", "data_seconds": span}
+        self._save_record(s)
+        log.info("session %s: checking the initial estimate against a bootstrap on %.0f s of data", rec.id, span)
+        outcome = await self.solver.run(self.bootstrap_fn or run_job, job)
+        if s is not self.active or s.finishing or self._closing or not rec.state.active:
+            return
+        if outcome.result is None:
+            rec.initial_check = {"phase": "done", "used": False, "data_seconds": span,
+                                 "note": f"bootstrap not possible ({outcome.error}): the initial estimate kept"}
+            self._save_record(s)
+            return
+        h = await asyncio.to_thread(Handover.build, job, outcome.result, s.inputs.cameras, cfg, True,
+                                    seed=rec.seed, frames=frames)
+        if s is not self.active or s.finishing or self._closing or not rec.state.active:
+            return
+        used = bool((h.meta.get("reconciled") or {}).get("used"))
+        rec.initial_check = {"phase": "running" if used else "done", "used": used, "data_seconds": span,
+                             "seconds": outcome.seconds, "reconciled": h.meta.get("reconciled"),
+                             "note": h.meta.get("note")}
+        log.info("session %s: the initial estimate against the data: %s", rec.id, h.meta.get("note"))
+        if used:
+            s.checked = h
+            self._wake.set()
+        self._save_record(s)
+
+    def _swap_checked(self, s: ActiveSession) -> None:
+        """The pipeline from the data's shape in place of the running one (between cycles:
+        nothing in flight); it takes the frames the running one archived since the check
+        and goes on where its clock and sync are, its cycles numbered on."""
+        h, old, rec = s.checked, s.pipeline, s.record
+        s.checked = None
+        h.catch_up(old)
+        h.pipeline.cycle = old.cycle
+        s.pipeline = h.pipeline
+        s.inputs = replace(s.inputs, cameras=h.cameras, config=h.config)
+        s.__dict__.pop("names", None)
+        s.state = s.pipeline.state()
+        s.failures = 0
+        rec.initial_check = {**(rec.initial_check or {}), "phase": "done", "cycle": old.cycle}
+        rec.reason = f"the initial estimate checked against the data: {h.meta.get('note')}; calibrating from it"
+        log.warning("session %s: %s", rec.id, rec.reason)
+        self.writer.submit(self.store.save_start, rec.id, None, h.config)
+        self._changed(stale=True)
+        self._save_record(s)
+        self.events.publish("session", {"id": rec.id, "state": rec.state.value, "reason": rec.reason,
+                                        "initial_check": "used"})
 
     def _bootstrap_progress(self, s: ActiveSession) -> None:
         col = s.pipeline
@@ -863,6 +958,8 @@ class Service:
             now = self.clock.now()
             if now is None:
                 continue
+            if s.checked is not None:
+                self._swap_checked(s)  # between cycles: nothing of the pipeline is in flight
             if not isinstance(s.pipeline, Collector) and s.pipeline.late_join_due(now):
                 await self._join_late(s, now)  # between cycles: nothing of the pipeline is in flight
                 if s is not self.active or s.finishing or self._closing or not s.record.state.active:

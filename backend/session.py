@@ -131,6 +131,9 @@ class SessionRecord:
     # a session with an initial estimate: the walkers' heights if known, and at the end the
     # check of the initial estimate's scale against the people's (backend/scale_check.py)
     scale: dict[str, Any] | None = None
+    # a session with an initial estimate: the live check of it against the data's shape
+    # (bootstrap.live_check): phase, data_seconds, used, the reconciliation, a note
+    initial_check: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -140,7 +143,7 @@ class SessionRecord:
             "ended_wall": self.ended_wall, "first_data": self.first_data, "cycles": self.cycles,
             "converged_cycle": self.converged_cycle, "stopped_by": self.stopped_by,
             "resumed": self.resumed, "accuracy": self.accuracy, "final_batch": self.final_batch,
-            "bootstrap": self.bootstrap, "scale": self.scale,
+            "bootstrap": self.bootstrap, "scale": self.scale, "initial_check": self.initial_check,
         }
 
     @staticmethod
@@ -153,7 +156,7 @@ class SessionRecord:
             ended_wall=d.get("ended_wall"), first_data=d.get("first_data"), cycles=int(d.get("cycles", 0)),
             converged_cycle=d.get("converged_cycle"), stopped_by=d.get("stopped_by"),
             resumed=int(d.get("resumed", 0)), accuracy=d.get("accuracy"), final_batch=d.get("final_batch"),
-            bootstrap=d.get("bootstrap"), scale=d.get("scale"),
+            bootstrap=d.get("bootstrap"), scale=d.get("scale"), initial_check=d.get("initial_check"),
         )
 
 

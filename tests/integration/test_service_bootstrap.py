@@ -144,3 +144,50 @@ def test_a_camera_the_bootstrap_left_out_joins_the_running_session(tmp_path, lab
     acc = evaluate({k: v.pose for k, v in result.items()}, {k: v.pose for k, v in truth.items()})
     print(acc.summary())
     assert acc.shape_position.max < 0.05 and acc.shape_orientation.max < 0.5
+
+
+def test_an_initial_estimate_is_checked_against_the_data_and_a_rough_one_replaced_by_its_shape(tmp_path, lab_dir):
+    """bootstrap.live_check: a session with an initial estimate bootstraps once on its
+    archived frames (here after 60 s of data) and reconciles the two, as ``extrcal
+    calibrate`` does. An estimate 1 m / 30° off (stated 0.25 m / 10°) is replaced by the
+    data's shape in its frame and scale, between cycles, and the session calibrates on
+    from there; a good one (0.05 m / 2°) is kept and the session goes on untouched."""
+    from backend.perturb import perturb_extrinsics
+
+    site = "check"
+    config = {"bootstrap": {"max_seconds": 60.0}}
+    settings, endpoint, truth, body = _setup(tmp_path, lab_dir, site, config)
+    body.pop("person_height")
+    seen: list[dict] = []
+    with ServiceThread(settings) as st, httpx.Client(base_url=st.url, timeout=60) as client:
+        with Sensors(endpoint, site, lab_dir, duration=1500.0):
+            rough = {**body, "name": "rough", "initial_yaml": dump_extrinsics(perturb_extrinsics(truth, 1.0, 30.0, seed=1))}
+            sid = client.post("/sessions", json=rough).json()["id"]
+            checked = _poll(client, f"/sessions/{sid}", lambda s: (s["initial_check"] or {}).get("phase") == "done"
+                            or s["state"] == "failed", 240, "the initial estimate was not checked", seen)
+            assert checked["state"] != "failed", checked["reason"]
+            check = checked["initial_check"]
+            print("\n" + json.dumps({k: check[k] for k in ("data_seconds", "used", "note", "cycle")}))
+            assert check["used"] and check["data_seconds"] >= 60 and len(check["reconciled"]["from_bootstrap"]) == len(WEST)
+            assert checked["reason"].startswith("the initial estimate checked against the data: ")
+            assert checked["bootstrap"] is None  # not a bootstrapping session: its record says the check
+            swapped_at = check["cycle"]
+            later = _poll(client, f"/sessions/{sid}", lambda s: s["cycles"] >= swapped_at + 5 or s["state"] == "failed",
+                          120, "no cycles after the check", seen)
+            assert later["state"] != "failed", later["reason"]
+            stopped = client.post(f"/sessions/{sid}/stop").json()
+            result = parse_extrinsics(client.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text)
+
+            good = {**body, "name": "good", "initial_yaml": dump_extrinsics(perturb_extrinsics(truth, 0.05, 2.0, seed=2))}
+            sid2 = client.post("/sessions", json=good).json()["id"]
+            kept = _poll(client, f"/sessions/{sid2}", lambda s: (s["initial_check"] or {}).get("phase") == "done"
+                         or s["state"] == "failed", 240, "the good initial estimate was not checked", seen)
+            assert kept["state"] != "failed", kept["reason"]
+            assert not kept["initial_check"]["used"] and "the initial estimate is used as it is" in \
+                kept["initial_check"]["note"], kept["initial_check"]
+            assert "cycle" not in kept["initial_check"] and not kept["reason"].startswith("the initial estimate checked")
+            client.post(f"/sessions/{sid2}/stop")
+    assert stopped["state"] == "stopped" and stopped["final_batch"]["ran"]
+    acc = evaluate({k: v.pose for k, v in result.items()}, {k: v.pose for k, v in truth.items()})
+    print(acc.summary())
+    assert set(result) == set(WEST) and acc.shape_position.max < 0.05 and acc.shape_orientation.max < 0.5
