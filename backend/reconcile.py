@@ -230,12 +230,15 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
         # camera was refused and the run failed)
         lim_t, lim_r = b.refuse_sigma * rc.initial_std_translation, b.refuse_sigma * rc.initial_std_rotation
         typical_t, typical_r = float(np.quantile(al.dt, 0.25)), float(np.quantile(al.dr, 0.25))
-        # ... but only when the alignment is sound: the initial estimate's orientations then
-        # scatter about the aligned bootstrap's, their mean turn less than the typical one
-        # (the lab 1.5 m / 45° and 3 m / 90° off: 5-13° and 14-32°). A frame fitted to
-        # centres of which most are wrong (cameras swapped) turns them all alike (175°
-        # against 121°), and there a gross error is the alignment's, not the estimate's
-        if _frame_angle(R0[idx], al.R) < typical_r:
+        # ... but only when the alignment is sound: its centres fit within the stated std,
+        # or the initial estimate's orientations scatter about the aligned bootstrap's,
+        # their mean turn less than the typical one (the lab 1.5 m / 45° and 3 m / 90°
+        # off: 5-13° and 14-32°). A frame fitted to centres of which most are wrong
+        # (cameras swapped) turns them all alike (175° against 121°), and there a gross
+        # error is the alignment's, not the estimate's. (Centres that fit with every
+        # orientation turned alike are an estimate with one orientation error, a
+        # convention mixed up: sound.)
+        if typical_t <= rc.initial_std_translation or _frame_angle(R0[idx], al.R) < typical_r:
             lim_t = max(lim_t, b.refuse_sigma * typical_t)
             lim_r = max(lim_r, b.refuse_sigma * typical_r)
         refused = both & ((np.nan_to_num(dt) > lim_t) | (np.nan_to_num(dr) > lim_r))

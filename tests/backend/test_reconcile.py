@@ -111,6 +111,22 @@ def test_an_initial_estimate_off_everywhere_by_more_than_it_states_singles_out_n
         + (rec.rotation > cfg.bootstrap.refuse_sigma * cfg.refine.initial_std_rotation).sum() >= 4
 
 
+def test_orientations_turned_alike_with_the_centres_right_are_taken_from_the_data():
+    """A floor plan with the centres right and every orientation turned by the same 90°
+    (a yaw convention mixed up): the centres align the frame, so the common turn is the
+    estimate's error, not the alignment's, and no camera is refused for it."""
+    rng = RNG(6)
+    names = [f"cam_{i}" for i in range(10)]
+    R, t = _network(rng, 10)
+    turn = so3_exp([0.0, 0.0, np.pi / 2])
+    R0 = np.einsum("ij,cjk->cik", turn, R)
+    t0 = t + rng.normal(0, 0.05, t.shape)
+    Rb, tb = _similar(R, t, 0.5, so3_exp([0.3, 0.0, 1.0]), np.array([0.0, 2.0, 1.0]))
+    rec = reconcile(_boot(names, Rb, tb), names, R0, t0, EngineConfig())
+    assert not rec.refused.any() and rec.from_bootstrap.all()
+    assert max(rotation_angle_deg(rec.R[c], R[c]) for c in range(10)) < 1.0
+
+
 def test_an_initial_estimate_the_data_confirm_is_kept():
     rng = RNG(1)
     names = [f"cam_{i}" for i in range(8)]
