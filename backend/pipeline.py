@@ -767,7 +767,7 @@ class Pipeline:
     def _restart_noted(self, c: int, why: str) -> None:
         if not why.startswith("disputed"):  # _settle has said it, with the figures
             log.warning("%s started over from a pose found elsewhere: %s", self.names[c], why)
-        self.restarted[c] = (float(self.clock or 0.0), why)
+        self.restarted[int(c)] = (float(self.clock or 0.0), why)
         self._restarted_new.append(self.names[c])
 
     def _monitor(self) -> list[str]:

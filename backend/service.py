@@ -899,7 +899,7 @@ class Service:
         log.warning("session %s: %s", rec.id, rec.reason)
         self.writer.submit(self.store.save_start, rec.id, None, h.config)
         self._changed(stale=True)
-        self._save_record(s)
+        self._persist(s, snapshot=True)  # a resume must not restore the pipeline from before the swap
         self.events.publish("session", {"id": rec.id, "state": rec.state.value, "reason": rec.reason,
                                         "initial_check": "used"})
 

@@ -16,6 +16,7 @@ from backend.optimize import NOTHING_TO_SOLVE, Problem, Solution, hypotheses_and
 from backend.perturb import perturb_extrinsics
 from backend.monitor import Alarm
 from backend.pipeline import Pipeline, run_offline
+from backend.session import dumps_json
 from edge_clients.sim import Scene, SimConfig, Simulator
 from proto import KeypointMessage
 
@@ -678,7 +679,10 @@ def test_a_disputed_camera_whose_adjustment_agrees_keeps_its_estimate(lab):
     cam = p.state().cameras[c]
     assert cam.restarted_at == 100.0 and cam.restart_reason.startswith("disputed: 0.20 m / 6.")
     assert cam.to_dict()["restart_reason"] == cam.restart_reason
-    back = Pipeline.restore(cams, EngineConfig(), p.snapshot()).state().cameras[c]
-    assert (back.restarted_at, back.restart_reason) == (cam.restarted_at, cam.restart_reason)
+    p._restart_noted(np.int64(0), "relocalized: lost, found elsewhere")  # numpy's index, as a solution's
+    back = Pipeline.restore(cams, EngineConfig(), json.loads(dumps_json(p.snapshot()))).state().cameras
+    assert (back[c].restarted_at, back[c].restart_reason) == (cam.restarted_at, cam.restart_reason)
+    assert back[0].restart_reason == "relocalized: lost, found elsewhere"
     p.disputed.append(c)
-    assert p.apply(p.next_problem(p.clock), replace(sol, R=rf.R.copy(), t=rf.t.copy())).restarted == ()
+    # the next report lists the restarts since the last one: the relocalised camera, not the kept one
+    assert p.apply(p.next_problem(p.clock), replace(sol, R=rf.R.copy(), t=rf.t.copy())).restarted == (p.names[0],)

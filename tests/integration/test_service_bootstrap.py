@@ -172,9 +172,23 @@ def test_an_initial_estimate_is_checked_against_the_data_and_a_rough_one_replace
             assert checked["reason"].startswith("the initial estimate checked against the data: ")
             assert checked["bootstrap"] is None  # not a bootstrapping session: its record says the check
             swapped_at = check["cycle"]
-            later = _poll(client, f"/sessions/{sid}", lambda s: s["cycles"] >= swapped_at + 5 or s["state"] == "failed",
+            later = _poll(client, f"/sessions/{sid}", lambda s: s["cycles"] >= swapped_at + 3 or s["state"] == "failed",
                           120, "no cycles after the check", seen)
             assert later["state"] != "failed", later["reason"]
+    # the service restarts (the sensors go on): the session resumes from the data's shape,
+    # checked once
+    with ServiceThread(settings) as st, httpx.Client(base_url=st.url, timeout=60) as client:
+        with Sensors(endpoint, site, lab_dir, duration=1500.0):
+            again = client.get(f"/sessions/{sid}").json()
+            assert again["resumed"] == 1 and again["initial_check"] == check, again["initial_check"]
+            on = again["cycles"]
+            more = _poll(client, f"/sessions/{sid}", lambda s: s["cycles"] >= on + 5 or s["state"] == "failed",
+                         120, "the resumed session did not go on", seen)
+            # archived frames do not outlive a restart: a minute of data for the final batch
+            resumed_at = more["data_time"]
+            more = _poll(client, f"/sessions/{sid}", lambda s: s["data_time"] >= resumed_at + 60 or s["state"] == "failed",
+                         120, "no minute of data after the restart", seen)
+            assert more["state"] != "failed" and more["initial_check"] == check, more["reason"]
             stopped = client.post(f"/sessions/{sid}/stop").json()
             result = parse_extrinsics(client.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text)
 
