@@ -310,7 +310,8 @@ class BootstrapConfig(_Section):
                                 "of its stated std (refine.initial_std_*), or of the cameras' lower quartile distance when "
                                 "that is larger, is not used: one of the two is grossly wrong")
     live_check: bool = Field(True, description="live service: a session with an initial estimate (not told "
-                             "distrust_initial) checks it against the data once, after max_seconds of data: a "
+                             "distrust_initial) checks it against the data once, after max_seconds of data (again "
+                             "live_interval later while the data do not allow it, three tries): a "
                              "bootstrap on the archived frames, reconciled as with_initial says; when the data's shape "
                              "is to be used (the estimate rougher than it states or than auto_translation / "
                              "auto_rotation, or cameras swapped), the session goes on from there with every frame "

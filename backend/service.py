@@ -333,6 +333,7 @@ class ActiveSession:
     # the live check of the initial estimate found it rough: the pipeline from the data's
     # shape, swapped in by the optimizer between cycles (``Service._check_initial``)
     checked: Any = None
+    checking: bool = False  # its bootstrap is in the solver
     idle: asyncio.Event = field(default_factory=asyncio.Event)  # no cycle in flight
     clock_idle: asyncio.Event = field(default_factory=asyncio.Event)  # no clock offset estimate in flight
     done: asyncio.Event = field(default_factory=asyncio.Event)  # stopped or failed, persisted
@@ -768,6 +769,7 @@ class Service:
                 continue
             if not isinstance(s.pipeline, Collector):
                 if self._check_due(s):
+                    s.checking = True
                     try:
                         await self._check_initial(s)
                     except Exception:  # the check is a bonus: the session goes on from its initial estimate
@@ -775,6 +777,8 @@ class Service:
                         s.record.initial_check = {"phase": "done", "used": False,
                                                   "note": "the check failed (see the log): the initial estimate kept"}
                         self._save_record(s)
+                    finally:
+                        s.checking = False
                 continue
             try:
                 await self._bootstrap_turn(s, s.pipeline)
@@ -823,14 +827,19 @@ class Service:
 
     def _check_due(self, s: ActiveSession) -> bool:
         """A session with an initial estimate it was not told to distrust, not checked yet
-        (``bootstrap.live_check``), with ``bootstrap.max_seconds`` of frames archived."""
+        (``bootstrap.live_check``), with ``bootstrap.max_seconds`` of frames archived (what
+        ``extrcal calibrate`` bootstraps on: at 60 s a camera of the lab was chained 160°
+        off) and, after an attempt the data did not allow, ``live_interval`` more."""
         b, rec, p = s.inputs.config.bootstrap, s.record, s.pipeline
         if not b.live_check or b.with_initial == "never" or s.inputs.initial_yaml is None or rec.bootstrap is not None:
             return False
-        if (rec.initial_check or {}).get("phase") == "done" or s.checked is not None or not rec.state.active:
+        check = rec.initial_check or {}
+        if check.get("phase") == "done" or s.checking or s.checked is not None or not rec.state.active:
             return False
         frames = getattr(p, "frames", None)
-        return bool(frames) and frames[-1][0] - frames[0][0] >= b.max_seconds
+        if not frames or frames[-1][0] - frames[0][0] < b.max_seconds:
+            return False
+        return check.get("tried_at") is None or frames[-1][0] >= check["tried_at"] + b.live_interval
 
     async def _check_initial(self, s: ActiveSession) -> None:
         """The initial estimate against the data's shape, as ``extrcal calibrate`` does it
@@ -838,12 +847,15 @@ class Service:
         (the cycles wait for it), reconciled with the initial estimate. When the data's
         shape is to be used, a pipeline from it with every frame archived is built in a
         thread and the optimizer swaps it in between cycles (``_swap_checked``); else the
-        session goes on as it was."""
+        session goes on as it was. A bootstrap the data do not allow yet is tried again
+        ``live_interval`` later, three times in all."""
         from .live_bootstrap import BootstrapJob, Handover, run_job
+        from .reconcile import reconcile_cameras
 
         rec, p, cfg = s.record, s.pipeline, s.inputs.config
         frames = tuple(p.frames)
         span = frames[-1][0] - frames[0][0]
+        tries = int((rec.initial_check or {}).get("attempts", 0)) + 1
         if p.clocks.applied.any():  # archived views timed with offsets a new pipeline would not know
             rec.initial_check = {"phase": "done", "used": False, "data_seconds": span,
                                  "note": "not checked: clock offsets were applied before it was due"}
@@ -854,32 +866,37 @@ class Service:
             for v in views:
                 if v:
                     seen[v[0].cam] += 1
-        job = BootstrapJob(1, frames, tuple(p.names), p.focal.copy(), cfg, tuple(p.scale_heights or ()),
+        job = BootstrapJob(tries, frames, tuple(p.names), p.focal.copy(), cfg, tuple(p.scale_heights or ()),
                            rec.seed, span, seen, True)
-        rec.initial_check = {"phase": "running", "data_seconds": span}
+        rec.initial_check = {"phase": "running", "data_seconds": span, "attempts": tries}
         self._save_record(s)
         log.info("session %s: checking the initial estimate against a bootstrap on %.0f s of data", rec.id, span)
         outcome = await self.solver.run(self.bootstrap_fn or run_job, job)
         if s is not self.active or s.finishing or self._closing or not rec.state.active:
             return
         if outcome.result is None:
-            rec.initial_check = {"phase": "done", "used": False, "data_seconds": span,
-                                 "note": f"bootstrap not possible ({outcome.error}): the initial estimate kept"}
+            last = tries >= 3
+            rec.initial_check = {"phase": "done" if last else "waiting", "used": False, "data_seconds": span,
+                                 "attempts": tries, "tried_at": frames[-1][0],
+                                 "note": f"bootstrap not possible ({outcome.error}): the initial estimate kept"
+                                 + ("" if last else ", tried again with more data")}
             self._save_record(s)
+            return
+        reconciled, _, note = reconcile_cameras(outcome.result, s.inputs.cameras, cfg)
+        used = reconciled is not None and reconciled.used
+        rec.initial_check = {"phase": "running" if used else "done", "used": used, "data_seconds": span,
+                             "attempts": tries, "seconds": outcome.seconds,
+                             "reconciled": reconciled.to_dict() if reconciled is not None else None, "note": note}
+        log.info("session %s: the initial estimate against the data: %s", rec.id, note)
+        self._save_record(s)
+        if not used:
             return
         h = await asyncio.to_thread(Handover.build, job, outcome.result, s.inputs.cameras, cfg, True,
                                     seed=rec.seed, frames=frames)
         if s is not self.active or s.finishing or self._closing or not rec.state.active:
             return
-        used = bool((h.meta.get("reconciled") or {}).get("used"))
-        rec.initial_check = {"phase": "running" if used else "done", "used": used, "data_seconds": span,
-                             "seconds": outcome.seconds, "reconciled": h.meta.get("reconciled"),
-                             "note": h.meta.get("note")}
-        log.info("session %s: the initial estimate against the data: %s", rec.id, h.meta.get("note"))
-        if used:
-            s.checked = h
-            self._wake.set()
-        self._save_record(s)
+        s.checked = h
+        self._wake.set()
 
     def _swap_checked(self, s: ActiveSession) -> None:
         """The pipeline from the data's shape in place of the running one (between cycles:

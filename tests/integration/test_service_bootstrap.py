@@ -148,14 +148,14 @@ def test_a_camera_the_bootstrap_left_out_joins_the_running_session(tmp_path, lab
 
 def test_an_initial_estimate_is_checked_against_the_data_and_a_rough_one_replaced_by_its_shape(tmp_path, lab_dir):
     """bootstrap.live_check: a session with an initial estimate bootstraps once on its
-    archived frames (here after 60 s of data) and reconciles the two, as ``extrcal
+    archived frames (after 60 s of data) and reconciles the two, as ``extrcal
     calibrate`` does. An estimate 1 m / 30° off (stated 0.25 m / 10°) is replaced by the
     data's shape in its frame and scale, between cycles, and the session calibrates on
     from there; a good one (0.05 m / 2°) is kept and the session goes on untouched."""
     from backend.perturb import perturb_extrinsics
 
     site = "check"
-    config = {"bootstrap": {"max_seconds": 60.0}}
+    config = {"bootstrap": {"max_seconds": 60.0}}  # a short test: the check after 60 s of data, not 120
     settings, endpoint, truth, body = _setup(tmp_path, lab_dir, site, config)
     body.pop("person_height")
     seen: list[dict] = []
