@@ -181,10 +181,12 @@ class Handover:
         taken = frames[-1][0] if frames else -math.inf
         return Handover(p, cams, initial_yaml, config, taken, new, meta, index)
 
-    def catch_up(self, collector: "Collector") -> int:
+    def catch_up(self, collector: "Collector | Any") -> int:
         """Feed the framesets the collector took while the handover was built, and take
         over its clock, counters and the point of time its sync has reached (so nothing
-        is emitted twice); returns the new hypotheses. On the loop: cheap."""
+        is emitted twice); returns the new hypotheses. On the loop: cheap. ``collector``:
+        a Collector, or the pipeline a live check of the initial estimate replaces (it
+        has the same frames, clock, counters and sync)."""
         p = self.pipeline
         later = [f for f in collector.frames if f[0] > self.taken]
         new = p.take_frames(remap(later, self.index))

@@ -357,7 +357,7 @@ class Pipeline:
                 if pose is not None:  # the camera where the clock's estimate put it
                     rf.relocate(c, *pose)
                     self.relocalized.append(name)
-                    self._restart_noted(c, "relocalized after its clock offset was applied")
+                    self._restart_noted(c, "relocalized after its clock offset was applied", say=True)
             self.sync.set_offset(name, new)
             self._offset_history[c].append((start, new))
 
@@ -628,7 +628,7 @@ class Pipeline:
             for c in np.flatnonzero(solution.active):
                 self.refiner.relocate(c, solution.R[c], solution.t[c])
                 self.relocalized.append(self.names[c])
-                self._restart_noted(c, "relocalized: lost, found elsewhere")
+                self._restart_noted(c, "relocalized: lost, found elsewhere", say=True)
         elif problem.kind == "dispute":
             self._settle(problem.moved[0], solution if accepted else None)
             self.cycles_rejected += not accepted
@@ -764,8 +764,10 @@ class Pipeline:
                      self.names[c], m, deg, chi2)
         self.confirmed[c] += 1
 
-    def _restart_noted(self, c: int, why: str) -> None:
-        if not why.startswith("disputed"):  # _settle has said it, with the figures
+    def _restart_noted(self, c: int, why: str, *, say: bool = False) -> None:
+        """Camera c started over from a pose found elsewhere: kept per camera for the state
+        and listed in the next cycle's report; ``say``: log it (the caller has not)."""
+        if say:
             log.warning("%s started over from a pose found elsewhere: %s", self.names[c], why)
         self.restarted[int(c)] = (float(self.clock or 0.0), why)
         self._restarted_new.append(self.names[c])

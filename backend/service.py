@@ -894,6 +894,7 @@ class Service:
         h = await asyncio.to_thread(Handover.build, job, outcome.result, s.inputs.cameras, cfg, True,
                                     seed=rec.seed, frames=frames)
         if s is not self.active or s.finishing or self._closing or not rec.state.active:
+            rec.initial_check = {**rec.initial_check, "phase": "done", "note": f"{note}; the session ended first"}
             return
         s.checked = h
         self._wake.set()
@@ -1099,10 +1100,9 @@ class Service:
                         "calibrating it again", rec.id, name)
             self.events.publish("camera_moved", {"session": rec.id, "camera": name, "data_time": state.data_time,
                                                  "cycle": report.cycle})
-        why = {c.name: c.restart_reason for c in state.cameras}
+        why = {c.name: c.restart_reason for c in state.cameras} if report.restarted else {}
         for name in report.restarted:
-            log.info("session %s: camera %s started over from a pose found elsewhere (%s)", rec.id, name,
-                        why.get(name))
+            log.info("session %s: camera %s started over from a pose found elsewhere (%s)", rec.id, name, why.get(name))
             self.events.publish("camera_restarted", {"session": rec.id, "camera": name, "reason": why.get(name),
                                                      "data_time": state.data_time, "cycle": report.cycle})
         if rec.state is not was or report.moved_cameras or report.recalibrated or report.restarted:

@@ -679,7 +679,7 @@ def test_a_disputed_camera_whose_adjustment_agrees_keeps_its_estimate(lab):
     cam = p.state().cameras[c]
     assert cam.restarted_at == 100.0 and cam.restart_reason.startswith("disputed: 0.20 m / 6.")
     assert cam.to_dict()["restart_reason"] == cam.restart_reason
-    p._restart_noted(np.int64(0), "relocalized: lost, found elsewhere")  # numpy's index, as a solution's
+    p._restart_noted(np.int64(0), "relocalized: lost, found elsewhere", say=True)  # numpy's index, as a solution's
     back = Pipeline.restore(cams, EngineConfig(), json.loads(dumps_json(p.snapshot()))).state().cameras
     assert (back[c].restarted_at, back[c].restart_reason) == (cam.restarted_at, cam.restart_reason)
     assert back[0].restart_reason == "relocalized: lost, found elsewhere"
