@@ -82,6 +82,7 @@ class Reconciled:
     std_translation: np.ndarray
     std_rotation: np.ndarray
     overruled: np.ndarray
+    nowhere: bool = False  # every camera refused: the data's shape used for all, in the centres' frame
 
     def __post_init__(self) -> None:
         C = len(self.names)
@@ -138,6 +139,8 @@ class Reconciled:
         over the cameras the alignment kept (the convention of ``refine.initial_std_*``:
         0.25 m for cameras 0.25 m off)."""
         k = self.aligned & ~self.refused & np.isfinite(self.translation)  # not the gross errors
+        if self.nowhere:  # all of them are
+            k = self.aligned & np.isfinite(self.translation)
         if not k.any():
             return 0.0, 0.0
         return (float(np.sqrt(np.mean(self.translation[k] ** 2))), float(np.sqrt(np.mean(self.rotation[k] ** 2))))
@@ -175,6 +178,9 @@ class Reconciled:
         if over:
             tail += (f"; the data place {', '.join(over)} far from the initial estimate (swapped or moved?): "
                      "started from the data's pose")
+        if self.nowhere:
+            tail += ("; the initial estimate singles out no camera, it is off everywhere: its frame and scale "
+                     "are only as good as its centres")
         if self.used:
             return f"{head}{tail}; starting from the data's shape for {int(self.from_bootstrap.sum())} cameras"
         return f"{head}{tail}; the initial estimate is used as it is ({self.mode})"
@@ -186,6 +192,7 @@ class Reconciled:
             "from_bootstrap": [n for n, u in zip(self.names, self.from_bootstrap) if u],
             "refused": [n for n, r in zip(self.names, self.refused) if r],
             "overruled": [n for n, o in zip(self.names, self.overruled) if o],
+            "nowhere": self.nowhere,
             "disagree": [n for n, a, f in zip(self.names, self.agrees, fin) if f and not a],
             "translation": {n: round(float(d), 5) for n, d, f in zip(self.names, self.translation, fin) if f},
             "rotation": {n: round(float(d), 4) for n, d, f in zip(self.names, self.rotation, fin) if f},
@@ -276,15 +283,23 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
     off = rms_t > b.auto_sigma * rc.initial_std_translation or rms_r > b.auto_sigma * rc.initial_std_rotation
     # ... or further off than the paper's way copes with, however honestly its std is stated
     off = off or rms_t > b.auto_translation or rms_r > b.auto_rotation
-    if mode == "never" or (mode == "auto" and (agrees[both].all() or not off)):
+    # every camera refused: the estimate singles out none, it is off everywhere (each camera
+    # of a 4 m room 3 m / 90° off, most of them swapped). The data's shape then, in the
+    # frame its centres give, however rough: kept as it is, it was never calibrated (the
+    # steep room from 3 m / 90°: 1.39 m shape)
+    nowhere = both.sum() >= 3 and bool(refused[both].all())
+    if mode == "never" or (mode == "auto" and not nowhere and (agrees[both].all() or not off)):
         use = overruled.copy()
+    elif nowhere:
+        use = both.copy()
     else:
         use = usable | overruled
     R, t = R0.copy(), t0.copy()
     for i, c in enumerate(idx):
         if use[c]:
             R[c], t[c] = Ra[i], ta[i]
-    return Reconciled(tuple(names), R, t, dt, dr, agrees, refused, use, aligned, float(s), mode, st, sr, overruled)
+    return Reconciled(tuple(names), R, t, dt, dr, agrees, refused, use, aligned, float(s), mode, st, sr, overruled,
+                      nowhere and mode != "never")
 
 
 def _frame_angle(R0: np.ndarray, R: np.ndarray) -> float:

@@ -213,6 +213,11 @@ def test_cameras_swapped_in_the_initial_estimate_start_where_the_data_hold_them(
     t4[[0, 1, 3, 4]] = t4[[4, 3, 1, 0]]
     rec = reconcile(_boot(names, Rb, tb, residual_px=res, observations=obs), names, R4, t4, cfg)
     assert rec.refused.sum() > 2 and not rec.overruled.any()
+    # ... every one of them here: the estimate singles out none, the data's shape is taken
+    # for all (its frame as rough as those centres; kept, the cameras were never calibrated)
+    assert rec.refused.all() and rec.nowhere and rec.from_bootstrap.all() and "off everywhere" in rec.summary()
+    assert rec.observed_std()[0] > 1.0  # the stated std raised to how far off the estimate is
+    assert not reconcile(_boot(names, Rb, tb), names, R4, t4, cfg, mode="never").used
 
 
 def test_refused_cameras_do_not_pull_the_frame_the_others_are_compared_in():
