@@ -180,6 +180,34 @@ def test_events_stream_session_changes(svc, client, lab_body):
         assert seen == ["waiting_for_data", "stopped"]
 
 
+def test_events_of_the_kinds_asked_for_only(svc, client):
+    """?kind=...: a client waiting for some kinds gets only those (after ``hello``): a
+    flood of others larger than its queue cannot push them out; an unknown kind is a 422."""
+    from typing import get_args
+
+    from backend.api.routers.events import EventKind
+    from backend.service import EventBus
+
+    assert frozenset(get_args(EventKind)) == EventBus.KINDS
+    assert client.get("/events", params={"kind": "cycles"}).status_code == 422
+    bus = svc.service.events
+    with httpx.Client(base_url=svc.url, timeout=10) as ev, \
+            ev.stream("GET", "/events", params={"kind": ["calibration", "camera_moved"]}) as stream:
+        lines = stream.iter_lines()
+        assert _next_event(lines)[0] == "hello"
+
+        def flood() -> None:  # on the service's loop, as the service publishes
+            for k in range(2 * bus._maxlen):
+                bus.publish("cycle", {"cycle": k})
+            bus.publish("calibration", {"version": 7})
+            bus.publish("hypotheses", {"persons": []})
+            bus.publish("camera_moved", {"camera": "cam_3"})
+
+        svc.loop.call_soon_threadsafe(flood)
+        assert _next_event(lines) == ("calibration", {"version": 7})  # nothing dropped: no "dropped"
+        assert _next_event(lines) == ("camera_moved", {"camera": "cam_3"})
+
+
 def _next_event(lines) -> tuple[str, dict]:
     kind = None
     for line in lines:

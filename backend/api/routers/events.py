@@ -1,9 +1,9 @@
 from __future__ import annotations
 
 import asyncio
+from typing import Annotated, Literal
 
-
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
 
 from ...session import dumps_json
@@ -12,6 +12,10 @@ from ..deps import ReadAuth, ServiceDep
 router = APIRouter(tags=["events"], dependencies=[ReadAuth])
 
 KEEPALIVE = 15.0  # s between comment lines, so proxies keep the stream open
+
+# what the service publishes (backend.service.EventBus.KINDS); ``hello`` opens every stream
+EventKind = Literal["status", "cycle", "session", "service", "camera_moved", "camera_restarted", "calibration",
+                    "hypotheses"]
 
 
 @router.get("/events", summary="live progress (server-sent events)",
@@ -24,12 +28,17 @@ KEEPALIVE = 15.0  # s between comment lines, so proxies keep the stream open
                                             "a dispute adjustment or a re-localisation), `calibration` "
                                             "(a version was recorded by the monitor or activated), `hypotheses` "
                                             "(the persons of a cycle, for the dashboard)"}})
-async def events(service: ServiceDep, request: Request) -> StreamingResponse:
+async def events(service: ServiceDep, request: Request,
+                 kind: Annotated[list[EventKind] | None, Query(
+                     description="only these kinds (repeatable; default all): a client waiting for alarms "
+                                 "(`?kind=camera_moved&kind=calibration`) then loses none of them to the flood of "
+                                 "`cycle` and `hypotheses`")] = None) -> StreamingResponse:
     """Server-sent events, one JSON object per `data:` line. A slow client loses its
     oldest events; `dropped` in the next event says how many."""
+    kinds = frozenset(kind) if kind else None
 
     async def stream():
-        async with service.events.subscribe() as q:
+        async with service.events.subscribe(kinds) as q:
             yield _frame(0, "hello", service.status_brief())
             while True:
                 try:
