@@ -151,7 +151,8 @@ def test_an_initial_estimate_is_checked_against_the_data_and_a_rough_one_replace
     archived frames (after 60 s of data) and reconciles the two, as ``extrcal
     calibrate`` does. An estimate 1 m / 30° off (stated 0.25 m / 10°) is replaced by the
     data's shape in its frame and scale, between cycles, and the session calibrates on
-    from there; a good one (0.05 m / 2°) is kept and the session goes on untouched."""
+    from there, also after a restart, which does not check again; a good one
+    (0.05 m / 2°) is kept and the session goes on untouched."""
     from backend.perturb import perturb_extrinsics
 
     site = "check"
