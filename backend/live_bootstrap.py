@@ -133,13 +133,16 @@ class Handover:
 
     @staticmethod
     def build(job: BootstrapJob, result: BootstrapResult, cameras: CameraSet, config: EngineConfig,
-              initial: bool, *, seed: int = 0, frames: Sequence[Frame] | None = None) -> "Handover":
+              initial: bool, *, seed: int = 0, frames: Sequence[Frame] | None = None,
+              reconciled: tuple[Any, str] | None = None) -> "Handover":
         """The pipeline from ``result`` (synchronous, seconds of numpy: run it in a thread).
         ``cameras``/``initial``: the session's camera set and whether its poses are an
         initial estimate (then reconciled with the bootstrap: frame and scale kept, as
         ``extrcal calibrate`` with ``bootstrap.with_initial``), else placeholders.
         ``frames``: what the pipeline takes (default the job's; live: everything collected
-        until now, the attempt may have run for minutes)."""
+        until now, the attempt may have run for minutes). ``reconciled``: ``result``
+        already reconciled with ``cameras`` (``reconcile_cameras``: the Reconciled or None,
+        and its note), not done again."""
         from .pipeline import Pipeline
         from .reconcile import reconcile_cameras
 
@@ -149,7 +152,10 @@ class Handover:
         start = None
         initial_yaml = None
         if initial:
-            rec, _, note = reconcile_cameras(result, cameras, config)
+            if reconciled is None:
+                rec, _, note = reconcile_cameras(result, cameras, config)
+            else:
+                rec, note = reconciled
             meta["reconciled"] = rec.to_dict() if rec is not None else None
             meta["note"] = note
             cams = cameras

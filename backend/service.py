@@ -900,7 +900,7 @@ class Service:
         if not used:
             return
         h = await asyncio.to_thread(Handover.build, job, outcome.result, s.inputs.cameras, cfg, True,
-                                    seed=rec.seed, frames=frames)
+                                    seed=rec.seed, frames=frames, reconciled=(reconciled, note))
         if s is not self.active or s.finishing or self._closing or not rec.state.active:
             rec.initial_check = {**rec.initial_check, "phase": "done", "note": f"{note}; the session ended first"}
             return
@@ -915,10 +915,7 @@ class Service:
         s.checked = None
         h.catch_up(old)
         h.pipeline.cycle = old.cycle
-        s.pipeline = h.pipeline
-        s.inputs = replace(s.inputs, cameras=h.cameras, config=h.config)
-        s.__dict__.pop("names", None)
-        s.state = s.pipeline.state()
+        self._swap_pipeline(s, h.pipeline, replace(s.inputs, cameras=h.cameras, config=h.config))
         s.failures = 0
         rec.initial_check = {**(rec.initial_check or {}), "phase": "done", "cycle": old.cycle}
         rec.reason = f"the initial estimate checked against the data: {h.meta.get('note')}; calibrating from it"
@@ -928,6 +925,15 @@ class Service:
         self._persist(s, snapshot=True)  # a resume must not restore the pipeline from before the swap
         self.events.publish("session", {"id": rec.id, "state": rec.state.value, "reason": rec.reason,
                                         "initial_check": "used"})
+
+    @staticmethod
+    def _swap_pipeline(s: ActiveSession, pipeline: Any, inputs: SessionInputs) -> None:
+        """A new pipeline in place of the session's, with its inputs (on the loop, between
+        cycles): the cached camera names dropped, the state taken from it now."""
+        s.pipeline = pipeline
+        s.inputs = inputs
+        s.__dict__.pop("names", None)
+        s.state = pipeline.state()
 
     def _bootstrap_progress(self, s: ActiveSession) -> None:
         col = s.pipeline
@@ -940,13 +946,11 @@ class Service:
         """Swap the online pipeline in for the collector (on the loop: nothing in between)."""
         h.catch_up(col)
         rec = s.record
-        s.pipeline = h.pipeline
-        s.inputs = SessionInputs(s.inputs.intrinsics_yaml, h.initial_yaml or s.inputs.initial_yaml,
-                                 s.inputs.reference_yaml, h.cameras, s.inputs.reference, h.config)
-        s.__dict__.pop("names", None)  # the cached camera names: now the placed cameras
+        self._swap_pipeline(s, h.pipeline, SessionInputs(
+            s.inputs.intrinsics_yaml, h.initial_yaml or s.inputs.initial_yaml, s.inputs.reference_yaml, h.cameras,
+            s.inputs.reference, h.config))  # the placed cameras
         if self.handoff is not None:  # and the cameras it did not place, archived for later (backend/late_join.py)
             self.handoff.accept(s.sensors)
-        s.state = s.pipeline.state()
         s.last_snapshot = time.monotonic()
         data_time = None if rec.first_data is None or col.clock is None else col.clock - rec.first_data
         rec.bootstrap = {**(rec.bootstrap or {}), **col.progress(), **h.meta, "phase": "done",
@@ -1044,10 +1048,7 @@ class Service:
             return
         rec = s.record
         joined = [j.name for j in q.late if j.live and j.name not in s.names]
-        s.pipeline = q
-        s.inputs = replace(s.inputs, cameras=q.cameras)
-        s.__dict__.pop("names", None)  # the cached camera names: now with the joined ones
-        s.state = q.state()
+        self._swap_pipeline(s, q, replace(s.inputs, cameras=q.cameras))  # now with the joined cameras
         rec.bootstrap = {**(rec.bootstrap or {}), **(late_record(q, final=False) or {})}
         log.info("session %s: %s placed after the bootstrap, joined the running calibration", rec.id, ", ".join(joined))
         initial_yaml = dump_extrinsics(dict(q.cameras.extrinsics), comment="the bootstrap's cameras and those placed "

@@ -6,6 +6,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
 
+from ...service import EventBus
 from ...session import dumps_json
 from ..deps import ReadAuth, ServiceDep
 
@@ -13,9 +14,8 @@ router = APIRouter(tags=["events"], dependencies=[ReadAuth])
 
 KEEPALIVE = 15.0  # s between comment lines, so proxies keep the stream open
 
-# what the service publishes (backend.service.EventBus.KINDS); ``hello`` opens every stream
-EventKind = Literal["status", "cycle", "session", "service", "camera_moved", "camera_restarted", "calibration",
-                    "hypotheses"]
+# what the service publishes; ``hello`` opens every stream
+EventKind = Literal[tuple(sorted(EventBus.KINDS))]  # type: ignore[valid-type]
 
 
 @router.get("/events", summary="live progress (server-sent events)",
