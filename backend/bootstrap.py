@@ -51,6 +51,7 @@ from .associate import Hypothesis, torso_centre
 from .cameras import CameraSet, Extrinsics, Intrinsics, Pose, natural_key
 from .config import BootstrapConfig, EngineConfig
 from .geometry import hat, pose_std, rotation_angle_deg, so3_exp, triangulate_batch
+from .optimize import BONE_NAMES, BONES
 from .people import ANKLE_HEIGHT, ScaleEstimate, Segments, measure_scale, segments
 from .preprocess import Detection, Preprocessor
 from .sync import Synchronizer
@@ -139,6 +140,8 @@ class PairPose:
     frames: (F,) int indices (into the frames given) of the frames whose joints agree.
     depths: {camera: (N,) float64} depth of each triangulated joint in that camera for
     s = 1, keyed by ``keys`` (N,) int = frame index * 17 + joint.
+    bones: (len(BONE_NAMES),) float64 the median length of each bone over the agreeing
+    frames for s = 1, NaN = seen too rarely (``pair_bones``).
     """
 
     a: int
@@ -152,10 +155,12 @@ class PairPose:
     angle_deg: float
     keys: np.ndarray = field(repr=False)
     depths: Mapping[int, np.ndarray] = field(repr=False)
+    bones: np.ndarray = field(default_factory=lambda: np.full(len(BONE_NAMES), np.nan), repr=False)
 
     def __post_init__(self) -> None:
         assert self.R.shape == (3, 3) and self.t.shape == (3,)
         assert all(d.shape == self.keys.shape for d in self.depths.values())
+        assert self.bones.shape == (len(BONE_NAMES),)
 
 
 def single_views(frames: Sequence[Frame]) -> list[dict[int, Detection]]:
@@ -296,9 +301,31 @@ def pair_poses(frames: Sequence[Frame], cameras: int, focal: np.ndarray, cfg: Bo
             continue
         keys = (fid[sel] * 17 + jid[sel])[fine]
         res = float(np.median(np.abs(sampson_px(R, t, xa[sel], xb[sel], f))))
+        points = za[fine, None] * np.c_[xa[sel][fine], np.ones(int(fine.sum()))]
         out.append(PairPose(a, b, R, t, good, len(fis), int(sel.sum()), res, angle, keys,
-                            {a: za[fine], b: zb[fine]}))
+                            {a: za[fine], b: zb[fine]}, pair_bones(keys, points)))
     return out, len(tried)
+
+
+def pair_bones(keys: np.ndarray, points: np.ndarray, *, min_frames: int = 10) -> np.ndarray:
+    """(len(BONE_NAMES),) median length of each bone (left and right together) over the
+    frames in which both its joints were triangulated, NaN when fewer than ``min_frames``.
+    keys: (N,) int frame index * 17 + joint; points: (N, 3) float64 the joints."""
+    assert keys.shape == (len(points),) and points.shape[1:] == (3,)
+    out = np.full(len(BONE_NAMES), np.nan)
+    if not len(keys):
+        return out
+    frame, joint = np.divmod(keys, 17)
+    uf, row = np.unique(frame, return_inverse=True)
+    P = np.full((len(uf), 17, 3), np.nan)
+    P[row, joint] = points
+    L = np.linalg.norm(P[:, BONES[:, 1]] - P[:, BONES[:, 2]], axis=2)  # (F, bones)
+    for k in range(len(BONE_NAMES)):
+        v = L[:, BONES[:, 0] == k].ravel()
+        v = v[np.isfinite(v)]
+        if len(v) >= min_frames:
+            out[k] = float(np.median(v))
+    return out
 
 
 # ------------------------------------------------------------------ view graph
@@ -406,47 +433,57 @@ def average_rotations(cameras: int, pairs: Sequence[PairPose], *, root: int | No
     return R, known, residuals()
 
 
-def pair_scales(pairs: Sequence[PairPose], cfg: BootstrapConfig) -> tuple[np.ndarray, np.ndarray]:
+def pair_scales(pairs: Sequence[PairPose], cfg: BootstrapConfig) -> tuple[np.ndarray, np.ndarray, int]:
     """Relative scale of each pair's unit-baseline triangulation (the baseline length in
     a common unit), from the depths at which two pairs sharing a camera see the same
-    joints. Returns (log scale (P,), known (P,) bool): the largest connected group of
-    related pairs, its best pair at log scale 0."""
+    joints. Pairs that no such chain of shared joints relates (a corridor: no camera
+    triple sees one instant) are related by their people's bones instead
+    (``bootstrap.bone_scales``): the same people walk past both, so their median bones
+    are the same length in metres. Returns (log scale (P,), known (P,) bool, number of
+    bone relations used): the largest connected group of related pairs, its best pair at
+    log scale 0."""
     P = len(pairs)
     rel = []  # (e, f, log(s_e / s_f), weight)
     incident: dict[int, list[int]] = defaultdict(list)
     for k, p in enumerate(pairs):
         incident[p.a].append(k)
         incident[p.b].append(k)
-    for cam, ks in incident.items():
-        for i in range(len(ks)):
-            for j in range(i + 1, len(ks)):
-                e, f = pairs[ks[i]], pairs[ks[j]]
-                common, ie, if_ = np.intersect1d(e.keys, f.keys, return_indices=True)
-                if len(common) < cfg.min_shared_points:
-                    continue
-                ze, zf = e.depths[cam][ie], f.depths[cam][if_]
-                ok = (ze > 0) & (zf > 0)
-                if ok.sum() < cfg.min_shared_points:
-                    continue
-                ratios = np.log(zf[ok] / ze[ok])
-                rel.append((ks[i], ks[j], float(np.median(ratios)), float(np.sqrt(min(ok.sum(), 400)))))
+    sharing = [(cam, ks[i], ks[j]) for cam, ks in incident.items() for i in range(len(ks)) for j in range(i + 1, len(ks))]
+    for cam, ke, kf in sharing:
+        e, f = pairs[ke], pairs[kf]
+        common, ie, if_ = np.intersect1d(e.keys, f.keys, return_indices=True)
+        if len(common) < cfg.min_shared_points:
+            continue
+        ze, zf = e.depths[cam][ie], f.depths[cam][if_]
+        ok = (ze > 0) & (zf > 0)
+        if ok.sum() < cfg.min_shared_points:
+            continue
+        ratios = np.log(zf[ok] / ze[ok])
+        rel.append((ke, kf, float(np.median(ratios)), float(np.sqrt(min(ok.sum(), 400)))))
     known = np.zeros(P, bool)
     logs = np.zeros(P)
     if P == 0:
-        return logs, known
-    # connected groups of related pairs (labelled in the order of their first pair)
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    ef = np.array([(e, f) for e, f, _, _ in rel], dtype=np.int64).reshape(-1, 2)
-    _, label = connected_components(coo_matrix((np.ones(len(ef)), (ef[:, 0], ef[:, 1])), shape=(P, P)),
-                                    directed=False)
+        return logs, known, 0
+    label = _related(P, rel)
+    n_bones, shared = 0, len(rel)
+    if cfg.bone_scales:
+        for _cam, ke, kf in sharing:
+            if label[ke] == label[kf]:
+                continue  # shared joints relate them better
+            v = np.log(pairs[kf].bones / pairs[ke].bones)
+            v = v[np.isfinite(v)]
+            # every bone scales alike; a spread says one pair's geometry is wrong
+            if len(v) >= 3 and np.median(np.abs(v - np.median(v))) <= 0.1:
+                rel.append((ke, kf, float(np.median(v)), 1.0))  # people differ: weak against shared joints
+                n_bones += 1
+        if n_bones:
+            label = _related(P, rel)
     groups = [np.flatnonzero(label == g).tolist() for g in range(label.max() + 1)]
     best = max(groups, key=lambda g: (len(g), sum(pairs[k].inliers for k in g)))
     anchor = max(best, key=lambda k: pairs[k].inliers)
     if len(best) < 2:
         known[anchor] = True
-        return logs, known
+        return logs, known, 0
     idx = {k: i for i, k in enumerate(best)}
     rows = [(idx[e], idx[f], v, w) for e, f, v, w in rel if e in idx and f in idx]
     n = len(best)
@@ -466,7 +503,19 @@ def pair_scales(pairs: Sequence[PairPose], cfg: BootstrapConfig) -> tuple[np.nda
     for k in best:
         logs[k] = x[idx[k]]
         known[k] = True
-    return logs, known
+    return logs, known, sum(1 for e, _f, _v, _w in rel[shared:] if e in idx)
+
+
+def _related(P: int, rel: Sequence[tuple[int, int, float, float]]) -> np.ndarray:
+    """(P,) label of each pair's connected group over the relations (labelled in the
+    order of their first pair)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    ef = np.array([(e, f) for e, f, _, _ in rel], dtype=np.int64).reshape(-1, 2)
+    _, label = connected_components(coo_matrix((np.ones(len(ef)), (ef[:, 0], ef[:, 1])), shape=(P, P)),
+                                    directed=False)
+    return label
 
 
 def place_cameras(cameras: int, R: np.ndarray, pairs: Sequence[PairPose], logs: np.ndarray,
@@ -921,12 +970,13 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     inl = rres <= cfg.rotation_outlier
     good = [p for p, ok in zip(pairs, inl) if ok]
     R, connected, _ = average_rotations(C, good, sigma_deg=cfg.rotation_outlier / 2)
-    logs, scaled = pair_scales(good, cfg)
+    logs, scaled, bone_links = pair_scales(good, cfg)
     t, located = place_cameras(C, R, good, logs, scaled)
     located &= connected
     stages["graph"] = _time.perf_counter() - t0
-    say(f"view graph: {len(good)} pairs after rotation averaging, {int(scaled.sum())} with a scale, "
-        f"{int(located.sum())}/{C} cameras placed")
+    say(f"view graph: {len(good)} pairs after rotation averaging, {int(scaled.sum())} with a scale"
+        + (f" ({bone_links} of their relations by the people's bones)" if bone_links else "")
+        + f", {int(located.sum())}/{C} cameras placed")
     if located.sum() < 2:
         raise BootstrapError("fewer than 2 cameras could be placed: too few pairs share a person")
 
@@ -943,6 +993,8 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     std_r = np.full(C, np.nan)
     prior = np.diag([np.radians(cfg.prior_std_rotation) ** 2] * 3 + [cfg.prior_std_translation**2] * 3)
     opt = config.optimize.model_copy(update={"max_iterations": max(config.optimize.max_iterations, 100)})
+    if opt.bones == "auto":  # a scale carried by bones needs them to hold it in the adjustment too
+        opt = opt.model_copy(update={"bones": "batch" if bone_links else "off"})
     rng = np.random.default_rng(seed)
     tried_reloc = False
     check_notes: tuple[str, ...] = ()

@@ -251,6 +251,10 @@ class BootstrapConfig(_Section):
     min_consistent_ratio: float = Field(0.3, ge=0, le=1, description="share of a pair's single-person frames that must agree with its geometry")
     min_triangulation_angle: float = Field(3.0, ge=0, description="deg: median angle between a pair's rays; below it the baseline is unknown")
     min_shared_points: int = Field(40, ge=5, description="joints two pairs triangulate at the same instants to relate their scales")
+    bone_scales: bool = Field(True, description="pairs that no shared joints relate (a camera chain without three-way "
+                              "overlap, e.g. a corridor) are related by the median bone lengths of the people each "
+                              "pair sees, and the bootstrap's adjustments then hold the people's bones (with "
+                              "optimize.bones 'auto'); off: such a chain places only its best-related pairs")
     rotation_outlier: float = Field(5.0, gt=0, description="deg: a pair disagreeing more with the averaged rotations is dropped")
     check_min_frames: int = Field(10, ge=3, description="a camera reached only over bridge pairs is checked against "
                                   "the persons the other cameras triangulate when this many of them (outside its pairs' "

@@ -254,11 +254,13 @@ class AlignedPoses:
 
 
 def align_poses(R_src: np.ndarray, t_src: np.ndarray, R_dst: np.ndarray, t_dst: np.ndarray,
-                use: np.ndarray | None = None) -> AlignedPoses | None:
+                use: np.ndarray | None = None, *, orientations: bool = False) -> AlignedPoses | None:
     """The src poses (N, 3, 3), (N, 3) (world-from-camera rotations, centres) aligned onto
     the dst poses of the same N cameras by ``trimmed_similarity`` of the centres (of the
     cameras ``use`` (N,) bool, default all), with the per-camera differences; None when
-    the centres give no similarity."""
+    the centres give no similarity. ``orientations``: where the centres hold the turn
+    less firmly than the orientations do (cameras along a corridor leave the turn about
+    it to their few decimetres sideways), the turn is fitted to both (``_joint_turn``)."""
     assert R_src.shape == R_dst.shape and t_src.shape == t_dst.shape and len(t_src) == len(R_src)
     use = np.ones(len(t_src), bool) if use is None else use
     fit = trimmed_similarity(t_src[use], t_dst[use])
@@ -267,10 +269,62 @@ def align_poses(R_src: np.ndarray, t_src: np.ndarray, R_dst: np.ndarray, t_dst: 
     s, Rw, tw, kept = fit
     keep = np.zeros(len(t_src), bool)
     keep[np.flatnonzero(use)[kept]] = True
+    if orientations:
+        s, Rw, tw = _joint_turn(s, Rw, tw, R_src[keep], t_src[keep], R_dst[keep], t_dst[keep])
     R = np.einsum("ij,cjk->cik", Rw, R_src)
     t = s * t_src @ Rw.T + tw
     dr = np.array([rotation_angle_deg(R[i], R_dst[i]) for i in range(len(R))])
     return AlignedPoses(s, Rw, tw, keep, R, t, np.linalg.norm(t - t_dst, axis=1), dr)
+
+
+LOOSE_TURN_DEG = 5.0  # deg: std of the centres' turn about an axis beyond which orientations may hold it
+
+
+def _joint_turn(s: float, Rw: np.ndarray, tw: np.ndarray, R_src: np.ndarray, t_src: np.ndarray, R_dst: np.ndarray,
+                t_dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """The similarity (s, Rw, tw) fitted to the centres (N, 3), refitted to the centres
+    and the orientations (N, 3, 3) together when the centres' information about some
+    axis of the turn is below the orientations' (each term weighted by its own scatter
+    about its own fit, the orientations trimmed at 3x their median turn); else unchanged.
+    An estimate whose orientations are all turned alike (a convention mixed up) has
+    centres that hold every axis: it keeps the centres' fit."""
+    N = len(t_src)
+    if N < 3:
+        return s, Rw, tw
+    x = t_src - t_src.mean(0)
+    var_t = max(float(np.mean(np.sum((s * t_src @ Rw.T + tw - t_dst) ** 2, axis=1))) / 3, 1e-6)
+    Q = np.einsum("nij,nkj->nik", R_dst, R_src)  # each camera's dst_R_src
+    U, _, Vt = np.linalg.svd(Q.sum(0))
+    Ro = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    ang = np.array([np.radians(rotation_angle_deg(Ro, q)) for q in Q])
+    ok = ang <= max(3.0 * float(np.median(ang)), np.radians(1.0))
+    var_r = max(float(np.mean(ang[ok] ** 2)) / 3, np.radians(0.1) ** 2)
+    from scipy.stats import chi2
+
+    xr = x @ Rw.T  # turns are taken in dst's frame: Rw -> exp(w) Rw
+    S = xr.T @ xr
+    info_t, axes = np.linalg.eigh(s * s * (np.trace(S) * np.eye(3) - S) / var_t)  # the centres' information
+    info_r = ok.sum() / var_r
+    # an axis is the orientations' only where the centres' layout leaves it loose (its std
+    # 5x the best axis' and above LOOSE_TURN_DEG: a line of cameras) and the orientations
+    # hold it better. Elsewhere the centres' fit is kept: orientations turned alike (a
+    # convention mixed up) cannot turn the frame, nor can centres that are loose only
+    # because many are wrong (swapped cameras) pass the frame to the orientations
+    strong = (info_t >= info_r) | (info_t >= np.radians(LOOSE_TURN_DEG) ** -2) | (info_t >= info_t[-1] / 25)
+    if strong.all():
+        return s, Rw, tw
+    # about the axes the centres do hold, the orientations' turn must agree with theirs
+    # (p = 0.001): orientations turned alike by a convention agree among themselves only
+    d = axes[:, strong].T @ so3_log(Ro @ Rw.T)
+    if np.sum(d**2 / (1.0 / info_t[strong] + 1.0 / info_r)) > chi2.ppf(0.999, int(strong.sum())):
+        return s, Rw, tw
+    y = t_dst - t_dst.mean(0)
+    for _ in range(3):  # maximise tr(Rw^T M): the centres' and the orientations' Procrustes terms
+        M = (s / var_t) * y.T @ x + Q[ok].sum(0) / (2 * var_r)
+        U, _, Vt = np.linalg.svd(M)
+        Rw = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        s = float(np.sum(y * (x @ Rw.T)) / max(np.sum(x * x), 1e-12))
+    return s, Rw, t_dst.mean(0) - s * Rw @ t_src.mean(0)
 
 
 def triangulate_dlt(P: np.ndarray, xy: np.ndarray) -> np.ndarray:

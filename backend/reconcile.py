@@ -217,7 +217,7 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
     rc = config.refine
 
     def compare(use: np.ndarray | None):
-        al = align_poses(boot.R[bi], boot.t[bi], R0[idx], t0[idx], use)
+        al = align_poses(boot.R[bi], boot.t[bi], R0[idx], t0[idx], use, orientations=True)
         if al is None:
             return None
         dt, dr, st, sr = (np.full(C, np.nan) for _ in range(4))

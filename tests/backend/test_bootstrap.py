@@ -20,13 +20,14 @@ import numpy as np
 import pytest
 
 from backend.bootstrap import (
-    BootstrapError, PairPose, average_rotations, bootstrap, camera_set, collect_frames, handover,
-    relative_pose, triangle_check,
+    BootstrapError, PairPose, average_rotations, bootstrap, camera_set, collect_frames, handover, pair_bones,
+    pair_scales, relative_pose, triangle_check,
 )
 from backend.cameras import CameraSet, Extrinsics
-from backend.config import EngineConfig
+from backend.config import BootstrapConfig, EngineConfig
 from backend.evaluate import evaluate
 from backend.geometry import rotation_angle_deg, so3_exp
+from backend.optimize import BONE_NAMES, BONES
 from backend.perturb import perturb_extrinsics
 from backend.reconcile import reconcile_cameras
 from backend.people import Person, chain_ratio, estimate_scale, persons, segments, tracks
@@ -119,6 +120,40 @@ def test_rotation_averaging_and_the_triangle_check_find_a_wrong_pair():
     for a in range(C):
         for b in range(C):
             assert rotation_angle_deg(R[b].T @ R[a], Rw[b].T @ Rw[a]) < 0.5
+
+
+def test_bones_relate_the_scales_of_a_chain_without_shared_joints():
+    """A corridor: each pair sees the walker where no third camera does, so no two pairs
+    triangulate one instant, and only the people's bones say how their unit baselines
+    compare. Joints of one walker triangulated by each pair in its own unit (the true
+    baseline s), with pixel-like noise and a few stray joints."""
+    rng = RNG(5)
+    walker = _walker(rng, 60)  # (F, 17, 3)
+    s_true = np.array([3.5, 2.8, 4.1, 3.0])  # baselines (m) of the pairs 0-1, 1-2, 2-3, 3-4
+    pairs = []
+    for k, s in enumerate(s_true):
+        frames = np.arange(60 * k, 60 * k + 60)  # each pair its own frames: no shared keys
+        X = (walker / s + rng.normal(0, 0.004, walker.shape)).reshape(-1, 3)
+        X[rng.choice(len(X), 40, replace=False)] *= 1.5  # stray joints
+        keys = (frames[:, None] * 17 + np.arange(17)).ravel()
+        b = pair_bones(keys, X)
+        pairs.append(PairPose(k, k + 1, np.eye(3), np.array([1.0, 0, 0]), frames, 60, 1000 - k, 1.0, 30.0, keys,
+                              {k: X[:, 2], k + 1: X[:, 2]}, b))
+    assert np.isfinite(pairs[0].bones).all()
+    for k, a, b_ in BONES[:2]:  # shoulder and hip width (the crude walker's left and right differ)
+        assert pairs[0].bones[k] == pytest.approx(np.linalg.norm(walker[0, a] - walker[0, b_]) / s_true[0], rel=0.05)
+    logs, known, used = pair_scales(pairs, BootstrapConfig())
+    assert known.all() and used == 3
+    np.testing.assert_allclose(logs - logs[0], np.log(s_true / s_true[0]), atol=0.01)
+    # without bones only the anchor pair has a scale: the chain cannot be placed
+    logs, known, used = pair_scales(pairs, BootstrapConfig(bone_scales=False))
+    assert known.sum() == 1 and used == 0
+    # a pair whose bones do not scale alike (its geometry is wrong) is not related
+    bad = pairs[2].bones * np.exp(rng.uniform(-0.6, 0.6, len(BONE_NAMES)))
+    pairs[2] = PairPose(2, 3, np.eye(3), np.array([1.0, 0, 0]), pairs[2].frames, 60, 998, 1.0, 30.0, pairs[2].keys,
+                        pairs[2].depths, bad)
+    logs, known, used = pair_scales(pairs, BootstrapConfig())
+    assert not known[2] and known.sum() == 2 and used == 1
 
 
 def test_scale_from_a_known_height_and_from_the_prior():
