@@ -17,9 +17,11 @@ intervals in a known world). This module finds one from the preprocessed framese
    the average are dropped.
 3. Scales. A pair's triangulation has its own unknown scale (unit baseline). Two pairs
    that share a camera and triangulate the same person's joints at the same instants see
-   them at depths whose ratio is the ratio of their scales; a least-squares fit of the
-   log-scales over all such relations, then of the camera centres from the scaled
-   baselines (pairs without a scale still constrain the direction), places every camera.
+   them at depths whose ratio is the ratio of their scales; pairs no such relations join
+   (a camera chain) are related by the median bone lengths of the people they see. A
+   least-squares fit of the log-scales over all relations, then of the camera centres
+   from the scaled baselines (pairs without a scale still constrain the direction),
+   places every camera.
 4. Metric scale from people (``backend.people``): bone lengths of the triangulated
    persons against a known height or a population prior. A rough figure first, so that
    the pipeline's association (which assumes persons of 1.70-2.00 m) works.
