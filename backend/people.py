@@ -188,9 +188,11 @@ class ScaleEstimate:
     def summary(self) -> str:
         hs = ", ".join(f"{h:.2f}" for h in self.heights)
         return (f"scale {self.factor:.4f} ± {100 * self.rel_std:.1f} % from the {self.method} "
-                f"({self.persons} person{'s' if self.persons != 1 else ''}: {hs} m)")
+                f"({self.persons} person{'s' if self.persons != 1 else ''}: {hs} m)"
+                + (f"; {self.note}" if self.note else ""))
 
 
+IMPLAUSIBLE_RATIO = 1.4  # tallest over shortest person measured: more is not two adults
 _MIN_PERSON_SHARE = 0.2  # of the largest group's hypotheses: less is not a person (``_label``)
 
 
@@ -349,6 +351,13 @@ def estimate_scale(people: Sequence[Person], *, heights: Sequence[float] = (), h
     log_s = float(logs.mean())
     rel = float(np.sqrt(var.sum()) / n)
     s = float(np.exp(log_s))
+    if K >= 2 and u.max() > IMPLAUSIBLE_RATIO * u.min():
+        # two adults rarely differ by more (1.50 and 2.05 m); the same people measured at
+        # different sizes in different parts of the network do: a camera chain whose links
+        # are scaled wrongly (two walkers in a corridor, docs/bootstrap.md "Session 19")
+        note = "; ".join(x for x in (note, (
+            f"the persons measured {u.max() / u.min():.2f} times apart in height: unless a child walked, "
+            "the cameras' geometry disagrees with itself (people grow or shrink across it)")) if x)
     return ScaleEstimate(s, rel, method, K, tuple(float(h) for h in s * u), note)
 
 

@@ -175,7 +175,13 @@ def test_scale_from_a_known_height_and_from_the_prior():
     assert estimate_scale([p, q]).rel_std == pytest.approx(prior.rel_std / np.sqrt(2))
     # fewer heights than persons: the means are matched, and the persons' spread counts
     one = estimate_scale([p, q], heights=[1.775])
-    assert "mean" in one.note and one.rel_std > both.rel_std
+    assert "mean" in one.note and one.rel_std > both.rel_std and one.note in one.summary()
+    assert not both.note and not estimate_scale([p, q]).note
+    # persons 2x apart (2.43 and 1.22 m in a corridor whose links were scaled wrongly) are
+    # not two adults: the result says the geometry disagrees with itself
+    tall = Person(chain=chain_ratio() * 2 * 1.70 / unit, chain_rel_std=0.002, hypotheses=400, tracks=2)
+    odd = estimate_scale([tall, q])
+    assert "disagrees with itself" in odd.note and "2.00 times" in odd.summary()
     with pytest.raises(ValueError):
         estimate_scale([])
 
