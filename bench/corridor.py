@@ -1,7 +1,7 @@
 """People keep their size: a corridor whose cameras overlap only their neighbours.
 
 The generated corridor (``edge_clients.sim.scenes.corridor``: 6 cameras 3.5 m apart, each
-sharing floor only with its neighbours), 1 walker (1.80 m) for 150 s, initial estimates
+sharing floor only with its neighbours), 1 walker (1.80 m; ``--persons 2`` adds one of 1.65 m) for 150 s, initial estimates
 0.25 m / 10° off per camera (``backend.perturb``, cam_0 kept), several seeds. Each run goes
 through the full online pipeline (``run_offline``: cycles, then the final batch
 adjustment) with ``optimize.bones`` off, "batch" (first and final adjustment) and "all"
@@ -34,12 +34,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
-HEIGHT = 1.80
+HEIGHTS = (1.80, 1.65)  # the first walker's alone with --persons 1
 DURATION = 150.0
 START = (0.25, 10.0)
 
 
-def simulate(seed: int, cache: Path) -> Path:
+def simulate(seed: int, cache: Path, persons: int = 1) -> Path:
     """The corridor recording of one seed (with its truth and camera directory), cached."""
     from edge_clients.sim import SimConfig, Simulator, Truth
     from edge_clients.sim.scenes import corridor, write_scene
@@ -47,15 +47,18 @@ def simulate(seed: int, cache: Path) -> Path:
     h = hashlib.sha1()
     for f in sorted((REPO / "edge_clients" / "sim").glob("*.py")):
         h.update(f.read_bytes())
-    h.update(repr((HEIGHT, DURATION, seed)).encode())
-    out = cache / f"corridor6_d{DURATION:g}_s{seed}_{h.hexdigest()[:10]}.msgpack"
+    heights = HEIGHTS[:persons]
+    # one walker keeps the key it had before --persons, so earlier caches stay valid
+    h.update(repr((heights[0] if persons == 1 else heights, DURATION, seed)).encode())
+    tag = "" if persons == 1 else f"_p{persons}"
+    out = cache / f"corridor6{tag}_d{DURATION:g}_s{seed}_{h.hexdigest()[:10]}.msgpack"
     if out.is_file() and Truth.sidecar_path(out).is_file():
         return out
     cache.mkdir(parents=True, exist_ok=True)
     scene = corridor()
     write_scene(scene, cameras_of(out), "corridor: 6 cameras, each overlapping only its neighbours")
     tmp = cache / f".{os.getpid()}.{out.name}"
-    Simulator(scene, SimConfig(persons=1, duration=DURATION, seed=seed, heights=(HEIGHT,))).write(tmp)
+    Simulator(scene, SimConfig(persons=persons, duration=DURATION, seed=seed, heights=heights)).write(tmp)
     os.replace(Truth.sidecar_path(tmp), Truth.sidecar_path(out))
     os.replace(tmp, out)
     return out
@@ -150,12 +153,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--bones", default="off,batch,all", help="optimize.bones values to run, comma-separated")
+    ap.add_argument("--persons", type=int, default=1, choices=(1, 2), help="walkers (1.80 m, then 1.65 m)")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/extrcal-corridor-cache"))
     ap.add_argument("--out", type=Path, help="write every run as JSON")
     args = ap.parse_args(argv)
     runs = []
     for seed in range(args.first_seed, args.first_seed + args.seeds):
-        rec = simulate(seed, args.cache)
+        rec = simulate(seed, args.cache, args.persons)
         for b in args.bones.split(","):
             r = run(rec, seed, b.strip())
             print(f"seed {seed} bones {r['bones']}: rigid {r['final']['position']:.4f} m, shape "
