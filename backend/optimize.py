@@ -217,6 +217,13 @@ def bones_wanted(p: Problem) -> bool:
     return b == "all" or (b == "batch" and p.kind in ("first", "batch"))
 
 
+def _links(hyps: Sequence[Hypothesis]) -> np.ndarray:
+    """(H,) int: which cameras saw each hypothesis (one id per camera set): the part of
+    the network whose scale its bones are measured in."""
+    ids: dict[tuple[int, ...], int] = {}
+    return np.array([ids.setdefault(tuple(sorted(int(c) for c in h.cams)), len(ids)) for h in hyps], np.int64)
+
+
 def hypotheses_and_persons(p: Problem) -> tuple[list[Hypothesis], np.ndarray]:
     """The problem's hypotheses and (H,) int the person of each (-1 = none; all -1 when
     ``bones_wanted`` is not). Persons are told apart on every hypothesis before the
@@ -230,7 +237,7 @@ def hypotheses_and_persons(p: Problem) -> tuple[list[Hypothesis], np.ndarray]:
         hyps = list(p.hypotheses)
     person = np.full(len(hyps), -1, np.int64)
     if bones_wanted(p) and hyps:
-        person = label_persons(segments(hyps, p.R, p.t))
+        person = label_persons(segments(hyps, p.R, p.t), links=_links(hyps))
     if p.frames and (p.max_hypotheses and len(hyps) > p.max_hypotheses or p.spacing > 0):
         index = {id(h): i for i, h in enumerate(hyps)}
         hyps = select_spaced(hyps, p.max_hypotheses or len(hyps), p.spacing, np.random.default_rng(p.seed),

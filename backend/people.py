@@ -196,16 +196,21 @@ IMPLAUSIBLE_RATIO = 1.4  # tallest over shortest person measured: more is not tw
 _MIN_PERSON_SHARE = 0.2  # of the largest group's hypotheses: less is not a person (``_label``)
 
 
-def label_persons(seg: Segments, *, count: int | None = None, min_track: int = 3) -> np.ndarray:
+def label_persons(seg: Segments, *, count: int | None = None, min_track: int = 3,
+                  links: np.ndarray | None = None) -> np.ndarray:
     """(N,) person label of each hypothesis (0 .. K-1, -1 = none): tracks (``tracks``),
     each summarised by its median chain (shank + thigh + torso), grouped by chain length
     into ``count`` persons (default: the number of hypotheses seen at one instant in at
     least 10 % of the instants with any). Hypotheses without a full chain, and tracks of
-    fewer than ``min_track`` hypotheses, get -1. Labels are in no particular order."""
-    return _label(seg, count, min_track)[0]
+    fewer than ``min_track`` hypotheses, get -1. Labels are in no particular order.
+    ``links``: (N,) int the part of the network each hypothesis was seen in (its camera
+    pair, in a chain); each part's scale may be off by its own factor, which the grouping
+    then estimates along with the persons (``_kmeans_linked``)."""
+    return _label(seg, count, min_track, links)[0]
 
 
-def _label(seg: Segments, count: int | None, min_track: int) -> tuple[np.ndarray, np.ndarray]:
+def _label(seg: Segments, count: int | None, min_track: int, links: np.ndarray | None = None
+           ) -> tuple[np.ndarray, np.ndarray]:
     """(N,) person labels and (N,) track ids (-1 where none) of ``label_persons``."""
     N = len(seg.time)
     labels = np.full(N, -1, np.int64)
@@ -224,6 +229,7 @@ def _label(seg: Segments, count: int | None, min_track: int) -> tuple[np.ndarray
         share = np.cumsum(counts[::-1])[::-1] / len(per_instant)  # share of instants with >= k
         count = int(max(1, np.flatnonzero(share >= 0.10).max()))
     tr = []
+    link_of = links[ok] if links is not None else np.zeros(len(idx), np.int64)
     for i in np.unique(ids):
         m = ids == i
         if m.sum() < min_track:
@@ -233,6 +239,14 @@ def _label(seg: Segments, count: int | None, min_track: int) -> tuple[np.ndarray
         return labels, track_of
     chains = np.log([c for c, _, _ in tr])
     w = np.array([n for _, n, _ in tr], dtype=np.float64)
+    tl = np.array([np.bincount(link_of[m]).argmax() for _, _, m in tr], dtype=np.int64)  # each track's part
+    if links is not None and len(np.unique(tl)) > 1:
+        # only when the parts' scales explain most of the spread (a chain's links apart by
+        # several percent): where the network has one scale, offsets fitted to parts that
+        # saw one person each would only blur the persons
+        linked = _kmeans_linked(chains, w, tl, min(count, len(tr)))
+        if _spread(linked, w, min(count, len(tr))) < 0.5 * _spread(chains, w, min(count, len(tr))):
+            chains = linked
     cluster = _kmeans_1d(chains, w, min(count, len(tr)))
     # A few tracks far from everyone (hypotheses that joined two persons' views) can take a
     # person's place in the clustering and merge the real persons into one: measured in a
@@ -275,6 +289,49 @@ def persons(seg: Segments, *, count: int | None = None, min_hypotheses: int = 10
         members = len(np.unique(track_of[m]))
         out.append(Person(chain, float(mad / chain / np.sqrt(n_eff)), int(m.sum()), members))
     return sorted(out, key=lambda p: -p.chain)
+
+
+def _kmeans_linked(x: np.ndarray, w: np.ndarray, link: np.ndarray, k: int, rounds: int = 10) -> np.ndarray:
+    """x (T,) log chains of tracks seen in parts ``link`` (T,) int of the network whose
+    scales differ by unknown factors: x less each part's offset, the offsets fitted with
+    the k groups in turn (weights w (T,)), the offsets' weighted mean 0. In a corridor
+    whose links are scaled a few percent apart, two walkers 9 % apart are otherwise
+    grouped by link as much as by walker."""
+    # start from each part's own median: every part sees the same people, and its median
+    # lies among them whatever its scale (from the raw values a part 1.5x too large was a
+    # "person" of its own, and the fit stayed there)
+    y = x.copy()
+    for lk in np.unique(link):
+        m = link == lk
+        y[m] -= _weighted_median(x[m], w[m])
+    y += _weighted_median(x, w) - np.average(y, weights=w)
+    for _ in range(rounds):
+        cluster = _kmeans_1d(y, w, k)
+        centre = np.array([np.average(y[cluster == c], weights=w[cluster == c]) for c in range(cluster.max() + 1)])
+        r = x - centre[cluster]
+        off = np.zeros(link.max() + 1)
+        for lk in np.unique(link):
+            m = link == lk
+            off[lk] = np.average(r[m], weights=w[m])
+        off -= np.average(off[link], weights=w)
+        new = x - off[link]
+        if np.allclose(new, y, atol=1e-9):
+            break
+        y = new
+    return y
+
+
+def _spread(x: np.ndarray, w: np.ndarray, k: int) -> float:
+    """Weighted within-group sum of squares of the 1D k-means of x into k groups."""
+    c = _kmeans_1d(x, w, k)
+    return float(sum(np.sum(w[c == g] * (x[c == g] - np.average(x[c == g], weights=w[c == g])) ** 2)
+                     for g in np.unique(c)))
+
+
+def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
+    order = np.argsort(x)
+    c = np.cumsum(w[order])
+    return float(x[order][np.searchsorted(c, 0.5 * c[-1])])
 
 
 def _kmeans_1d(x: np.ndarray, w: np.ndarray, k: int) -> np.ndarray:

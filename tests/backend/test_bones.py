@@ -136,6 +136,44 @@ def test_label_persons_splits_two_sizes_and_skips_short_tracks():
     assert segments([], np.zeros((0, 3, 3)), np.zeros((0, 3))).time.shape == (0,)
 
 
+def test_label_persons_of_a_chain_whose_links_are_scaled_apart():
+    """Two walkers of 1.80 and 1.65 m pass four links of a corridor in turn, and the
+    estimate has the links' scales 1.0, 1.04, 0.97 and 1.5 (a two-walker corridor's online
+    estimate had its link 3-4 1.5x too large). Grouped by size alone, link 3-4's walkers are
+    one "person" and everyone else the other; told which link each hypothesis is in, the
+    grouping fits the links' scales too and finds the walkers. In one network scale the
+    links change nothing."""
+    from backend.people import Segments
+
+    rng = np.random.default_rng(1)
+    scale = [1.0, 1.04, 0.97, 1.5]
+    T, com, size, link, who = [], [], [], [], []
+    for visit in range(16):  # each walker walks through each link twice, 3 s apart
+        lk, person = visit % 4, (visit // 4) % 2
+        t0 = 5.0 * visit
+        for k in range(20):
+            T.append(t0 + 0.1 * k)
+            com.append([3.5 * lk + 0.05 * k, 3.0 * person, 1.0])
+            size.append((1.80, 1.65)[person] * scale[lk])
+            link.append(lk)
+            who.append(person)
+    T, com, size, link, who = map(np.array, (T, com, size, link, who))
+    n = lambda: rng.normal(0, 0.01, len(T))  # noqa: E731
+
+    def seg_of(sz):
+        return Segments(T, com, 0.246 * sz + n(), 0.245 * sz + n(), 0.2924 * sz + n(), np.zeros((len(T), 2, 3)),
+                        np.zeros((len(T), 3)))
+
+    def agrees(lab):
+        return max(np.mean(lab == who), np.mean(lab == 1 - who))
+
+    seg = seg_of(size)
+    assert agrees(label_persons(seg, count=2)) < 0.8
+    assert agrees(label_persons(seg, count=2, links=link)) == 1.0
+    one = seg_of(np.where(who == 0, 1.80, 1.65))
+    assert np.array_equal(label_persons(one, count=2, links=link), label_persons(one, count=2))
+
+
 def test_pipeline_cycles_run_on_a_chain_without_three_view_hypotheses():
     """Cycles wait for hypotheses of >= 3 views while a camera is unsettled; in a corridor
     there are none, and the cameras that only ever share people pairwise take part anyway."""
