@@ -283,13 +283,15 @@ LOOSE_TURN_DEG = 5.0  # deg: std of the centres' turn about an axis beyond which
 def _joint_turn(s: float, Rw: np.ndarray, tw: np.ndarray, R_src: np.ndarray, t_src: np.ndarray, R_dst: np.ndarray,
                 t_dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """The similarity (s, Rw, tw) fitted to the centres (N, 3), refitted to the centres
-    and the orientations (N, 3, 3) together when the centres' information about some
-    axis of the turn is below the orientations' (each term weighted by its own scatter
-    about its own fit, the orientations trimmed at 3x their median turn); else unchanged.
-    An estimate whose orientations are all turned alike (a convention mixed up) has
-    centres that hold every axis: it keeps the centres' fit."""
-    N = len(t_src)
-    if N < 3:
+    and the orientations (N, 3, 3) together when the centres' layout leaves some axis of
+    the turn loose, the orientations hold it better, and both agree about the other axes
+    (each term weighted by its own scatter about its own fit, the orientations trimmed at
+    3x their median turn); else unchanged. An estimate whose orientations are all turned
+    alike (a convention mixed up) has centres that hold every axis: it keeps the centres'
+    fit."""
+    from scipy.stats import chi2
+
+    if len(t_src) < 3:
         return s, Rw, tw
     x = t_src - t_src.mean(0)
     var_t = max(float(np.mean(np.sum((s * t_src @ Rw.T + tw - t_dst) ** 2, axis=1))) / 3, 1e-6)
@@ -299,8 +301,6 @@ def _joint_turn(s: float, Rw: np.ndarray, tw: np.ndarray, R_src: np.ndarray, t_s
     ang = np.array([np.radians(rotation_angle_deg(Ro, q)) for q in Q])
     ok = ang <= max(3.0 * float(np.median(ang)), np.radians(1.0))
     var_r = max(float(np.mean(ang[ok] ** 2)) / 3, np.radians(0.1) ** 2)
-    from scipy.stats import chi2
-
     xr = x @ Rw.T  # turns are taken in dst's frame: Rw -> exp(w) Rw
     S = xr.T @ xr
     info_t, axes = np.linalg.eigh(s * s * (np.trace(S) * np.eye(3) - S) / var_t)  # the centres' information

@@ -229,7 +229,6 @@ def _label(seg: Segments, count: int | None, min_track: int, links: np.ndarray |
         share = np.cumsum(counts[::-1])[::-1] / len(per_instant)  # share of instants with >= k
         count = int(max(1, np.flatnonzero(share >= 0.10).max()))
     tr = []
-    link_of = links[ok] if links is not None else np.zeros(len(idx), np.int64)
     for i in np.unique(ids):
         m = ids == i
         if m.sum() < min_track:
@@ -239,8 +238,9 @@ def _label(seg: Segments, count: int | None, min_track: int, links: np.ndarray |
         return labels, track_of
     chains = np.log([c for c, _, _ in tr])
     w = np.array([n for _, n, _ in tr], dtype=np.float64)
-    tl = np.array([np.bincount(link_of[m]).argmax() for _, _, m in tr], dtype=np.int64)  # each track's part
-    if links is not None and len(np.unique(tl)) > 1:
+    tl = np.zeros(len(tr), np.int64) if links is None else \
+        np.array([np.bincount(links[ok][m]).argmax() for _, _, m in tr], dtype=np.int64)  # each track's part
+    if len(np.unique(tl)) > 1:
         # only when the parts' scales explain most of the spread (a chain's links apart by
         # several percent): where the network has one scale, offsets fitted to parts that
         # saw one person each would only blur the persons
@@ -329,6 +329,7 @@ def _spread(x: np.ndarray, w: np.ndarray, k: int) -> float:
 
 
 def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
+    """The value of x (N,) at half the total weight w (N,)."""
     order = np.argsort(x)
     c = np.cumsum(w[order])
     return float(x[order][np.searchsorted(c, 0.5 * c[-1])])
