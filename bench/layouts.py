@@ -9,7 +9,8 @@ under a 3.4 m ceiling of a 4 x 4 m room looking steeply down) and the corridor; 
 ``extrcal calibrate`` in a subprocess, from a perturbed initial estimate (the paper's
 protocol, ``--starts`` m/deg) or from none (``none``: bootstrap, metric scale from the
 population prior; ``height``: from the walkers' known heights), and prints the errors
-against the truth (FORMATS.md: rigid, shape, orientation, scale; over the cameras in the result, which names those left out).
+against the truth (FORMATS.md: rigid, shape, orientation, scale; over the cameras in the
+result; a run that left cameras out or uncalibrated names them and counts as "short").
 
     python bench/layouts.py                                   # room4, room8; 3 seeds; ~10 min
     python bench/layouts.py --layouts room4 --starts none,height --seeds 5 --jobs 2

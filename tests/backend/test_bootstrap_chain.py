@@ -33,12 +33,11 @@ def chain():
     cfg = EngineConfig().for_images(i.resolution for i in scene.intrinsics.values())
     frames = collect_frames(scene.names, scene.intrinsics, cfg, (m for _, m in sim.messages(scene.names)))
     focal = np.array([0.5 * (scene.intrinsics[n].fx + scene.intrinsics[n].fy) for n in scene.names])
-    return scene, frames, focal, cfg
+    return scene, frames, focal, cfg, bootstrap(frames, scene.names, focal, cfg)
 
 
 def test_a_corridor_is_placed_whole_by_the_walkers_bones(chain):
-    scene, frames, focal, cfg = chain
-    boot = bootstrap(frames, scene.names, focal, cfg)
+    scene, frames, focal, cfg, boot = chain
     assert boot.located.all()
     acc = evaluate(boot.poses(), scene.poses)
     assert acc.shape_position.max < 0.15 and acc.orientation.max < 2.0
@@ -52,8 +51,7 @@ def test_rough_estimates_of_a_corridor_are_reconciled_in_their_own_frame(chain):
     """Five 1.5 m / 45° starts: every camera starts from the data's shape, turned from the
     truth by 4-19° (the start's frame: nothing in the data says more). With the centres
     alone the same starts ended 5-45° off, and seed 1's alignment refused 4 cameras."""
-    scene, frames, focal, cfg = chain
-    boot = bootstrap(frames, scene.names, focal, cfg)
+    scene, _frames, _focal, cfg, boot = chain
     truth = {n: Extrinsics(p, scene.intrinsics[n].resolution) for n, p in scene.poses.items()}
     for seed in range(5):
         cams = CameraSet(scene.names, scene.intrinsics, perturb_extrinsics(truth, 1.5, 45.0, seed=seed))
