@@ -3,13 +3,13 @@
 The generated corridor (``edge_clients.sim.scenes.corridor``: 6 cameras 3.5 m apart, each
 sharing floor only with its neighbours), 1 walker (1.80 m; ``--persons 2`` adds one of
 1.65 m) for 150 s, initial estimates 0.25 m / 10° off per camera (``backend.perturb``,
-cam_0 kept), several seeds. Each run goes through the full online pipeline (``run_offline``: cycles, then the final batch
-adjustment) with ``optimize.bones`` off, "batch" (first and final adjustment) and "all"
-(every cycle too); the *limit* is a batch adjustment with the simulator's true
-associations on the same frames (bench/accuracy.py's), with bones off and on. Figures are
-means over the cameras: rigid position (the initial estimate's scale kept, as the
-pipeline does), shape position (after a similarity alignment), orientation; cycle time
-p50 and the run's wall time.
+cam_0 kept), several seeds. Each run goes through the full online pipeline
+(``run_offline``: cycles, then the final batch adjustment) with ``optimize.bones`` off,
+"batch" (first and final adjustment) and "all" (every cycle too); the *limit* is a batch
+adjustment with the simulator's true associations on the same frames
+(bench/accuracy.py's), with bones off and on. Figures are means over the cameras: rigid
+position (the initial estimate's scale kept, as the pipeline does), shape position (after
+a similarity alignment), orientation; cycle time p50 and the run's wall time.
 
     python bench/corridor.py                       # 3 seeds, ~5 min on a quiet machine
     python bench/corridor.py --seeds 5 --out c.json
