@@ -92,6 +92,16 @@ class BootstrapJob:
         assert self.focal.shape == (len(self.names),) and self.seen.shape == (len(self.names),)
 
 
+def seen_per_camera(frames: Sequence[Frame], cameras: int) -> np.ndarray:
+    """(C,) int: the framesets in which each camera has a detection (``BootstrapJob.seen``)."""
+    seen = np.zeros(cameras, dtype=np.int64)
+    for _, views in frames:
+        for v in views:
+            if v:  # a camera's view, with its detections
+                seen[v[0].cam] += 1
+    return seen
+
+
 @dataclass(frozen=True, eq=False)
 class Outcome:
     """What an attempt gave: the result, or why there is none; its wall seconds."""

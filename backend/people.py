@@ -238,8 +238,11 @@ def _label(seg: Segments, count: int | None, min_track: int, links: np.ndarray |
         return labels, track_of
     chains = np.log([c for c, _, _ in tr])
     w = np.array([n for _, n, _ in tr], dtype=np.float64)
-    tl = np.zeros(len(tr), np.int64) if links is None else \
-        np.array([np.bincount(links[ok][m]).argmax() for _, _, m in tr], dtype=np.int64)  # each track's part
+    if links is None:
+        tl = np.zeros(len(tr), np.int64)
+    else:  # each track's part: the one most of its hypotheses were seen in
+        seen_in = links[ok]
+        tl = np.array([np.bincount(seen_in[m]).argmax() for _, _, m in tr], dtype=np.int64)
     if len(np.unique(tl)) > 1:
         # only when the parts' scales explain most of the spread (a chain's links apart by
         # several percent): where the network has one scale, offsets fitted to parts that

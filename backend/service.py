@@ -833,6 +833,11 @@ class Service:
         with self.work.measure("bootstrap_handover"):
             self._hand_over(s, col, h)
 
+    def _gone(self, s: ActiveSession) -> bool:
+        """Session ``s`` ended (stopped, failed, replaced, or the service closing) while
+        the loop awaited something: what was awaited must not be applied to it."""
+        return s is not self.active or s.finishing or self._closing or not s.record.state.active
+
     def _check_due(self, s: ActiveSession) -> bool:
         """A session with an initial estimate it was not told to distrust, not checked yet
         (``bootstrap.live_check``), with ``bootstrap.max_seconds`` of frames archived (what
@@ -857,7 +862,7 @@ class Service:
         thread and the optimizer swaps it in between cycles (``_swap_checked``); else the
         session goes on as it was. A bootstrap the data do not allow yet is tried again
         ``live_interval`` later, three times in all."""
-        from .live_bootstrap import BootstrapJob, Handover, run_job
+        from .live_bootstrap import BootstrapJob, Handover, run_job, seen_per_camera
         from .reconcile import reconcile_cameras
 
         rec, p, cfg = s.record, s.pipeline, s.inputs.config
@@ -869,18 +874,13 @@ class Service:
                                  "note": "not checked: clock offsets were applied before it was due"}
             self._save_record(s)
             return
-        seen = np.zeros(len(p.names), dtype=np.int64)
-        for _, views in frames:
-            for v in views:
-                if v:
-                    seen[v[0].cam] += 1
         job = BootstrapJob(tries, frames, tuple(p.names), p.focal.copy(), cfg, tuple(p.scale_heights or ()),
-                           rec.seed, span, seen, True)
+                           rec.seed, span, seen_per_camera(frames, len(p.names)), True)
         rec.initial_check = {"phase": "running", "data_seconds": span, "attempts": tries}
         self._save_record(s)
         log.info("session %s: checking the initial estimate against a bootstrap on %.0f s of data", rec.id, span)
         outcome = await self.solver.run(self.bootstrap_fn or run_job, job)
-        if s is not self.active or s.finishing or self._closing or not rec.state.active:
+        if self._gone(s):
             return
         if outcome.result is None:
             last = tries >= 3
@@ -901,7 +901,7 @@ class Service:
             return
         h = await asyncio.to_thread(Handover.build, job, outcome.result, s.inputs.cameras, cfg, True,
                                     seed=rec.seed, frames=frames, reconciled=(reconciled, note))
-        if s is not self.active or s.finishing or self._closing or not rec.state.active:
+        if self._gone(s):
             rec.initial_check = {**rec.initial_check, "phase": "done", "note": f"{note}; the session ended first"}
             return
         s.checked = h
@@ -992,7 +992,7 @@ class Service:
                 self._swap_checked(s)  # between cycles: nothing of the pipeline is in flight
             if not isinstance(s.pipeline, Collector) and s.pipeline.late_join_due(now):
                 await self._join_late(s, now)  # between cycles: nothing of the pipeline is in flight
-                if s is not self.active or s.finishing or self._closing or not s.record.state.active:
+                if self._gone(s):
                     continue
             with self.work.measure("next_problem"):
                 problem = s.pipeline.next_problem(now)
@@ -1040,7 +1040,7 @@ class Service:
         except Exception as e:  # a failed try is tried again an interval later
             log.warning("session %s: resecting the cameras without a pose failed: %s", s.record.id, e)
             return
-        if s is not self.active or s.finishing or self._closing or not s.record.state.active:
+        if self._gone(s):
             return
         with self.work.measure("late_join"):
             q = s.pipeline.join_live(job, found)
