@@ -1522,14 +1522,24 @@ class Service:
         d["converged"] = bool(state.get("converged")) if state else False
         return clean_json(d)
 
+    async def _settled(self) -> None:
+        """A session that has ended but whose files are still being written is awaited:
+        whoever reads "stopped" or "failed" may fetch its result at once and must get the
+        final one, not the cycle before it."""
+        s = self.active
+        if s is not None and not s.record.state.active and not s.done.is_set():
+            await asyncio.shield(s.done.wait())
+
     async def session_view(self, sid: str) -> dict[str, Any]:
         """session_dict, with the files of a finished session read in a thread."""
+        await self._settled()
         s = self.active
         if s is not None and s.record.id == sid:
             return self.session_dict(sid)
         return await asyncio.to_thread(self.session_dict, sid)
 
     async def list_sessions(self) -> list[dict[str, Any]]:
+        await self._settled()
         s = self.active
         live = _copy_record(s.record) if s is not None else None
         return await asyncio.to_thread(self._list_sessions, live)

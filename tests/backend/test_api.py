@@ -157,6 +157,28 @@ def test_session_lifecycle_with_configured_files(svc, client, lab_body):
         (svc.settings.camera_files["lab_intrinsics"]).read_text())
 
 
+def test_a_session_reads_stopped_only_once_its_result_is_written(svc, client, lab_body, monkeypatch):
+    """Whoever polls a session until it reads "stopped" fetches the result at once: it
+    must be the final one, however slowly the disk takes it."""
+    _stop_all(client)
+    store = svc.service.store
+    save = store.save_result
+
+    def slow(*a, **kw):
+        time.sleep(0.5)
+        return save(*a, **kw)
+
+    monkeypatch.setattr(store, "save_result", slow)
+    sid = client.post("/sessions", headers=AUTH, json={**lab_body, "name": "slow disk"}).json()["id"]
+    assert client.post(f"/sessions/{sid}/stop", headers=AUTH, params={"wait": False}).status_code == 202
+    deadline = time.monotonic() + 60
+    while (d := client.get(f"/sessions/{sid}").json())["state"] != "stopped":
+        assert time.monotonic() < deadline, d
+    seen = client.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text
+    assert seen == (svc.settings.state_dir / "sessions" / sid / "result.yaml").read_text()
+    assert not d["live"] and [s["state"] for s in client.get("/sessions").json() if s["id"] == sid] == ["stopped"]
+
+
 def test_events_stream_session_changes(svc, client, lab_body):
     _stop_all(client)
     with httpx.Client(base_url=svc.url, timeout=10) as ev, ev.stream("GET", "/events") as stream:
