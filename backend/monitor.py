@@ -444,8 +444,9 @@ class Monitor:
         its points came from (that camera moved and biased them): gone is no longer large
         (``min_translation`` / ``min_rotation``) or a quarter as significant; less data
         alone leave a real step as large. Then the alarm of the camera among those whose
-        own bins since the change show a step already (the most significant), else none
-        yet: its own test will tell."""
+        own bins since the change show a step already (the most significant); else, when
+        one camera alone explains it and its own bins are too few to tell (its watch began
+        about the change), that camera's; else none yet: its own test will tell."""
         cfg = self.cfg
         explaining = []
         for j in self._suspects(a, watched):
@@ -459,16 +460,28 @@ class Monitor:
         if not explaining:
             return a
         best = None
+        untested = []
         for j in explaining:
             k = self.cams[j]
             if k.since is not None or k.anchor is None:
                 continue
             # its reference may be short: its bins since the change were the other's evidence
             own = _step_at(k.bins, a.since, now, cfg, self.floor, min_after=cfg.min_change_bins, min_before=3)
-            if own is None or own[0] <= cfg.chi2 or (own[1] <= cfg.min_translation and own[2] <= cfg.min_rotation):
-                continue
-            if best is None or own[0] > best.chi2:
-                best = Alarm(now, j, *own)
+            if own is not None and own[0] > cfg.chi2 and (own[1] > cfg.min_translation or own[2] > cfg.min_rotation):
+                if best is None or own[0] > best.chi2:
+                    best = Alarm(now, j, *own)
+            elif own is None or sum(b[0] < a.since for b in k.bins) < cfg.min_reference_bins:
+                untested.append(j)  # too short a reference for its own test to tell
+        if best is None and len(explaining) == 1 and untested == explaining:
+            # The step is this camera's by the others' evidence alone: it converged late (about
+            # the change; bumped while still converging, its filter follows only slowly) and
+            # its reference cannot show it. Its size: its bins since the change against its
+            # anchor, which may already hold part of the move.
+            j = untested[0]
+            after = [b for b in self.cams[j].bins if b[0] >= a.since]
+            d = _mean(np.array([b[2] for b in after]), np.array([b[3] for b in after]))[0] if after else np.zeros(6)
+            best = Alarm(now, j, a.chi2, float(np.linalg.norm(d[3:])), float(np.degrees(np.linalg.norm(d[:3]))),
+                         a.since)
         return best
 
     def _suspects(self, a: Alarm, watched: np.ndarray) -> list[int]:

@@ -82,11 +82,13 @@ class Scene:
 
 
 def _run(seed: int, bump: tuple[float, float] | None, duration: float, cam: int = 2, bump_time: float = 120.0,
-         occluded: float = 0.2, dropped: float = 0.0):
+         occluded: float = 0.2, dropped: float = 0.0, short: bool = False):
     """The monitor fed the scene at RATE Hz and evaluated every 0.5 s as the pipeline does
     after its cycles; recalibrated poses are applied. ``dropped``: the share of the moved
-    camera's views left out of the hypotheses after the move. Returns (scene, monitor,
-    alarms, the camera's pose error at the end)."""
+    camera's views left out of the hypotheses after the move; ``short``: the camera's own
+    bins before the move dropped (as a camera has whose bins mostly fall
+    short of ``min_points``). Returns (scene, monitor, alarms, the camera's pose error at
+    the end)."""
     s = Scene(seed, occluded)
     m = Monitor(CFG, np.full(8, F))
     watched = np.ones(8, bool)
@@ -98,6 +100,8 @@ def _run(seed: int, bump: tuple[float, float] | None, duration: float, cam: int 
             s.bump(cam, *bump)
             if dropped:
                 s.dropped[cam] = dropped
+            if short:
+                m.cams[cam].bins.clear()
         m.add(s.frame(time))
         if i % (RATE // 2) == RATE // 2 - 1:
             found, poses = m.evaluate(time, watched & ~m.recalibrating(), s.R_est, s.t_est)
@@ -136,6 +140,16 @@ def test_the_moved_camera_is_blamed_not_one_whose_points_it_biased():
     camera's rays its step is gone: only the moved camera is flagged."""
     _, _, alarms, _ = _run(1, (0.03, 0.0), 200.0, occluded=0.5, dropped=0.6)
     assert [a.cam for a in alarms] == [2], alarms
+
+
+def test_a_camera_bumped_as_its_watch_began_is_blamed_by_the_others_evidence():
+    """Camera 2 bumped 5 s before its watch began: its own reference holds the move and
+    can never show it, while every camera its points reach steps. They step no more
+    without its rays: it is flagged (no camera was before), and no other is."""
+    _, m, alarms, err = _run(1, (0.0, 2.0), 240.0, short=True)
+    assert [a.cam for a in alarms] == [2], alarms
+    assert alarms[0].time < 200.0 and np.isfinite(alarms[0].rotation)
+    assert err[1] < 0.3, err  # calibrated again
 
 
 def test_a_quiet_network_raises_no_alarm():
