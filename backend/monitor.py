@@ -445,44 +445,64 @@ class Monitor:
         (``min_translation`` / ``min_rotation``) or a quarter as significant; less data
         alone leave a real step as large. Then the alarm of the camera among those whose
         own bins since the change show a step already (the most significant); else, when
-        one camera alone explains it and its own bins are too few to tell (its watch began
-        about the change), that camera's; else none yet: its own test will tell."""
+        one camera alone explains it and its own bins are too few to tell (it sees little,
+        or its watch began about the change), that camera's; else none yet: its own test
+        will tell. When no camera explains it and some could not be left out (too little
+        left without them), one of those whose own bins show a more significant step at
+        the same time is the moved one (the step a move induces in another is smaller)."""
         cfg = self.cfg
-        explaining = []
+        explaining, undecided = [], []
         for j in self._suspects(a, watched):
             bins = self._bins_without(a, j, R, t)
             step = None if bins is None else _step_at(bins, a.since, now, cfg, self.floor)
             if step is None:
-                continue  # too little left without j to tell
+                undecided.append(j)  # too little left without j to tell
+                continue
             chi2, trans, rot, _ = step
             if chi2 < cfg.chi2 / 4 or (trans <= cfg.min_translation and rot <= cfg.min_rotation):
                 explaining.append(j)
         if not explaining:
+            steps = [(own[0], j, own) for j in undecided
+                     if (own := self._own_step(j, a, now)) is not None and self._flags(own) and own[0] > a.chi2]
+            if steps:
+                _, j, own = max(steps)
+                return Alarm(now, j, *own)
             return a
         best = None
         untested = []
         for j in explaining:
-            k = self.cams[j]
-            if k.since is not None or k.anchor is None:
-                continue
-            # its reference may be short: its bins since the change were the other's evidence
-            own = _step_at(k.bins, a.since, now, cfg, self.floor, min_after=cfg.min_change_bins, min_before=3)
-            if own is not None and own[0] > cfg.chi2 and (own[1] > cfg.min_translation or own[2] > cfg.min_rotation):
+            own = self._own_step(j, a, now)
+            if own is not None and self._flags(own):
                 if best is None or own[0] > best.chi2:
                     best = Alarm(now, j, *own)
-            elif own is None or sum(b[0] < a.since for b in k.bins) < cfg.min_reference_bins:
+            elif self.cams[j].anchor is not None and self.cams[j].since is None and (
+                    own is None or sum(b[0] < a.since for b in self.cams[j].bins) < cfg.min_reference_bins):
                 untested.append(j)  # too short a reference for its own test to tell
         if best is None and len(explaining) == 1 and untested == explaining:
-            # The step is this camera's by the others' evidence alone: it converged late (about
-            # the change; bumped while still converging, its filter follows only slowly) and
-            # its reference cannot show it. Its size: its bins since the change against its
-            # anchor, which may already hold part of the move.
+            # The step is this camera's by the others' evidence alone: its reference cannot
+            # show it (bumped while converging, its filter follows only slowly; or seeing
+            # little). Its size: its bins since the change against its anchor, which may
+            # already hold part of the move.
             j = untested[0]
             after = [b for b in self.cams[j].bins if b[0] >= a.since]
             d = _mean(np.array([b[2] for b in after]), np.array([b[3] for b in after]))[0] if after else np.zeros(6)
             best = Alarm(now, j, a.chi2, float(np.linalg.norm(d[3:])), float(np.degrees(np.linalg.norm(d[:3]))),
                          a.since)
         return best
+
+    def _own_step(self, j: int, a: Alarm, now: float) -> tuple[float, float, float, float] | None:
+        """Camera j's own step at ``a.since`` (``_step_at``; 3 reference bins are enough: its
+        reference may be short, its bins since the change were the other's evidence), or
+        None when it is not watched or has too few bins."""
+        k = self.cams[j]
+        if k.since is not None or k.anchor is None:
+            return None
+        return _step_at(k.bins, a.since, now, self.cfg, self.floor, min_after=self.cfg.min_change_bins, min_before=3)
+
+    def _flags(self, step: tuple[float, float, float, float]) -> bool:
+        """A step significant and large enough to flag a camera."""
+        chi2, trans, rot, _ = step
+        return chi2 > self.cfg.chi2 and (trans > self.cfg.min_translation or rot > self.cfg.min_rotation)
 
     def _suspects(self, a: Alarm, watched: np.ndarray) -> list[int]:
         """The cameras camera ``a.cam``'s points since the change came from, most views first."""

@@ -784,8 +784,11 @@ class Pipeline:
         calibrated = rf.cycles > 0
         if not self.watched.any() and converged.sum() < max(3, m.start_fraction * calibrated.sum()):
             converged[:] = False
-        # watched from their convergence until the monitor finds them moved
-        self.watched |= converged & ~self.monitor.recalibrating()
+        # watched from their convergence until the monitor finds them moved; a camera
+        # calibrated again once its adjustments are done: its watch's reference is the pose
+        # they leave (one begun before the last would see it as a step)
+        adjusting = np.isin(np.arange(C), [c for _, c, _ in self._recalibrate_due])
+        self.watched |= converged & ~self.monitor.recalibrating() & ~adjusting
         found, poses = self.monitor.evaluate(float(self.clock or 0.0), self.watched, rf.R, rf.t)
         names = []
         for alarm in found:
