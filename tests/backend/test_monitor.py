@@ -153,6 +153,39 @@ def test_a_camera_bumped_with_too_short_a_reference_is_blamed_on_the_others_evid
     assert err[1] < 0.3, err  # calibrated again
 
 
+def _bins(rng: np.random.Generator, step: np.ndarray, since: float, n: int = 24) -> list:
+    """n 5 s bins of a camera's resections (start, end, z, info): noise of 0.03° / 1 mm,
+    ``step`` (6,) added from ``since`` on."""
+    sd = np.r_[[np.radians(0.03)] * 3, [0.001] * 3]
+    return [(5.0 * i, 5.0 * (i + 1), rng.normal(0, sd) + (step if 5.0 * i >= since else 0.0), np.diag(1 / sd**2))
+            for i in range(n)]
+
+
+@pytest.mark.parametrize("moved", [0.06, 0.01, 0.0])
+def test_a_step_nobody_explains_is_flagged_where_it_is_largest(moved):
+    """Camera 1 fails (a 2 cm step), its points came from camera 2 alone, so it cannot be
+    tested without it. Camera 2's own bins show a 6 cm step at the same time: camera 2 is
+    the moved one (a move induces a smaller step in another). A smaller step of camera 2's
+    (1 cm), or none, leaves the alarm camera 1's."""
+    rng = np.random.default_rng(0)
+    m = Monitor(CFG, np.full(8, F))
+    R, t = Scene(0).R_est, Scene(0).t_est
+    since, now = 90.0, 120.0
+    m.cams[1].bins = _bins(rng, np.r_[0, 0, 0, 0.02, 0, 0], since)
+    m.cams[2].bins = _bins(rng, np.r_[0, 0, 0, 0, moved, 0], since)
+    for c in (1, 2):
+        m.cams[c].anchor, m.cams[c].trust = (R[c], t[c]), np.arange(8) != c
+    xy = rng.normal(0, 0.1, (2, 17, 2))
+    m.recent.extend(Hypothesis(since + 1 + k, np.array([1, 2]), xy, np.full((2, 17), 0.005), np.zeros(3))
+                    for k in range(20))
+    a = m._test(1, m.cams[1], now)
+    assert a is not None and a.cam == 1 and a.chi2 > CFG.chi2
+    blamed = m._blame(a, now, np.ones(8, bool), R, t)
+    assert blamed is not None and blamed.cam == (2 if moved > 0.02 else 1), blamed
+    if moved > 0.02:
+        assert blamed.chi2 > a.chi2 and abs(blamed.translation - moved) < 0.005
+
+
 def test_a_quiet_network_raises_no_alarm():
     _, m, alarms, _ = _run(2, None, 300.0)
     assert alarms == []
