@@ -462,8 +462,11 @@ class Monitor:
             if chi2 < cfg.chi2 / 4 or (trans <= cfg.min_translation and rot <= cfg.min_rotation):
                 explaining.append(j)
         if not explaining:
+            # measured alike: the failing camera's own step at the same split, all its bins
+            mine = self._own_step(a.cam, a, now)
+            bar = max(a.chi2, mine[0] if mine is not None else 0.0)
             steps = [(own[0], j, own) for j in undecided
-                     if (own := self._own_step(j, a, now)) is not None and self._flags(own) and own[0] > a.chi2]
+                     if (own := self._own_step(j, a, now)) is not None and self._flags(own) and own[0] > bar]
             if steps:
                 _, j, own = max(steps)
                 return Alarm(now, j, *own)
