@@ -474,12 +474,14 @@ class Monitor:
         best = None
         untested = []
         for j in explaining:
+            k = self.cams[j]
+            if k.since is not None or k.anchor is None:
+                continue  # not watched: not flagged
             own = self._own_step(j, a, now)
             if own is not None and self._flags(own):
                 if best is None or own[0] > best.chi2:
                     best = Alarm(now, j, *own)
-            elif self.cams[j].anchor is not None and self.cams[j].since is None and (
-                    own is None or sum(b[0] < a.since for b in self.cams[j].bins) < cfg.min_reference_bins):
+            elif own is None or sum(b[0] < a.since for b in k.bins) < cfg.min_reference_bins:
                 untested.append(j)  # too short a reference for its own test to tell
         if best is None and len(explaining) == 1 and untested == explaining:
             # The step is this camera's by the others' evidence alone: its reference cannot

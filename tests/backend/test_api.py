@@ -174,6 +174,7 @@ def test_a_session_reads_stopped_only_once_its_result_is_written(svc, client, la
     deadline = time.monotonic() + 60
     while (d := client.get(f"/sessions/{sid}").json())["state"] != "stopped":
         assert time.monotonic() < deadline, d
+        time.sleep(0.02)
     seen = client.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text
     assert seen == (svc.settings.state_dir / "sessions" / sid / "result.yaml").read_text()
     assert not d["live"] and [s["state"] for s in client.get("/sessions").json() if s["id"] == sid] == ["stopped"]

@@ -86,9 +86,8 @@ def _run(seed: int, bump: tuple[float, float] | None, duration: float, cam: int 
     """The monitor fed the scene at RATE Hz and evaluated every 0.5 s as the pipeline does
     after its cycles; recalibrated poses are applied. ``dropped``: the share of the moved
     camera's views left out of the hypotheses after the move; ``short``: the camera's own
-    bins before the move dropped (as a camera has whose bins mostly fall
-    short of ``min_points``). Returns (scene, monitor, alarms, the camera's pose error at
-    the end)."""
+    bins before the move dropped (as a camera has whose bins mostly fall short of
+    ``min_points``). Returns (scene, monitor, alarms, the camera's pose error at the end)."""
     s = Scene(seed, occluded)
     m = Monitor(CFG, np.full(8, F))
     watched = np.ones(8, bool)
@@ -169,7 +168,8 @@ def test_a_step_nobody_explains_is_flagged_where_it_is_largest(moved):
     (1 cm), or none, leaves the alarm camera 1's."""
     rng = np.random.default_rng(0)
     m = Monitor(CFG, np.full(8, F))
-    R, t = Scene(0).R_est, Scene(0).t_est
+    scene = Scene(0)
+    R, t = scene.R_est, scene.t_est
     since, now = 90.0, 120.0
     m.cams[1].bins = _bins(rng, np.r_[0, 0, 0, 0.02, 0, 0], since)
     m.cams[2].bins = _bins(rng, np.r_[0, 0, 0, 0, moved, 0], since)
