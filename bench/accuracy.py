@@ -129,28 +129,36 @@ def scaled_lab(lab: Path, k: float, cache: Path) -> Path:
     return out
 
 
-def _sim_key(persons: int, duration: float, seed: int, sim_set: dict) -> str:
+def _sim_key(persons: int, duration: float, seed: int, sim_set: dict, cameras: tuple[str, ...] = ()) -> str:
     h = hashlib.sha1()
     for f in sorted((REPO / "edge_clients" / "sim").glob("*.py")):
         h.update(f.read_bytes())
     for f in sorted(lab_dir().glob("*.yaml")):  # another camera directory, another recording
         h.update(f.read_bytes())
     h.update(repr((persons, HEIGHTS[persons], duration, seed, sorted(sim_set.items()))).encode())
-    return f"lab20_p{persons}_d{duration:g}_s{seed}_{h.hexdigest()[:10]}.msgpack"
+    if cameras:
+        h.update(repr(cameras).encode())
+    return f"lab{len(cameras) or 20}_p{persons}_d{duration:g}_s{seed}_{h.hexdigest()[:10]}.msgpack"
 
 
-def simulate(persons: int, duration: float, seed: int, cache: Path, sim_set: dict | None = None) -> Path:
-    """The recording (and its truth sidecar) of one simulated run, cached."""
+def simulate(persons: int, duration: float, seed: int, cache: Path, sim_set: dict | None = None,
+             cameras: tuple[str, ...] = ()) -> Path:
+    """The recording (and its truth sidecar) of one simulated run, cached. ``cameras``: a
+    part of the lab as a scene of its own (the room plan keeps the walkers where they look)."""
     from edge_clients.sim import Scene, SimConfig, Simulator, Truth
 
     sim_set = sim_set or {}
-    out = cache / _sim_key(persons, duration, seed, sim_set)
+    out = cache / _sim_key(persons, duration, seed, sim_set, cameras)
     if out.is_file() and Truth.sidecar_path(out).is_file():
         return out
     cache.mkdir(parents=True, exist_ok=True)
     tmp = cache / f".{os.getpid()}.{out.name}"
-    sim = Simulator(Scene.load(lab_dir()), SimConfig(**{**sim_set, "persons": persons, "duration": duration,
-                                                        "seed": seed, "heights": sim_set.get("heights") or HEIGHTS[persons]}))
+    scene = Scene.load(lab_dir())
+    if cameras:
+        scene = Scene.from_cameras({n: scene.intrinsics[n] for n in cameras}, {n: scene.poses[n] for n in cameras},
+                                   lab_dir() / "room.yaml")
+    sim = Simulator(scene, SimConfig(**{**sim_set, "persons": persons, "duration": duration,
+                                        "seed": seed, "heights": sim_set.get("heights") or HEIGHTS[persons]}))
     sim.write(tmp)
     os.replace(Truth.sidecar_path(tmp), Truth.sidecar_path(out))  # the recording last: it marks completion
     os.replace(tmp, out)
