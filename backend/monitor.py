@@ -443,13 +443,10 @@ class Monitor:
         goes away when its bins since the change are made again without one of the cameras
         its points came from (that camera moved and biased them): gone is no longer large
         (``min_translation`` / ``min_rotation``) or a quarter as significant; less data
-        alone leave a real step as large. Then the alarm of the camera among those whose
-        own bins since the change show a step already (the most significant); else, when
-        one camera alone explains it and its own bins are too few to tell (it sees little,
-        or its watch began about the change), that camera's; else none yet: its own test
-        will tell. When no camera explains it and some could not be left out (too little
-        left without them), one of those whose own bins show a more significant step at
-        the same time is the moved one (the step a move induces in another is smaller)."""
+        alone leave a real step as large. Then ``_explained``. When no camera explains it
+        and some could not be left out (too little left without them), one of those whose
+        own bins show a more significant step at the same time is the moved one (the step
+        a move induces in another is smaller)."""
         cfg = self.cfg
         explaining, undecided = [], []
         for j in self._suspects(a, watched):
@@ -461,16 +458,24 @@ class Monitor:
             chi2, trans, rot, _ = step
             if chi2 < cfg.chi2 / 4 or (trans <= cfg.min_translation and rot <= cfg.min_rotation):
                 explaining.append(j)
-        if not explaining:
-            # measured alike: the failing camera's own step at the same split, all its bins
-            mine = self._own_step(a.cam, a, now)
-            bar = max(a.chi2, mine[0] if mine is not None else 0.0)
-            steps = [(own[0], j, own) for j in undecided
-                     if (own := self._own_step(j, a, now)) is not None and self._flags(own) and own[0] > bar]
-            if steps:
-                _, j, own = max(steps)
-                return Alarm(now, j, *own)
-            return a
+        if explaining:
+            return self._explained(a, now, explaining)
+        # measured alike: the failing camera's own step at the same split, all its bins
+        mine = self._own_step(a.cam, a, now)
+        bar = max(a.chi2, mine[0] if mine is not None else 0.0)
+        steps = [(own[0], j, own) for j in undecided
+                 if (own := self._own_step(j, a, now)) is not None and self._flags(own) and own[0] > bar]
+        if steps:
+            _, j, own = max(steps)
+            return Alarm(now, j, *own)
+        return a
+
+    def _explained(self, a: Alarm, now: float, explaining: list[int]) -> Alarm | None:
+        """Camera ``a.cam``'s step goes away without each of ``explaining``: the alarm of
+        the one whose own bins since the change show a step already (the most
+        significant); else, when one camera alone explains it and its own reference is too
+        short to tell (it sees little, or its watch began about the change), that camera's;
+        else none yet: its own test will tell."""
         best = None
         untested = []
         for j in explaining:
@@ -481,19 +486,18 @@ class Monitor:
             if own is not None and self._flags(own):
                 if best is None or own[0] > best.chi2:
                     best = Alarm(now, j, *own)
-            elif own is None or sum(b[0] < a.since for b in k.bins) < cfg.min_reference_bins:
-                untested.append(j)  # too short a reference for its own test to tell
-        if best is None and len(explaining) == 1 and untested == explaining:
-            # The step is this camera's by the others' evidence alone: its reference cannot
-            # show it (bumped while converging, its filter follows only slowly; or seeing
-            # little). Its size: its bins since the change against its anchor, which may
-            # already hold part of the move.
-            j = untested[0]
-            after = [b for b in self.cams[j].bins if b[0] >= a.since]
-            d = _mean(np.array([b[2] for b in after]), np.array([b[3] for b in after]))[0] if after else np.zeros(6)
-            best = Alarm(now, j, a.chi2, float(np.linalg.norm(d[3:])), float(np.degrees(np.linalg.norm(d[:3]))),
-                         a.since)
-        return best
+            elif own is None or sum(b[0] < a.since for b in k.bins) < self.cfg.min_reference_bins:
+                untested.append(j)
+        if best is not None or len(explaining) > 1 or untested != explaining:
+            return best
+        # The step is this camera's by the others' evidence alone: its reference cannot show
+        # it (bumped while converging, its filter follows only slowly; or seeing little).
+        # Its size: its bins since the change against its anchor, which may already hold
+        # part of the move.
+        j = untested[0]
+        after = [b for b in self.cams[j].bins if b[0] >= a.since]
+        d = _mean(np.array([b[2] for b in after]), np.array([b[3] for b in after]))[0] if after else np.zeros(6)
+        return Alarm(now, j, a.chi2, float(np.linalg.norm(d[3:])), float(np.degrees(np.linalg.norm(d[:3]))), a.since)
 
     def _own_step(self, j: int, a: Alarm, now: float) -> tuple[float, float, float, float] | None:
         """Camera j's own step at ``a.since`` (``_step_at``; 3 reference bins are enough: its

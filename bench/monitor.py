@@ -7,8 +7,9 @@ it is calibrated again, how still the others stay; and false alarms without bump
         --bumps 0/3 --seeds 4 --calibrate 120 --bump-time 240   # the west room, a small one
 
 The 20-camera lab (or --cameras: a part of it as a room of its own), 2 persons; the
-calibration starts from the reference perturbed by 0.10 m / 5° (the first camera kept). A session calibrates from the first --calibrate s (180) of the
-recording as ``extrcal calibrate`` does, final batch included; the monitoring session
+calibration starts from the reference perturbed by 0.10 m / 5° (the first camera kept).
+A session calibrates from the first --calibrate s (180) of the recording as ``extrcal
+calibrate`` does, final batch included; the monitoring session
 starts from its result (its snapshot restored, as the service resumes a session), the
 online pipeline without a final batch and with the monitor on (``monitor.enabled``),
 and watches the rest; a camera is bumped at --bump-time s (360: 180 s after the watch
