@@ -52,7 +52,7 @@ from proto import KeypointMessage
 from .associate import Hypothesis, torso_centre
 from .cameras import CameraSet, Extrinsics, Intrinsics, Pose, natural_key
 from .config import BootstrapConfig, EngineConfig
-from .geometry import hat, pose_std, rotation_angle_deg, so3_exp, triangulate_batch
+from .geometry import hat, pose_std, project_so3, rotation_angle_deg, so3_exp, triangulate_batch
 from .optimize import BONE_NAMES, BONES
 from .people import ANKLE_HEIGHT, ScaleEstimate, Segments, measure_scale, segments
 from .preprocess import Detection, Preprocessor
@@ -333,12 +333,6 @@ def pair_bones(keys: np.ndarray, points: np.ndarray, *, min_frames: int = 10) ->
 # ------------------------------------------------------------------ view graph
 
 
-def _project_so3(M: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(M)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
-
-
 def spanning_tree(cameras: int, edges: Sequence[tuple[int, int, float]]) -> list[int]:
     """Indices of the edges (a, b, weight) of a maximum-weight spanning forest (Kruskal)."""
     parent = list(range(cameras))
@@ -431,7 +425,7 @@ def average_rotations(cameras: int, pairs: Sequence[PairPose], *, root: int | No
             M[p.b] += rw[k] * (R[p.a] @ p.R.T)
         for c in np.flatnonzero(known):
             if c != root and np.any(M[c]):
-                R[c] = _project_so3(M[c])
+                R[c] = project_so3(M[c])
     return R, known, residuals()
 
 

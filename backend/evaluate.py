@@ -8,7 +8,7 @@ from typing import Mapping
 import numpy as np
 
 from .cameras import Pose, natural_key
-from .geometry import centres_fix_rotation, rotation_angle_deg, umeyama
+from .geometry import centres_fix_rotation, project_so3, rotation_angle_deg, umeyama
 
 
 MIN_CAMERAS = 2  # an alignment needs two cameras' poses (or three centres)
@@ -69,8 +69,7 @@ def _align(src: np.ndarray, dst: np.ndarray, src_R: np.ndarray, dst_R: np.ndarra
     if centres_fix_rotation(src):
         return umeyama(src, dst, with_scale=with_scale)
     xs, xd = src - src.mean(0), dst - dst.mean(0)
-    U, _, Vt = np.linalg.svd(np.einsum("nij,nkj->ik", dst_R, src_R))
-    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    R = project_so3(np.einsum("nij,nkj->ik", dst_R, src_R))
     ns, nd = float(np.sum(xs**2)), float(np.sum(xd**2))
     s = float(np.sqrt(nd / ns)) if with_scale and ns > 0 else 1.0
     return s, R, dst.mean(0) - s * R @ src.mean(0)

@@ -60,6 +60,13 @@ def so3_exp(w) -> np.ndarray:
     return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * K @ K
 
 
+def project_so3(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest (Frobenius) the (3, 3) matrix M: a sum of rotations' chordal
+    mean, or a Procrustes problem's solution."""
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+
 def so3_log(R: np.ndarray) -> np.ndarray:
     """(3, 3) rotation → (3,) rotation vector, robust near 0 and π."""
     R = np.asarray(R, dtype=np.float64)
@@ -296,8 +303,7 @@ def _joint_turn(s: float, Rw: np.ndarray, tw: np.ndarray, R_src: np.ndarray, t_s
     x = t_src - t_src.mean(0)
     var_t = max(float(np.mean(np.sum((s * t_src @ Rw.T + tw - t_dst) ** 2, axis=1))) / 3, 1e-6)
     Q = np.einsum("nij,nkj->nik", R_dst, R_src)  # each camera's dst_R_src
-    U, _, Vt = np.linalg.svd(Q.sum(0))
-    Ro = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    Ro = project_so3(Q.sum(0))
     ang = np.array([np.radians(rotation_angle_deg(Ro, q)) for q in Q])
     ok = ang <= max(3.0 * float(np.median(ang)), np.radians(1.0))
     var_r = max(float(np.mean(ang[ok] ** 2)) / 3, np.radians(0.1) ** 2)
@@ -320,9 +326,7 @@ def _joint_turn(s: float, Rw: np.ndarray, tw: np.ndarray, R_src: np.ndarray, t_s
         return s, Rw, tw
     y = t_dst - t_dst.mean(0)
     for _ in range(3):  # maximise tr(Rw^T M): the centres' and the orientations' Procrustes terms
-        M = (s / var_t) * y.T @ x + Q[ok].sum(0) / (2 * var_r)
-        U, _, Vt = np.linalg.svd(M)
-        Rw = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        Rw = project_so3((s / var_t) * y.T @ x + Q[ok].sum(0) / (2 * var_r))
         s = float(np.sum(y * (x @ Rw.T)) / max(np.sum(x * x), 1e-12))
     return s, Rw, t_dst.mean(0) - s * Rw @ t_src.mean(0)
 
