@@ -1336,6 +1336,7 @@ class Service:
             if self._starting:
                 raise SessionConflict("another session is being started")
 
+        await self._settled()  # a session that just failed or stopped is still writing its files
         check()
         self._starting = True
         try:
@@ -1484,14 +1485,30 @@ class Service:
             s.done.set()
 
     def _fail(self, s: ActiveSession, reason: str) -> None:
+        """The session ends as failed. It stays the active one (finishing) until its files
+        are written, as a stopped one does: whoever reads "failed" may fetch its result
+        at once (``_settled``), and a new session starts only after that."""
         rec = s.record
         rec.state, rec.reason, rec.ended_wall = SessionState.failed, reason, time.time()
         log.error("session %s failed: %s", rec.id, reason)
         self._persist(s, snapshot=True)
         s.finishing = True
+        try:
+            assert self._tg is not None
+            self._tg.create_task(self._failed(s), name=f"failed {rec.id}")
+        except (AssertionError, RuntimeError):  # no task group (shutting down): end it here
+            self._end_failed(s)
+
+    async def _failed(self, s: ActiveSession) -> None:
+        try:
+            await self.writer.flush()
+        finally:
+            self._end_failed(s)
+
+    def _end_failed(self, s: ActiveSession) -> None:
         if self.active is s:
             self.active = None
-        self.events.publish("session", {"id": rec.id, "state": rec.state.value, "reason": reason})
+        self.events.publish("session", {"id": s.record.id, "state": s.record.state.value, "reason": s.record.reason})
         s.done.set()
 
     # ------------------------------------------------------------ views (API)

@@ -180,6 +180,29 @@ def test_a_session_reads_stopped_only_once_its_result_is_written(svc, client, la
     assert not d["live"] and [s["state"] for s in client.get("/sessions").json() if s["id"] == sid] == ["stopped"]
 
 
+def test_a_failed_session_reads_failed_only_with_its_files_written(svc, client, lab_body, monkeypatch):
+    """A session that fails (here: told so on the service's loop, as a failing front end
+    does) reads "failed" at once, from its record on disk once the slow disk has it,
+    and the next session starts after that."""
+    _stop_all(client)
+    store = svc.service.store
+    save = store.save_record
+
+    def slow(*a, **kw):
+        time.sleep(0.5)
+        return save(*a, **kw)
+
+    sid = client.post("/sessions", headers=AUTH, json={**lab_body, "name": "to fail"}).json()["id"]
+    monkeypatch.setattr(store, "save_record", slow)
+    svc.call(lambda: svc.service._fail(svc.service.active, "the front end failed: a test"))
+    d = client.get(f"/sessions/{sid}").json()
+    assert d["state"] == "failed" and not d["live"] and d["reason"] == "the front end failed: a test", d
+    assert store.load_record(sid).state.value == "failed"
+    nxt = client.post("/sessions", headers=AUTH, json={**lab_body, "name": "after the failure"})
+    assert nxt.status_code == 201, nxt.text
+    _stop_all(client)
+
+
 def test_events_stream_session_changes(svc, client, lab_body):
     _stop_all(client)
     with httpx.Client(base_url=svc.url, timeout=10) as ev, ev.stream("GET", "/events") as stream:
