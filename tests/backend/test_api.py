@@ -157,18 +157,23 @@ def test_session_lifecycle_with_configured_files(svc, client, lab_body):
         (svc.settings.camera_files["lab_intrinsics"]).read_text())
 
 
+def _slow_disk(monkeypatch, store, method: str, seconds: float = 0.5) -> None:
+    """The store's ``method`` takes ``seconds`` longer (a slow disk)."""
+    write = getattr(store, method)
+
+    def slow(*a, **kw):
+        time.sleep(seconds)
+        return write(*a, **kw)
+
+    monkeypatch.setattr(store, method, slow)
+
+
 def test_a_session_reads_stopped_only_once_its_result_is_written(svc, client, lab_body, monkeypatch):
     """Whoever polls a session until it reads "stopped" fetches the result at once: it
     must be the final one, however slowly the disk takes it."""
     _stop_all(client)
     store = svc.service.store
-    save = store.save_result
-
-    def slow(*a, **kw):
-        time.sleep(0.5)
-        return save(*a, **kw)
-
-    monkeypatch.setattr(store, "save_result", slow)
+    _slow_disk(monkeypatch, store, "save_result")
     sid = client.post("/sessions", headers=AUTH, json={**lab_body, "name": "slow disk"}).json()["id"]
     assert client.post(f"/sessions/{sid}/stop", headers=AUTH, params={"wait": False}).status_code == 202
     deadline = time.monotonic() + 60
@@ -186,14 +191,8 @@ def test_a_failed_session_reads_failed_only_with_its_files_written(svc, client, 
     and the next session starts after that."""
     _stop_all(client)
     store = svc.service.store
-    save = store.save_record
-
-    def slow(*a, **kw):
-        time.sleep(0.5)
-        return save(*a, **kw)
-
     sid = client.post("/sessions", headers=AUTH, json={**lab_body, "name": "to fail"}).json()["id"]
-    monkeypatch.setattr(store, "save_record", slow)
+    _slow_disk(monkeypatch, store, "save_record")
     svc.call(lambda: svc.service._fail(svc.service.active, "the front end failed: a test"))
     d = client.get(f"/sessions/{sid}").json()
     assert d["state"] == "failed" and not d["live"] and d["reason"] == "the front end failed: a test", d
