@@ -214,6 +214,11 @@ class MonitorConfig(_Section):
                                  "of them left out (so one more than this)")
     reference_seconds: float = Field(180.0, gt=0, description="s of the camera's own bins before a change it is compared with")
     min_reference_bins: int = Field(12, ge=3, description="bins a camera needs before the change test runs")
+    short_reference_bins: int = Field(4, ge=2, description="a change early in a camera's watch, with fewer than "
+                                      "min_reference_bins bins before it but at least this many, is tested once the camera "
+                                      "has min_reference_bins bins in all, against the scatter of its bins about their "
+                                      "means on both sides of it (a camera bumped early in its watch was otherwise never "
+                                      "flagged, and held where it was); min_reference_bins or more: not tested")
     bin_std_translation: float = Field(0.05, ge=0, description="m: most error of one bin's resection that its information does "
                                        "not show (where the people were, the others' own errors); the share added to each bin's "
                                        "covariance is measured on the camera's own bins")

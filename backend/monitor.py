@@ -589,7 +589,7 @@ class Monitor:
 
     def _test(self, c: int, k: _Camera, now: float) -> Alarm | None:
         """The change test over the camera's bins."""
-        if len(k.bins) < self.cfg.min_reference_bins + self.cfg.min_change_bins:
+        if len(k.bins) < self.cfg.min_reference_bins:
             return None
         z = np.array([b[2] for b in k.bins])
         W = np.array([b[3] for b in k.bins])
@@ -608,28 +608,42 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
     least ``min_change_bins`` after it and ``min_reference_bins`` before, the robust mean
     after vs before, χ² against their covariances plus ``floor`` (6, 6). Each bin's
     covariance is its information's inverse plus the error it does not show
-    (``bin_floor``, measured on the bins before the window). Returns the most
+    (``bin_floor``, measured on the bins before the window). A split with fewer bins
+    before it (down to ``short_reference_bins``: the camera was moved early in its
+    watch) is tested once there are ``min_reference_bins`` in all, that error measured on
+    the bins of both sides about their own means (``_split_scatter``). Returns the most
     significant split (by its χ² over all its bins) that passes ``chi2`` and the size
     thresholds, also without any one of the bins after it (so at least
     ``min_change_bins`` + 1 of them), as (χ², m, deg, data time of the change; the χ²
     and size the least of those), or None."""
     n = len(z)
     first = next((j for j in range(n) if now - start[j] <= cfg.window_seconds), n)
-    first = max(first, cfg.min_reference_bins)
-    if first > n - cfg.min_change_bins:
+    full = max(first, cfg.min_reference_bins)
+    lo = max(first, min(cfg.short_reference_bins, full)) if n >= cfg.min_reference_bins else full
+    if lo >= n - cfg.min_change_bins:
         return None
     C = np.linalg.inv(W)
-    F = bin_floor(z[:first], C[:first], cfg)
-    W = np.linalg.inv(C + F)
-    _, _, kappa, _ = _mean(z[:first], W[:first])
+    scatter: dict[int, tuple[np.ndarray, float]] = {}  # split: (W (n, 6, 6) with the floor, overdispersion)
+
+    def calibrated(j: int) -> tuple[np.ndarray, float]:
+        if j < full:  # a short reference: the scatter of both sides
+            if j not in scatter:
+                scatter[j] = _split_scatter(z, C, j, cfg)
+            return scatter[j]
+        if full not in scatter:
+            Wf = np.linalg.inv(C + bin_floor(z[:full], C[:full], cfg))
+            scatter[full] = (Wf, _mean(z[:full], Wf[:full])[2])
+        return scatter[full]
+
     best = None
     reference: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # split: the mean before it (once per split)
 
     def step(j: int, after: np.ndarray) -> tuple[float, np.ndarray] | None:
+        Wj, kappa = calibrated(j)
         if j not in reference:
-            reference[j] = _mean(z[:j], W[:j], kappa)[:2]
+            reference[j] = _mean(z[:j], Wj[:j], kappa)[:2]
         zr, Sr = reference[j]
-        zn, Sn, _, kept = _mean(z[after], W[after], kappa)
+        zn, Sn, _, kept = _mean(z[after], Wj[after], kappa)
         if kept < cfg.min_change_bins:
             return None  # bins after the split that disagree among themselves are no step
         d = zn - zr
@@ -640,11 +654,11 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
         # NaN (no reference bin kept: infinite covariance) passes no "<=" threshold
         return (chi2, d) if np.isfinite(chi2) else None
 
-    for j in range(first, n - cfg.min_change_bins):
+    for j in range(lo, n - cfg.min_change_bins):
         found = step(j, np.arange(j, n))
         if found is None or found[0] <= cfg.chi2:
             continue
-        full = found[0]
+        full_chi2 = found[0]
         # ... and still without any one of the bins after it: one bin far off (a person
         # the camera sees oddly for a few seconds) is no step
         for leave in range(j, n) if leave_one_out else ():
@@ -660,9 +674,29 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
         trans = float(np.linalg.norm(d[3:]))
         # the split is the likeliest one (all its bins; the least of the leave-one-out
         # χ² favours splits with more bins, before the change too)
-        if (trans > cfg.min_translation or rot > cfg.min_rotation) and (best is None or full > best[0]):
-            best = (full, (chi2, trans, rot, float(start[j])))
+        if (trans > cfg.min_translation or rot > cfg.min_rotation) and (best is None or full_chi2 > best[0]):
+            best = (full_chi2, (chi2, trans, rot, float(start[j])))
     return None if best is None else best[1]
+
+
+def _split_scatter(z: np.ndarray, C: np.ndarray, j: int, cfg: MonitorConfig) -> tuple[np.ndarray, float]:
+    """For a split at bin j with a short reference: the bins' informations with the
+    floor (``bin_floor``) and the overdispersion, both measured on the bins of each side
+    about that side's own mean (a step between them is not scatter). A side's χ² about
+    its own mean are scaled by n / (n - 1): four bins' mean takes a quarter of their
+    scatter. Returns (W (n, 6, 6), overdispersion)."""
+    sides = (slice(0, j), slice(j, len(z)))
+    F = bin_floor(z, C, cfg, sides=sides)
+    W = np.linalg.inv(C + F)
+    chi = np.concatenate([_chi_about_mean(z[s], W[s]) for s in sides])
+    return W, max(float(np.median(chi)) / _CHI2_6_MEDIAN, _KAPPA_MIN)
+
+
+def _chi_about_mean(z: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """(n,) the χ² of bins z (n, 6) about their robust mean (informations W), scaled by
+    n / (n - 1) for the degrees of freedom the mean takes."""
+    r = z - _mean(z, W, 1.0)[0]
+    return np.einsum("ni,nij,nj->n", r, W, r) * len(z) / max(len(z) - 1, 1)
 
 
 def _step_at(bins: list, since: float, now: float, cfg: MonitorConfig, floor: np.ndarray, min_after: int = 1,
@@ -673,22 +707,26 @@ def _step_at(bins: list, since: float, now: float, cfg: MonitorConfig, floor: np
     and ``min_after`` after."""
     n_after = sum(b[0] >= since for b in bins)
     min_before = cfg.min_reference_bins if min_before is None else min_before
-    if n_after < max(min_after, 1) or len(bins) - n_after < min_before:
+    # a short reference is measured as ``change_test`` measures it, with min_before bins in all
+    short = min(min_before, cfg.short_reference_bins) if len(bins) >= min_before else min_before
+    if n_after < max(min_after, 1) or len(bins) - n_after < short:
         return None
     one = cfg.model_copy(update={"window_seconds": now - since + 1e-6, "min_change_bins": n_after - 1,
-                                 "min_reference_bins": min_before,
+                                 "min_reference_bins": min_before, "short_reference_bins": short,
                                  "chi2": 0.0, "min_translation": -1.0, "min_rotation": -1.0})
     return change_test(np.array([b[2] for b in bins]), np.array([b[3] for b in bins]),
                        np.array([b[0] for b in bins]), now, one, floor, leave_one_out=False)
 
 
-def bin_floor(z: np.ndarray, C: np.ndarray, cfg: MonitorConfig) -> np.ndarray:
+def bin_floor(z: np.ndarray, C: np.ndarray, cfg: MonitorConfig, *, sides: tuple[slice, ...] | None = None
+              ) -> np.ndarray:
     """(6, 6) the error of one bin that its covariance C (n, 6, 6) does not show (where
     the people were and what the others' own errors made of that), measured on the
     camera's bins z (n, 6): α² diag(``bin_std_*``²) with the least α in [0, 1] for
     which the bins' χ² around their robust mean have the χ² distribution's upper quartile
     (not the median: the bins' errors have heavy tails)
     (α = 1 when even that is not enough; the overdispersion of ``_mean`` takes the rest).
+    ``sides``: the bins' χ² about each side's own mean instead (``_chi_about_mean``).
     Without it one bin that claims too much outweighs several; a fixed value would be
     wrong for a network calibrated better or worse than the one it was measured on."""
     rb = np.radians(cfg.bin_std_rotation)
@@ -696,6 +734,8 @@ def bin_floor(z: np.ndarray, C: np.ndarray, cfg: MonitorConfig) -> np.ndarray:
 
     def median_chi(a: float) -> float:
         W = np.linalg.inv(C + a * a * F0)
+        if sides is not None:
+            return float(np.quantile(np.concatenate([_chi_about_mean(z[s], W[s]) for s in sides]), 0.75))
         m, _, _, _ = _mean(z, W, 1.0)
         r = z - m
         return float(np.quantile(np.einsum("ni,nij,nj->n", r, W, r), 0.75))

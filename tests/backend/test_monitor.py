@@ -152,6 +152,41 @@ def test_a_camera_bumped_with_too_short_a_reference_is_blamed_on_the_others_evid
     assert err[1] < 0.3, err  # calibrated again
 
 
+@pytest.mark.parametrize("bump", [(0.03, 0.0), (0.0, 2.0)], ids=["3cm", "2deg"])
+def test_a_camera_bumped_early_in_its_watch_is_flagged_and_calibrated_again(bump):
+    """Bumped 25 s after the watch began (a live session's watch begins while it is still
+    calibrating): 5 bins before the move, fewer than ``min_reference_bins``. Before, no
+    split had a reference long enough, ever: the camera was never flagged and stayed held
+    where it was. Now it is flagged once it has ``min_reference_bins`` bins, on its own
+    bins' scatter about their means on both sides, and calibrated again."""
+    _, _, alarms, err = _run(1, bump, 200.0, bump_time=25.0)
+    assert [a.cam for a in alarms] == [2], alarms
+    assert 25.0 < alarms[0].time <= 25.0 + 60.0 and 15.0 <= alarms[0].since <= 30.0, alarms
+    assert err[0] < 0.03 and err[1] < 0.3, err
+
+
+def test_a_short_reference_finds_a_step_but_no_step_in_quiet_bins():
+    """``change_test`` on 14 bins whose step (5 cm) comes after 4: found at that split,
+    and not with short references turned off; in 200 quiet sequences of 14 bins (the
+    bins' errors larger than their informations say, as real bins' are) nothing is."""
+    from backend.monitor import change_test
+
+    rng = np.random.default_rng(11)
+    sd = np.r_[[np.radians(0.05)] * 3, [0.004] * 3]
+    W = np.repeat(np.diag(1 / sd ** 2)[None], 14, axis=0)
+    start = 5.0 * np.arange(14)
+    now = start[-1] + 5.0
+    moved = rng.normal(size=(14, 6)) * sd * 2.0
+    moved[4:, 3] += 0.05
+    found = change_test(moved, W, start, now, CFG, np.zeros((6, 6)))
+    assert found is not None and found[3] == start[4] and abs(found[1] - 0.05) < 0.02, found
+    off = CFG.model_copy(update={"short_reference_bins": CFG.min_reference_bins})
+    assert change_test(moved, W, start, now, off, np.zeros((6, 6))) is None
+    quiet = [change_test(rng.standard_t(5, size=(14, 6)) * sd * 2.0, W, start, now, CFG, np.zeros((6, 6)))
+             for _ in range(200)]
+    assert quiet == [None] * 200
+
+
 def _bins(rng: np.random.Generator, step: np.ndarray, since: float, n: int = 24) -> list:
     """n 5 s bins of a camera's resections (start, end, z, info): noise of 0.03° / 1 mm,
     ``step`` (6,) added from ``since`` on."""
