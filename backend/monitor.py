@@ -302,6 +302,9 @@ class _Camera:
     # later would change the points, and look like this camera moving)
     trust: np.ndarray | None = None
     since: float | None = None  # being calibrated again with the data from this time on
+    # its first watch of the session: a change early in it is tested on a short reference
+    # (``MonitorConfig.short_reference_bins``); not after an alarm started it over
+    first_watch: bool = True
 
 
 class Monitor:
@@ -324,6 +327,7 @@ class Monitor:
         self.floor = np.diag([r * r] * 3 + [cfg.model_std_translation ** 2] * 3)
         r = np.radians(cfg.bin_std_rotation)
         self.bin_floor = np.diag([r * r] * 3 + [cfg.bin_std_translation ** 2] * 3)
+        self._full_reference = cfg.model_copy(update={"short_reference_bins": cfg.min_reference_bins})
 
     def recalibrating(self) -> np.ndarray:
         """(C,) bool cameras being calibrated again after an alarm."""
@@ -422,6 +426,7 @@ class Monitor:
             self._reset(k)
             k.since = since
             k.data.extend(data)
+            k.first_watch = False
             # The others' evidence since the change was triangulated with the moved camera;
             # and from now on their points come without it (it is not trusted while it is
             # calibrated again): a camera it was a source of starts its reference over, or
@@ -432,6 +437,7 @@ class Monitor:
                     continue
                 if c in shared and (o.trust is None or o.trust[a.cam]):
                     self._reset(o)
+                    o.first_watch = False
                 else:
                     o.bins = [b for b in o.bins if b[1] <= a.since]
                     while o.data and o.data[-1].time >= a.since:
@@ -593,7 +599,13 @@ class Monitor:
             return None
         z = np.array([b[2] for b in k.bins])
         W = np.array([b[3] for b in k.bins])
-        found = change_test(z, W, np.array([b[0] for b in k.bins]), now, self.cfg, self.floor)
+        # After an alarm a camera's reference starts over (the camera moved, or lost one of
+        # its points' sources), and its first minute differs from the next by what that did
+        # (the recalibration's fit; the sources left), more likely than by a second move:
+        # lab seed 218 (a live session's protocol) flagged cam_10 again 90 s into its second
+        # watch, 12 cm / 0.65°, on a reference of 8 bins
+        cfg = self.cfg if k.first_watch else self._full_reference
+        found = change_test(z, W, np.array([b[0] for b in k.bins]), now, cfg, self.floor)
         if found is None:
             return None
         chi2, trans, rot, since = found
