@@ -214,7 +214,7 @@ class MonitorConfig(_Section):
                                  "of them left out (so one more than this)")
     reference_seconds: float = Field(180.0, gt=0, description="s of the camera's own bins before a change it is compared with")
     min_reference_bins: int = Field(12, ge=3, description="bins a camera needs before the change test runs")
-    short_reference_bins: int = Field(4, ge=2, description="a change early in a camera's watch, with fewer than "
+    short_reference_bins: int = Field(4, ge=2, description="a change early in a camera's first watch, with fewer than "
                                       "min_reference_bins bins before it but at least this many, is tested once the camera "
                                       "has min_reference_bins bins in all, against the scatter of its bins about their "
                                       "means on both sides of it (a camera bumped early in its watch was otherwise never "

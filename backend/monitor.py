@@ -17,7 +17,9 @@ covariances. Each bin's covariance is its information's inverse plus the error i
 not show (where the people were, the others' own errors), measured on the camera's own
 older bins (``bin_floor``): comparing the camera with its own past, not with the filter's
 estimate, a camera whose estimate is a little off, or whose view is biased, does not look
-moved; only a change does. A change must also be large (``min_translation`` /
+moved; only a change does. A change early in a camera's first watch, with a short
+reference, is measured against the scatter of its bins on both sides of it
+(``short_reference_bins``). A change must also be large (``min_translation`` /
 ``min_rotation``). A moved camera biases the points the others are tested against, so
 they may fail too, and before it does (its own views, now off, join fewer hypotheses):
 of the cameras that fail at one evaluation the most significant is taken, and tested
