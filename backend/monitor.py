@@ -404,7 +404,12 @@ class Monitor:
                     self._close_bin(c, k, now, R, t)
                     a = self._test(c, k, now)
                     if a is not None:
-                        candidates.append((a.chi2, a))
+                        # a test on a full reference before one on a short reference: the
+                        # short one is the fallback for a camera no other test covers (the west
+                        # room: cam_16's short test, χ² 42.3, outranked cam_15's full one, 41.0,
+                        # whose blame found cam_14 moved; cam_16's found cam_15)
+                        full = sum(b[0] < a.since for b in k.bins) >= self.cfg.min_reference_bins
+                        candidates.append(((full, a.chi2), a))
             while k.data and k.data[0].time < keep_from:
                 k.data.popleft()
         while self.recent and self.recent[0].time < keep_from:
