@@ -723,7 +723,8 @@ def _step_at(bins: list, since: float, now: float, cfg: MonitorConfig, floor: np
     """The step of a camera's ``bins`` (start, end, z, info) at the one split ``since``,
     unthresholded and without leaving bins out, as ``change_test`` measures it: (χ², m,
     deg, since), or None without ``min_before`` (``min_reference_bins``) bins before it
-    and ``min_after`` after."""
+    (``short_reference_bins`` when there are ``min_before`` in all, as ``change_test``
+    has it) and ``min_after`` after."""
     n_after = sum(b[0] >= since for b in bins)
     min_before = cfg.min_reference_bins if min_before is None else min_before
     # a short reference is measured as ``change_test`` measures it, with min_before bins in all

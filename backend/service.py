@@ -1494,9 +1494,10 @@ class Service:
         self._persist(s, snapshot=True)
         s.finishing = True
         try:
-            assert self._tg is not None
+            if self._tg is None:
+                raise RuntimeError("no task group")
             self._tg.create_task(self._failed(s), name=f"failed {rec.id}")
-        except (AssertionError, RuntimeError):  # no task group (shutting down): end it here
+        except RuntimeError:  # no task group, or it is shutting down: end it here
             self._end_failed(s)
 
     async def _failed(self, s: ActiveSession) -> None:

@@ -159,10 +159,24 @@ def test_a_camera_bumped_early_in_its_watch_is_flagged_and_calibrated_again(bump
     split had a reference long enough, ever: the camera was never flagged and stayed held
     where it was. Now it is flagged once it has ``min_reference_bins`` bins, on its own
     bins' scatter about their means on both sides, and calibrated again."""
-    _, _, alarms, err = _run(1, bump, 200.0, bump_time=25.0)
+    _, m, alarms, err = _run(1, bump, 200.0, bump_time=25.0)
     assert [a.cam for a in alarms] == [2], alarms
     assert 25.0 < alarms[0].time <= 25.0 + 60.0 and 15.0 <= alarms[0].since <= 30.0, alarms
     assert err[0] < 0.03 and err[1] < 0.3, err
+    assert not m.cams[2].first_watch  # its next watch is tested on full references only
+
+
+def test_short_references_only_in_a_cameras_first_watch():
+    """A step after 4 of 14 bins fails a camera's test in its first watch, not in a watch
+    begun after an alarm (whose first minute differs from the next by what the alarm did)."""
+    rng = np.random.default_rng(5)
+    m = Monitor(CFG, np.full(8, F))
+    k = m.cams[1]
+    k.bins = _bins(rng, np.r_[0, 0, 0, 0.05, 0, 0], since=20.0, n=14)
+    a = m._test(1, k, 70.0)
+    assert a is not None and a.since == 20.0 and abs(a.translation - 0.05) < 0.01, a
+    k.first_watch = False
+    assert m._test(1, k, 70.0) is None
 
 
 def test_a_short_reference_finds_a_step_but_no_step_in_quiet_bins():
