@@ -159,7 +159,7 @@ def test_a_camera_bumped_early_in_its_watch_is_flagged_and_calibrated_again(bump
     split had a reference long enough, ever: the camera was never flagged and stayed held
     where it was. Now it is flagged once it has ``min_reference_bins`` bins, on its own
     bins' scatter about their means on both sides, and calibrated again."""
-    _, m, alarms, err = _run(1, bump, 200.0, bump_time=25.0)
+    _, m, alarms, err = _run(1, bump, 160.0, bump_time=25.0)
     assert [a.cam for a in alarms] == [2], alarms
     assert 25.0 < alarms[0].time <= 25.0 + 60.0 and 15.0 <= alarms[0].since <= 30.0, alarms
     assert err[0] < 0.03 and err[1] < 0.3, err
@@ -181,7 +181,7 @@ def test_short_references_only_in_a_cameras_first_watch():
 
 def test_a_short_reference_finds_a_step_but_no_step_in_quiet_bins():
     """``change_test`` on 14 bins whose step (5 cm) comes after 4: found at that split,
-    and not with short references turned off; in 200 quiet sequences of 14 bins (the
+    and not with short references turned off; in 100 quiet sequences of 14 bins (the
     bins' errors larger than their informations say, as real bins' are) nothing is."""
     from backend.monitor import change_test
 
@@ -197,8 +197,8 @@ def test_a_short_reference_finds_a_step_but_no_step_in_quiet_bins():
     off = CFG.model_copy(update={"short_reference_bins": CFG.min_reference_bins})
     assert change_test(moved, W, start, now, off, np.zeros((6, 6))) is None
     quiet = [change_test(rng.standard_t(5, size=(14, 6)) * sd * 2.0, W, start, now, CFG, np.zeros((6, 6)))
-             for _ in range(200)]
-    assert quiet == [None] * 200
+             for _ in range(100)]
+    assert quiet == [None] * 100
 
 
 def _bins(rng: np.random.Generator, step: np.ndarray, since: float, n: int = 24) -> list:
