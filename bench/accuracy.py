@@ -155,8 +155,7 @@ def simulate(persons: int, duration: float, seed: int, cache: Path, sim_set: dic
     tmp = cache / f".{os.getpid()}.{out.name}"
     scene = Scene.load(lab_dir())
     if cameras:
-        scene = Scene.from_cameras({n: scene.intrinsics[n] for n in cameras}, {n: scene.poses[n] for n in cameras},
-                                   lab_dir() / "room.yaml")
+        scene = scene.subset(cameras)
     sim = Simulator(scene, SimConfig(**{**sim_set, "persons": persons, "duration": duration,
                                         "seed": seed, "heights": sim_set.get("heights") or HEIGHTS[persons]}))
     sim.write(tmp)

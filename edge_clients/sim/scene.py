@@ -20,7 +20,7 @@ import struct
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import yaml
@@ -166,6 +166,16 @@ class Scene:
         else:
             floor, plan = load_room(room)
         return Scene(names, intr, pos, floor, plan)
+
+    def subset(self, names: Sequence[str]) -> "Scene":
+        """These cameras as a scene of their own, on the same floor and plan (a room of a
+        larger network)."""
+        unknown = sorted(set(names) - set(self.names))
+        if unknown:
+            raise ValueError(f"not in the scene: {', '.join(unknown)}")
+        keep = tuple(n for n in self.names if n in set(names))
+        return Scene(keep, {n: self.intrinsics[n] for n in keep}, {n: self.poses[n] for n in keep},
+                     self.floor, self.floorplan)
 
     def centres(self) -> np.ndarray:
         """(C, 3) camera centres in the world, in ``names`` order."""

@@ -29,8 +29,7 @@ DURATION = 30.0
 @pytest.fixture(scope="module")
 def lab(lab_dir):
     full = Scene.load(lab_dir)
-    scene = Scene.from_cameras({n: full.intrinsics[n] for n in WEST}, {n: full.poses[n] for n in WEST},
-                               lab_dir / "room.yaml")
+    scene = full.subset(WEST)
     sim = Simulator(scene, SimConfig(persons=2, duration=DURATION, seed=1, heights=(1.96, 1.70)))
     msgs = [m for _, m in sim.messages()]
     names = WEST + (SILENT,)
@@ -603,8 +602,7 @@ def _overconfident_after_the_first_adjustment(cams, truth, msgs, cfg, cam: str):
 def west_90s(lab_dir):
     """The west room, 2 persons for 90 s, every camera 0.10 m / 3° off, and the truth."""
     full = Scene.load(lab_dir)
-    scene = Scene.from_cameras({n: full.intrinsics[n] for n in WEST}, {n: full.poses[n] for n in WEST},
-                               lab_dir / "room.yaml")
+    scene = full.subset(WEST)
     sim = Simulator(scene, SimConfig(persons=2, duration=90.0, seed=3, heights=(1.96, 1.70)))
     ref = {n: Extrinsics(full.poses[n], full.intrinsics[n].resolution) for n in WEST}
     cams = CameraSet.combine({n: full.intrinsics[n] for n in WEST}, perturb_extrinsics(ref, 0.10, 3.0, seed=0))

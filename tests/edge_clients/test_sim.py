@@ -223,6 +223,19 @@ def test_bad_arguments(scene):
 # ---------------------------------------------------------------- the parts
 
 
+def test_a_subset_of_the_cameras_keeps_the_room(scene, lab_dir):
+    west = ("cam_14", "cam_11", "cam_12")
+    part = scene.subset(west)
+    again = Scene.from_cameras({n: scene.intrinsics[n] for n in west}, {n: scene.poses[n] for n in west},
+                               lab_dir / "room.yaml")
+    assert part.names == again.names == ("cam_11", "cam_12", "cam_14")
+    assert all(part.poses[n] is scene.poses[n] and part.intrinsics[n] is scene.intrinsics[n] for n in west)
+    assert np.allclose(part.floor.up, again.floor.up) and np.allclose(part.floor.origin, again.floor.origin)
+    assert part.floorplan is scene.floorplan is not None
+    with pytest.raises(ValueError, match="cam_99"):
+        scene.subset(("cam_11", "cam_99"))
+
+
 def test_floor_from_camera_geometry_matches_the_room(scene):
     guessed = Scene.from_cameras(scene.intrinsics, scene.poses)
     assert guessed.floorplan is None
