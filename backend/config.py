@@ -219,6 +219,10 @@ class MonitorConfig(_Section):
                                       "has min_reference_bins bins in all, against the scatter of its bins about their "
                                       "means on both sides of it (a camera bumped early in its watch was otherwise never "
                                       "flagged, and held where it was); min_reference_bins or more: not tested")
+    where_covariates: bool = Field(True, description="a step must also show with the bias of each bin that where its "
+                                   "points were in the image explains (linear in their mean position): a lens a little off "
+                                   "its calibration, or keypoints off the joints, bias a camera's data-only pose by where "
+                                   "the people are in its view, and people moving to another part of it is no move")
     bin_std_translation: float = Field(0.05, ge=0, description="m: most error of one bin's resection that its information does "
                                        "not show (where the people were, the others' own errors); the share added to each bin's "
                                        "covariance is measured on the camera's own bins")

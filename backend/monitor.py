@@ -547,7 +547,7 @@ class Monitor:
         trust[c] = (k.trust if k.trust is not None else np.ones(C, bool)) & (np.arange(C) != j)
         hyps = [h for h in self.recent if h.time >= a.since and c in h.cams]
         data = correspondences(hyps, R, t, trust, self.focal, self.min_angle, self.outlier_px).get(c, [])
-        after = [b for b in (self._bin(c, start, end, data, R, t) for start, end, _, _ in k.bins if start >= a.since)
+        after = [b for b in (self._bin(c, start, end, data, R, t) for start, end, *_ in k.bins if start >= a.since)
                  if b is not None]
         if len(after) < self.cfg.min_change_bins + 1:
             return None
@@ -579,8 +579,9 @@ class Monitor:
 
     def _bin(self, c: int, start: float, end: float, data: Sequence[Correspondences], Rs: np.ndarray, ts: np.ndarray
              ) -> tuple | None:
-        """Camera c's bin [start, end) of ``data``: (start, end, z, info), its resection in
-        the anchor's frame; None when too little was seen (the bin says nothing; its data
+        """Camera c's bin [start, end) of ``data``: (start, end, z, info, where), its
+        resection in the anchor's frame and where in the image its points were (2,) (their
+        mean, normalised); None when too little was seen (the bin says nothing; its data
         still count for a recalibration) or no pose came of it."""
         in_bin = [d for d in data if start <= d.time < end]
         if sum(len(d.X) for d in in_bin) < self.cfg.min_points:
@@ -588,7 +589,8 @@ class Monitor:
         r = resect(Rs[c], ts[c], in_bin, float(self.focal[c]), outlier_px=self.outlier_px)
         if r is None:
             return None
-        return start, end, pose_local(*self.cams[c].anchor, *self._in_anchor_frame(c, r.R, r.t, Rs, ts)), r.info
+        where = np.concatenate([d.xy for d in in_bin]).mean(axis=0)
+        return start, end, pose_local(*self.cams[c].anchor, *self._in_anchor_frame(c, r.R, r.t, Rs, ts)), r.info, where
 
     def _close_bin(self, c: int, k: _Camera, now: float, Rs: np.ndarray, ts: np.ndarray) -> None:
         start, k.bin_start = k.bin_start, now
@@ -612,7 +614,7 @@ class Monitor:
         # lab seed 218 (a live session's protocol) flagged cam_10 again 90 s into its second
         # watch, 12 cm / 0.65°, on a reference of 8 bins
         cfg = self.cfg if k.first_watch else self._full_reference
-        found = change_test(z, W, np.array([b[0] for b in k.bins]), now, cfg, self.floor)
+        found = change_test(z, W, np.array([b[0] for b in k.bins]), now, cfg, self.floor, where=_where(k.bins))
         if found is None:
             return None
         chi2, trans, rot, since = found
@@ -620,7 +622,8 @@ class Monitor:
 
 
 def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg: MonitorConfig, floor: np.ndarray,
-                *, leave_one_out: bool = True) -> tuple[float, float, float, float] | None:
+                *, leave_one_out: bool = True, where: np.ndarray | None = None
+                ) -> tuple[float, float, float, float] | None:
     """The generalised likelihood ratio test for a step in a camera's data-only poses z
     (n, 6) (tangent at a fixed pose) with informations W (n, 6, 6), of bins starting at
     ``start`` (n,) data time: for every split of the last ``window_seconds`` leaving at
@@ -633,8 +636,10 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
     the bins of both sides about their own means (``_split_scatter``). Returns the most
     significant split (by its χ² over all its bins) that passes ``chi2`` and the size
     thresholds, also without any one of the bins after it (so at least
-    ``min_change_bins`` + 1 of them), as (χ², m, deg, data time of the change; the χ²
-    and size the least of those), or None."""
+    ``min_change_bins`` + 1 of them) and, given ``where`` (n, 2) (where in the image each
+    bin's points were) and ``where_covariates``, with the bias that where explains
+    (``_where_step``), as (χ², m, deg, data time of the change; the χ² and size the least
+    of those), or None."""
     n = len(z)
     first = next((j for j in range(n) if now - start[j] <= cfg.window_seconds), n)
     full = max(first, cfg.min_reference_bins)
@@ -689,6 +694,10 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
         if found is None or found[0] <= cfg.chi2:
             continue
         chi2, d = found
+        if where is not None and cfg.where_covariates:
+            chi2 = min(chi2, _where_step(z, *calibrated(j), floor, j, where))
+            if chi2 <= cfg.chi2:
+                continue
         rot = float(np.degrees(np.linalg.norm(d[:3])))
         trans = float(np.linalg.norm(d[3:]))
         # the split is the likeliest one (all its bins; the least of the leave-one-out
@@ -696,6 +705,57 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
         if (trans > cfg.min_translation or rot > cfg.min_rotation) and (best is None or full_chi2 > best[0]):
             best = (full_chi2, (chi2, trans, rot, float(start[j])))
     return None if best is None else best[1]
+
+
+def _where(bins: list) -> np.ndarray | None:
+    """(n, 2) where in the image the points of each of ``bins`` were, or None when a bin
+    does not say (made by hand)."""
+    if not bins or any(len(b) < 5 or b[4] is None for b in bins):
+        return None
+    return np.array([b[4] for b in bins])
+
+
+def _where_step(z: np.ndarray, W: np.ndarray, kappa: float, floor: np.ndarray, j: int, where: np.ndarray, *,
+                huber: float = 3.5, reject: float = 10.0) -> float:
+    """χ² of the step at bin j of poses z (n, 6) (informations W (n, 6, 6) with the floor,
+    overdispersion ``kappa``) when each bin's pose may also be biased linearly in where
+    its points were in the image, where (n, 2) (normalised): z_i = a + d·[i >= j] + B·w_i
+    + e_i, B (6, 2) fitted with the step (robustly, as ``_mean``). A lens a little off
+    its calibration (focal length, distortion) or keypoints off the joints bias a
+    camera's data-only pose by where the people are in its view: a step of the people
+    from one side of the view to the other is not the camera moving (the lab's cameras
+    with lenses 1 % off and keypoints on the body's outline raised ten false alarms an
+    hour without it). A move shifts every bin, wherever its people; when the people
+    changed places with the step, it cannot be told from their bias and waits for them
+    to come back. Returns d's χ² against its covariance plus ``floor``."""
+    n = len(z)
+    w = where - where.mean(axis=0)
+    D = np.zeros((n, 6, 24))  # the parameters: a (6), d (6), B (12, column-major)
+    eye = np.eye(6)
+    D[:, :, :6] = eye
+    D[j:, :, 6:12] = eye
+    D[:, :, 12:18] = w[:, 0, None, None] * eye
+    D[:, :, 18:] = w[:, 1, None, None] * eye
+    # a weak prior on B (1 rad / 1 m per unit of the normalised image): it only keeps a
+    # bias that the people's places cannot show (all bins at one spot) at zero
+    prior = np.diag(np.r_[np.zeros(12), np.ones(12)])
+    wt = np.ones(n)
+    chi2 = float("inf")  # no fit: nothing explained
+    for _ in range(5):
+        A = np.einsum("n,nia,nij,njb->ab", wt, D, W, D) + prior
+        try:
+            theta = np.linalg.solve(A, np.einsum("n,nia,nij,nj->a", wt, D, W, z))
+            cov = kappa * np.linalg.inv(A)[6:12, 6:12]
+            d = theta[6:12]
+            chi2 = float(d @ np.linalg.solve(cov + floor, d))
+        except np.linalg.LinAlgError:
+            break
+        r = z - np.einsum("nia,a->ni", D, theta)
+        m = np.sqrt(np.einsum("ni,nij,nj->n", r, W, r) / kappa)
+        wt = np.where(m > reject, 0.0, np.minimum(1.0, huber / np.maximum(m, 1e-12)))
+        if not wt[:j].any() or not wt[j:].any():
+            break  # a side left out whole: the last fit stands
+    return chi2
 
 
 def _split_scatter(z: np.ndarray, C: np.ndarray, j: int, cfg: MonitorConfig) -> tuple[np.ndarray, float]:
@@ -735,7 +795,7 @@ def _step_at(bins: list, since: float, now: float, cfg: MonitorConfig, floor: np
                                  "min_reference_bins": min_before, "short_reference_bins": short,
                                  "chi2": 0.0, "min_translation": -1.0, "min_rotation": -1.0})
     return change_test(np.array([b[2] for b in bins]), np.array([b[3] for b in bins]),
-                       np.array([b[0] for b in bins]), now, one, floor, leave_one_out=False)
+                       np.array([b[0] for b in bins]), now, one, floor, leave_one_out=False, where=_where(bins))
 
 
 def bin_floor(z: np.ndarray, C: np.ndarray, cfg: MonitorConfig, *, sides: tuple[slice, ...] | None = None

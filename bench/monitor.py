@@ -58,7 +58,8 @@ def _aligned_error(poses: dict, truth: dict, bumped: str) -> tuple[float, float]
 
 
 def run(seed: int, bump: tuple[float, float] | None, camera: str, bump_time: float, duration: float,
-        cache: Path, calibrate: float = 180.0, overrides: tuple[str, ...] = (), cameras: tuple[str, ...] = ()) -> dict:
+        cache: Path, calibrate: float = 180.0, overrides: tuple[str, ...] = (), cameras: tuple[str, ...] = (),
+        sim: tuple[tuple[str, object], ...] = ()) -> dict:
     from backend.cameras import CameraSet, load_extrinsics, load_intrinsics
     from backend.config import EngineConfig
     from backend.perturb import perturb_extrinsics
@@ -66,7 +67,7 @@ def run(seed: int, bump: tuple[float, float] | None, camera: str, bump_time: flo
     from edge_clients.sim import Truth
     from proto import read_recording
 
-    sim_set = {"bumps": ((bump_time, camera, bump[0], bump[1]),)} if bump else {}
+    sim_set = {**dict(sim), **({"bumps": ((bump_time, camera, bump[0], bump[1]),)} if bump else {})}
     rec = simulate(2, duration, seed, cache, sim_set, cameras)
     truth = Truth.load(Truth.sidecar_path(rec))
     lab = lab_dir()
@@ -224,19 +225,31 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="engine parameter override (repeatable), as for `extrcal calibrate --set`, "
                          "e.g. monitor.chi2=30")
+    ap.add_argument("--sim", dest="sim_set", action="append", default=[], metavar="KEY=VALUE",
+                    help="simulator setting (repeatable), as for `extrcal simulate --set`: other lenses, "
+                         "detectors, motion, e.g. intrinsics_error=0.01 surface_offset=0.04")
     args = ap.parse_args(argv)
+    import typer
+
     from backend.config import EngineConfig
+    from edge_clients.cli_simulate import _parse_set
     EngineConfig.load(None, args.overrides)  # a bad override fails here, not in every job
+    try:
+        sim = tuple(sorted(_parse_set(args.sim_set).items()))
+    except typer.BadParameter as e:
+        raise SystemExit(str(e)) from None
     con = Console()
+    if sim:
+        con.print(f"simulator settings: {dict(sim)}")
     bumps = [tuple(float(x) for x in b.split("/")) for b in args.bumps.split(",") if b]
     sets = tuple(args.overrides)
     cameras = tuple(c for c in args.cameras.split(",") if c)
     if cameras and args.camera not in cameras:
         raise SystemExit(f"--camera {args.camera} is not one of --cameras {args.cameras}")
     jobs = [(seed, b, args.camera, args.bump_time, args.bump_time + args.after, args.cache, args.calibrate, sets,
-             cameras) for seed in range(args.seeds) for b in bumps]
+             cameras, sim) for seed in range(args.seeds) for b in bumps]
     jobs += [(args.quiet_seed + k, None, args.camera, 0.0, args.quiet_duration, args.cache, args.calibrate, sets,
-              cameras) for k in range(args.quiet_runs)]
+              cameras, sim) for k in range(args.quiet_runs)]
     wall = time.perf_counter()
     results = []
     # each run is printed as it ends: a long quiet bench interrupted keeps the hours it ran

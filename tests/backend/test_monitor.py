@@ -201,6 +201,39 @@ def test_a_short_reference_finds_a_step_but_no_step_in_quiet_bins():
     assert quiet == [None] * 100
 
 
+
+def test_people_moving_across_a_biased_view_are_no_step_but_a_move_wherever_they_are_is():
+    """A lens a little off biases a camera's data-only pose by where its people are in
+    the image (here 0.8° and 6 cm per unit of the normalised image across). People who
+    walk from its left to its right half make a step of 0.4° / 3 cm in its bins: not
+    flagged when the test knows where each bin's points were (``where``), flagged without.
+    A move of 5 cm with the same bias, while the people walk all over the view, is found
+    at its split."""
+    from backend.monitor import change_test
+
+    rng = np.random.default_rng(5)
+    n, split = 24, 16
+    sd = np.r_[[np.radians(0.05)] * 3, [0.004] * 3]
+    W = np.repeat(np.diag(1 / sd ** 2)[None], n, axis=0)
+    start = 5.0 * np.arange(n)
+    now = start[-1] + 5.0
+    bias = np.r_[0.0, np.radians(0.8), 0.0, 0.06, 0.0, 0.0]  # per unit of the image's x
+
+    def bins(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        where = np.stack([x, rng.uniform(-0.2, 0.2, n)], axis=1)
+        return rng.normal(size=(n, 6)) * sd + where[:, :1] * bias, where
+
+    crossing, where = bins(np.r_[rng.uniform(-0.5, 0.0, split), rng.uniform(0.0, 0.5, n - split)])
+    assert change_test(crossing, W, start, now, CFG, np.zeros((6, 6)), where=where) is None
+    assert change_test(crossing, W, start, now, CFG, np.zeros((6, 6))) is not None
+    off = CFG.model_copy(update={"where_covariates": False})
+    assert change_test(crossing, W, start, now, off, np.zeros((6, 6)), where=where) is not None
+
+    moved, where = bins(rng.uniform(-0.5, 0.5, n))
+    moved[split:, 3] += 0.05
+    found = change_test(moved, W, start, now, CFG, np.zeros((6, 6)), where=where)
+    assert found is not None and found[3] == start[split] and abs(found[1] - 0.05) < 0.02, found
+
 def _bins(rng: np.random.Generator, step: np.ndarray, since: float, n: int = 24) -> list:
     """n 5 s bins of a camera's resections (start, end, z, info): noise of 0.03° / 1 mm,
     ``step`` (6,) added from ``since`` on."""
