@@ -19,7 +19,10 @@ older bins (``bin_floor``): comparing the camera with its own past, not with the
 estimate, a camera whose estimate is a little off, or whose view is biased, does not look
 moved; only a change does. A change early in a camera's first watch, with a short
 reference, is measured against the scatter of its bins on both sides of it
-(``short_reference_bins``). A change must also be large (``min_translation`` /
+(``short_reference_bins``). A step must also show with the bias each bin owes to where
+its people were in the image (``where_covariates``, ``_where_step``): a lens a little
+off, or keypoints off the joints, bias a data-only pose by where the people are, and
+people crossing the view are no move. A change must also be large (``min_translation`` /
 ``min_rotation``). A moved camera biases the points the others are tested against, so
 they may fail too, and before it does (its own views, now off, join fewer hypotheses):
 of the cameras that fail at one evaluation the most significant is taken, and tested
