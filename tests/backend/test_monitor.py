@@ -127,6 +127,8 @@ def test_a_bumped_camera_is_flagged_within_30s_and_calibrated_again(bump):
     assert 110.0 <= a.since <= a.time
     # the cameras it was a source of points for started their reference over, without it
     assert all(b[0] >= a.time for c in range(8) if c != 2 for b in m.cams[c].bins)
+    # each bin says where in the image its points were, for the test's bias by where
+    assert all(np.all(np.abs(b[4]) < 1.0) for k in m.cams for b in k.bins) and any(k.bins for k in m.cams)
     assert err[0] < 0.03 and err[1] < 0.3, err  # 80 s after the bump
     assert s.others_moved < 0.005  # the others are held
 
