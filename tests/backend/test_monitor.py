@@ -203,7 +203,6 @@ def test_a_short_reference_finds_a_step_but_no_step_in_quiet_bins():
     assert quiet == [None] * 100
 
 
-
 def test_people_moving_across_a_biased_view_are_no_step_but_a_move_wherever_they_are_is():
     """A lens a little off biases a camera's data-only pose by where its people are in
     the image (here 0.8° and 6 cm per unit of the normalised image across). People who
@@ -235,6 +234,7 @@ def test_people_moving_across_a_biased_view_are_no_step_but_a_move_wherever_they
     moved[split:, 3] += 0.05
     found = change_test(moved, W, start, now, CFG, np.zeros((6, 6)), where=where)
     assert found is not None and found[3] == start[split] and abs(found[1] - 0.05) < 0.02, found
+
 
 def _bins(rng: np.random.Generator, step: np.ndarray, since: float, n: int = 24) -> list:
     """n 5 s bins of a camera's resections (start, end, z, info): noise of 0.03° / 1 mm,
