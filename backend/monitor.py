@@ -747,8 +747,9 @@ def _where_step(z: np.ndarray, W: np.ndarray, kappa: float, floor: np.ndarray, j
     for _ in range(5):
         A = np.einsum("n,nia,nij,njb->ab", wt, D, W, D) + prior
         try:
-            theta = np.linalg.solve(A, np.einsum("n,nia,nij,nj->a", wt, D, W, z))
-            cov = kappa * np.linalg.inv(A)[6:12, 6:12]
+            Ainv = np.linalg.inv(A)
+            theta = Ainv @ np.einsum("n,nia,nij,nj->a", wt, D, W, z)
+            cov = kappa * Ainv[6:12, 6:12]
             d = theta[6:12]
             chi2 = float(d @ np.linalg.solve(cov + floor, d))
         except np.linalg.LinAlgError:

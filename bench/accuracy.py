@@ -141,6 +141,19 @@ def _sim_key(persons: int, duration: float, seed: int, sim_set: dict, cameras: t
     return f"lab{len(cameras) or 20}_p{persons}_d{duration:g}_s{seed}_{h.hexdigest()[:10]}.msgpack"
 
 
+def sim_settings(items: list[str]) -> dict:
+    """``--sim KEY=VALUE`` items as simulator settings (as ``extrcal simulate --set``);
+    a bad one ends the bench with its message."""
+    import typer
+
+    from edge_clients.cli_simulate import _parse_set
+
+    try:
+        return _parse_set(items)
+    except typer.BadParameter as e:
+        raise SystemExit(str(e)) from None
+
+
 def simulate(persons: int, duration: float, seed: int, cache: Path, sim_set: dict | None = None,
              cameras: tuple[str, ...] = ()) -> Path:
     """The recording (and its truth sidecar) of one simulated run, cached. ``cameras``: a
@@ -755,14 +768,7 @@ def main(argv: list[str] | None = None) -> None:
         EngineConfig.load(args.config, args.overrides)
     except ConfigError as e:
         raise SystemExit(str(e)) from None
-    import typer
-
-    from edge_clients.cli_simulate import _parse_set
-
-    try:
-        sim_set = _parse_set(args.sim_set)
-    except typer.BadParameter as e:
-        raise SystemExit(str(e)) from None
+    sim_set = sim_settings(args.sim_set)
     if sim_set:
         console.print(f"simulator settings: {sim_set}")
     seeds = args.seeds if args.seeds is not None else (1 if args.quick else 5)

@@ -41,7 +41,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
-from accuracy import lab_dir, simulate  # noqa: E402
+from accuracy import lab_dir, sim_settings, simulate  # noqa: E402
 
 
 def _aligned_error(poses: dict, truth: dict, bumped: str) -> tuple[float, float]:
@@ -229,15 +229,9 @@ def main(argv: list[str] | None = None) -> None:
                     help="simulator setting (repeatable), as for `extrcal simulate --set`: other lenses, "
                          "detectors, motion, e.g. intrinsics_error=0.01 surface_offset=0.04")
     args = ap.parse_args(argv)
-    import typer
-
     from backend.config import EngineConfig
-    from edge_clients.cli_simulate import _parse_set
     EngineConfig.load(None, args.overrides)  # a bad override fails here, not in every job
-    try:
-        sim = tuple(sorted(_parse_set(args.sim_set).items()))
-    except typer.BadParameter as e:
-        raise SystemExit(str(e)) from None
+    sim = tuple(sorted(sim_settings(args.sim_set).items()))
     con = Console()
     if sim:
         con.print(f"simulator settings: {dict(sim)}")

@@ -25,9 +25,7 @@ def publish_room(endpoint: str, site: str, cams: tuple[str, ...], persons: int, 
     from proto.transport import ZenohSettings
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    full = Scene.load(Path(lab))
-    scene = Scene.from_cameras({n: full.intrinsics[n] for n in cams}, {n: full.poses[n] for n in cams},
-                               Path(lab) / "room.yaml")
+    scene = Scene.load(Path(lab)).subset(cams)
     sim = Simulator(scene, SimConfig(persons=persons, duration=duration, seed=seed, heights=heights, **(sim or {})))
     with zenoh_session(ZenohSettings(mode="peer", connect=(endpoint,))) as zs, \
             SensorPublisher(zs, site, block=True) as pub:
