@@ -209,6 +209,8 @@ class MonitorConfig(_Section):
                                   "before the watch begins (1: the session converged)")
     bin_seconds: float = Field(5.0, gt=0, description="s of data per resection of a watched camera (one sample of the change test)")
     min_points: int = Field(100, ge=12, description="joints a bin needs to count")
+    max_bin_seconds: float = Field(20.0, gt=0, description="s: a bin short of min_points stays open for more grid steps "
+                                   "(a camera that sees little), its data older than this dropped")
     window_seconds: float = Field(60.0, gt=0, description="s: a change is looked for this far back")
     min_change_bins: int = Field(2, ge=1, description="bins after a change before it is flagged, with any one "
                                  "of them left out (so one more than this)")

@@ -6,7 +6,8 @@ joints of every hypothesis are triangulated from the other trusted (watched, not
 cameras only, points inconsistent with those views left out, and the camera's own
 keypoints are compared with their projection (``correspondences``). At every
 ``bin_seconds`` of data (a common grid: the cameras are tested together) each watched
-camera's correspondences of the bin become its pose as the data alone put it, a robust
+camera's correspondences of the bin (several grid steps, up to ``max_bin_seconds``, for a
+camera that sees too little to fill one) become its pose as the data alone put it, a robust
 resection with the others held fixed (``resect``), with its information; the pose is
 carried into the frame the others had when the watch began (the estimate drifting as a
 whole is no camera moving). A moved camera shows as a step in this sequence. The test
@@ -431,7 +432,7 @@ class Monitor:
             k = self.cams[a.cam]
             # calibrated again from the end of the first bin after the change: the move
             # happened in that bin, and its older data would drag the camera back
-            since = a.since + cfg.bin_seconds
+            since = next((b[1] for b in k.bins if b[0] == a.since), a.since + cfg.bin_seconds)
             data = [d for d in k.data if d.time >= since]
             self._reset(k)
             k.since = since
@@ -476,6 +477,14 @@ class Monitor:
                 explaining.append(j)
         if explaining:
             return self._explained(a, now, explaining)
+        # One of them that has too few bins since the change to show a step of its own
+        # yet may be the moved one, and the steps of the others (this one too) its move:
+        # wait for its bins rather than calibrate another camera again against it (the
+        # west room mid-session, cam_14 turned 3°: cam_15 failed 22 s later, and cam_11,
+        # whose own step was larger, was flagged; calibrated again against cam_14, the
+        # others moved 9 cm)
+        if any(self._unjudged(j, a) for j in undecided):
+            return None
         # measured alike: the failing camera's own step at the same split, all its bins
         mine = self._own_step(a.cam, a, now)
         bar = max(a.chi2, mine[0] if mine is not None else 0.0)
@@ -486,12 +495,23 @@ class Monitor:
             return Alarm(now, j, *own)
         return a
 
+    def _unjudged(self, j: int, a: Alarm) -> bool:
+        """Camera j is watched but has fewer than ``min_change_bins`` + 1 bins since
+        ``a.since`` (its own step cannot be measured yet)."""
+        k = self.cams[j]
+        return (k.since is None and k.anchor is not None
+                and sum(b[0] >= a.since for b in k.bins) <= self.cfg.min_change_bins)
+
     def _explained(self, a: Alarm, now: float, explaining: list[int]) -> Alarm | None:
         """Camera ``a.cam``'s step goes away without each of ``explaining``: the alarm of
         the one whose own bins since the change show a step already (the most
         significant); else, when one camera alone explains it and its own reference is too
         short to tell (it sees little, or its watch began about the change), that camera's;
         else none yet: its own test will tell."""
+        if len(explaining) > 1 and any(self._unjudged(j, a) for j in explaining):
+            # the one too new to judge may be the moved one and the other's step its doing
+            # (the west room mid-session: cam_14 turned 3°, cam_11's own step 0.35 m)
+            return None
         best = None
         untested = []
         for j in explaining:
@@ -596,7 +616,16 @@ class Monitor:
         return start, end, pose_local(*self.cams[c].anchor, *self._in_anchor_frame(c, r.R, r.t, Rs, ts)), r.info, where
 
     def _close_bin(self, c: int, k: _Camera, now: float, Rs: np.ndarray, ts: np.ndarray) -> None:
-        start, k.bin_start = k.bin_start, now
+        """End camera c's bin at ``now`` (a grid step) and keep its pose, unless it has fewer
+        than ``min_points`` joints: then it stays open for the next grid step, its oldest
+        data dropped beyond ``max_bin_seconds``. A camera that sees a few joints a second
+        gets a bin every 10-20 s instead of almost none: with a short reference of 3 bins it
+        was never tested (the west room's cam_14 mid-session: 20-90 joints per 5 s)."""
+        start = k.bin_start
+        if sum(len(d.X) for d in k.data if start <= d.time < now) < self.cfg.min_points:
+            k.bin_start = max(start, now - max(self.cfg.max_bin_seconds, self.cfg.bin_seconds) + self.cfg.bin_seconds)
+            return
+        k.bin_start = now
         b = self._bin(c, start, now, k.data, Rs, ts)
         if b is None:
             return
