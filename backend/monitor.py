@@ -658,7 +658,8 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
                 ) -> tuple[float, float, float, float] | None:
     """The generalised likelihood ratio test for a step in a camera's data-only poses z
     (n, 6) (tangent at a fixed pose) with informations W (n, 6, 6), of bins starting at
-    ``start`` (n,) data time: for every split of the last ``window_seconds`` leaving at
+    ``start`` (n,) data time: for every split of the last ``window_seconds`` (or of the
+    last window_seconds / bin_seconds bins, if that reaches further back) leaving at
     least ``min_change_bins`` after it and ``min_reference_bins`` before, the robust mean
     after vs before, χ² against their covariances plus ``floor`` (6, 6). Each bin's
     covariance is its information's inverse plus the error it does not show
@@ -673,7 +674,11 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
     (``_where_step``), as (χ², m, deg, data time of the change; the χ² and size the least
     of those), or None."""
     n = len(z)
-    first = next((j for j in range(n) if now - start[j] <= cfg.window_seconds), n)
+    # the window in data time, or in bins for a camera whose bins are longer (it sees
+    # little): a step at the start of its first watch had left a 60 s window before it
+    # had the bins to be tested (the west room's cam_14, 3 cm mid-session: never flagged)
+    bins = round(cfg.window_seconds / cfg.bin_seconds)
+    first = next((j for j in range(n) if now - start[j] <= cfg.window_seconds or n - j <= bins), n)
     full = max(first, cfg.min_reference_bins)
     lo = max(first, min(cfg.short_reference_bins, full)) if n >= cfg.min_reference_bins else full
     if lo >= n - cfg.min_change_bins:

@@ -220,6 +220,27 @@ def test_a_short_reference_finds_a_step_but_no_step_in_quiet_bins():
     assert quiet == [None] * 100
 
 
+def test_a_camera_with_long_bins_keeps_a_step_under_test_for_as_many_bins():
+    """A camera that sees little: a bin every 15 s. A 5 cm step 8 bins (120 s) ago is
+    still under test (the window is 60 s or 12 bins, whichever reaches further back);
+    with a window of 60 s only, its split had left it."""
+    from backend.monitor import change_test
+
+    rng = np.random.default_rng(3)
+    sd = np.r_[[np.radians(0.05)] * 3, [0.004] * 3]
+    n = 20
+    W = np.repeat(np.diag(1 / sd ** 2)[None], n, axis=0)
+    start = 15.0 * np.arange(n)
+    now = start[-1] + 15.0
+    z = rng.normal(size=(n, 6)) * sd
+    z[12:, 4] += 0.05
+    found = change_test(z, W, start, now, CFG, np.zeros((6, 6)))
+    assert found is not None and found[3] == start[12] and abs(found[1] - 0.05) < 0.01, found
+    timed = CFG.model_copy(update={"bin_seconds": 15.0})  # 60 s are 4 of its bins
+    found = change_test(z, W, start, now, timed, np.zeros((6, 6)))
+    assert found is None or found[3] != start[12], found
+
+
 def test_people_moving_across_a_biased_view_are_no_step_but_a_move_wherever_they_are_is():
     """A lens a little off biases a camera's data-only pose by where its people are in
     the image (here 0.8° and 6 cm per unit of the normalised image across). People who
@@ -261,24 +282,35 @@ def _bins(rng: np.random.Generator, step: np.ndarray, since: float, n: int = 24)
             for i in range(n)]
 
 
+SINCE = 90.0  # data time of the hand-made steps
+
+
+def _watched_with_steps(steps: dict[int, np.ndarray], since: float) -> tuple[Monitor, np.ndarray, np.ndarray]:
+    """A monitor whose cameras ``steps`` (camera: step (6,) from ``since`` on) are watched,
+    with 24 bins each (``_bins``), trusting everyone else, and hypotheses seen by all of
+    them since then, so none can be tested without another. Returns (monitor, R, t)."""
+    rng = np.random.default_rng(0)
+    m = Monitor(CFG, np.full(8, F))
+    scene = Scene(0)
+    R, t = scene.R_est, scene.t_est
+    for c, step in steps.items():
+        m.cams[c].bins = _bins(rng, step, since)
+        m.cams[c].anchor, m.cams[c].trust = (R[c], t[c]), np.arange(8) != c
+    cams = np.array(sorted(steps))
+    xy = rng.normal(0, 0.1, (len(cams), 17, 2))
+    m.recent.extend(Hypothesis(since + 1 + k, cams, xy, np.full((len(cams), 17), 0.005), np.zeros(3))
+                    for k in range(20))
+    return m, R, t
+
+
 @pytest.mark.parametrize("moved", [0.06, 0.01, 0.0])
 def test_a_step_nobody_explains_is_flagged_where_it_is_largest(moved):
     """Camera 1 fails (a 2 cm step), its points came from camera 2 alone, so it cannot be
     tested without it. Camera 2's own bins show a 6 cm step at the same time: camera 2 is
     the moved one (a move induces a smaller step in another). A smaller step of camera 2's
     (1 cm), or none, leaves the alarm camera 1's."""
-    rng = np.random.default_rng(0)
-    m = Monitor(CFG, np.full(8, F))
-    scene = Scene(0)
-    R, t = scene.R_est, scene.t_est
-    since, now = 90.0, 120.0
-    m.cams[1].bins = _bins(rng, np.r_[0, 0, 0, 0.02, 0, 0], since)
-    m.cams[2].bins = _bins(rng, np.r_[0, 0, 0, 0, moved, 0], since)
-    for c in (1, 2):
-        m.cams[c].anchor, m.cams[c].trust = (R[c], t[c]), np.arange(8) != c
-    xy = rng.normal(0, 0.1, (2, 17, 2))
-    m.recent.extend(Hypothesis(since + 1 + k, np.array([1, 2]), xy, np.full((2, 17), 0.005), np.zeros(3))
-                    for k in range(20))
+    m, R, t = _watched_with_steps({1: np.r_[0, 0, 0, 0.02, 0, 0], 2: np.r_[0, 0, 0, 0, moved, 0]}, SINCE)
+    now = SINCE + 30.0
     a = m._test(1, m.cams[1], now)
     assert a is not None and a.cam == 1 and a.chi2 > CFG.chi2
     blamed = m._blame(a, now, np.ones(8, bool), R, t)
@@ -295,21 +327,11 @@ def test_nobody_is_blamed_while_a_source_is_too_new_to_judge(judged):
     step its doing (the west room mid-session: the camera flagged so was calibrated again
     against the moved one, and the others moved 9 cm). Nobody is flagged yet; once camera
     3 has bins enough and shows no step, camera 2 is."""
-    rng = np.random.default_rng(0)
-    m = Monitor(CFG, np.full(8, F))
-    scene = Scene(0)
-    R, t = scene.R_est, scene.t_est
-    since, now = 90.0, 120.0
-    m.cams[1].bins = _bins(rng, np.r_[0, 0, 0, 0.02, 0, 0], since)
-    m.cams[2].bins = _bins(rng, np.r_[0, 0, 0, 0, 0.06, 0], since)
-    m.cams[3].bins = _bins(rng, np.zeros(6), since)
+    m, R, t = _watched_with_steps({1: np.r_[0, 0, 0, 0.02, 0, 0], 2: np.r_[0, 0, 0, 0, 0.06, 0], 3: np.zeros(6)},
+                                  SINCE)
     if not judged:
-        m.cams[3].bins = [b for b in m.cams[3].bins if b[0] < since + 5.0]  # one bin since
-    for c in (1, 2, 3):
-        m.cams[c].anchor, m.cams[c].trust = (R[c], t[c]), np.arange(8) != c
-    xy = rng.normal(0, 0.1, (3, 17, 2))
-    m.recent.extend(Hypothesis(since + 1 + k, np.array([1, 2, 3]), xy, np.full((3, 17), 0.005), np.zeros(3))
-                    for k in range(20))
+        m.cams[3].bins = [b for b in m.cams[3].bins if b[0] < SINCE + 5.0]  # one bin since
+    now = SINCE + 30.0
     a = m._test(1, m.cams[1], now)
     assert a is not None and a.cam == 1 and a.chi2 > CFG.chi2
     blamed = m._blame(a, now, np.ones(8, bool), R, t)
