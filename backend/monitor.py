@@ -654,12 +654,13 @@ class Monitor:
 
 
 def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg: MonitorConfig, floor: np.ndarray,
-                *, leave_one_out: bool = True, where: np.ndarray | None = None
+                *, leave_one_out: bool = True, where: np.ndarray | None = None, window_bins: int | None = None
                 ) -> tuple[float, float, float, float] | None:
     """The generalised likelihood ratio test for a step in a camera's data-only poses z
     (n, 6) (tangent at a fixed pose) with informations W (n, 6, 6), of bins starting at
     ``start`` (n,) data time: for every split of the last ``window_seconds`` (or of the
-    last window_seconds / bin_seconds bins, if that reaches further back) leaving at
+    last ``window_bins`` bins, window_seconds / bin_seconds unless given, if that reaches
+    further back) leaving at
     least ``min_change_bins`` after it and ``min_reference_bins`` before, the robust mean
     after vs before, χ² against their covariances plus ``floor`` (6, 6). Each bin's
     covariance is its information's inverse plus the error it does not show
@@ -677,7 +678,7 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
     # the window in data time, or in bins for a camera whose bins are longer (it sees
     # little): a step at the start of its first watch had left a 60 s window before it
     # had the bins to be tested (the west room's cam_14, 3 cm mid-session: never flagged)
-    bins = round(cfg.window_seconds / cfg.bin_seconds)
+    bins = round(cfg.window_seconds / cfg.bin_seconds) if window_bins is None else window_bins
     first = next((j for j in range(n) if now - start[j] <= cfg.window_seconds or n - j <= bins), n)
     full = max(first, cfg.min_reference_bins)
     lo = max(first, min(cfg.short_reference_bins, full)) if n >= cfg.min_reference_bins else full
@@ -833,7 +834,8 @@ def _step_at(bins: list, since: float, now: float, cfg: MonitorConfig, floor: np
                                  "min_reference_bins": min_before, "short_reference_bins": short,
                                  "chi2": 0.0, "min_translation": -1.0, "min_rotation": -1.0})
     return change_test(np.array([b[2] for b in bins]), np.array([b[3] for b in bins]),
-                       np.array([b[0] for b in bins]), now, one, floor, leave_one_out=False, where=_where(bins))
+                       np.array([b[0] for b in bins]), now, one, floor, leave_one_out=False, where=_where(bins),
+                       window_bins=0)
 
 
 def bin_floor(z: np.ndarray, C: np.ndarray, cfg: MonitorConfig, *, sides: tuple[slice, ...] | None = None

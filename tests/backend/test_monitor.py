@@ -224,7 +224,7 @@ def test_a_camera_with_long_bins_keeps_a_step_under_test_for_as_many_bins():
     """A camera that sees little: a bin every 15 s. A 5 cm step 8 bins (120 s) ago is
     still under test (the window is 60 s or 12 bins, whichever reaches further back);
     with a window of 60 s only, its split had left it."""
-    from backend.monitor import change_test
+    from backend.monitor import _step_at, change_test
 
     rng = np.random.default_rng(3)
     sd = np.r_[[np.radians(0.05)] * 3, [0.004] * 3]
@@ -239,6 +239,9 @@ def test_a_camera_with_long_bins_keeps_a_step_under_test_for_as_many_bins():
     timed = CFG.model_copy(update={"bin_seconds": 15.0})  # 60 s are 4 of its bins
     found = change_test(z, W, start, now, timed, np.zeros((6, 6)))
     assert found is None or found[3] != start[12], found
+    # the step at one given split (the blame's) stays at that split
+    bins = [(s0, s0 + 15.0, z[i], W[i]) for i, s0 in enumerate(start)]
+    assert _step_at(bins, start[16], now, CFG, np.zeros((6, 6)))[3] == start[16]
 
 
 def test_people_moving_across_a_biased_view_are_no_step_but_a_move_wherever_they_are_is():
