@@ -507,7 +507,8 @@ class Monitor:
         the one whose own bins since the change show a step already (the most
         significant); else, when one camera alone explains it and its own reference is too
         short to tell (it sees little, or its watch began about the change), that camera's;
-        else none yet: its own test will tell."""
+        else none yet: its own test will tell. None too while one of several is too new to
+        judge (``_unjudged``)."""
         if len(explaining) > 1 and any(self._unjudged(j, a) for j in explaining):
             # the one too new to judge may be the moved one and the other's step its doing
             # (the west room mid-session: cam_14 turned 3°, cam_11's own step 0.35 m)
