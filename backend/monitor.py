@@ -475,16 +475,18 @@ class Monitor:
             chi2, trans, rot, _ = step
             if chi2 < cfg.chi2 / 4 or (trans <= cfg.min_translation and rot <= cfg.min_rotation):
                 explaining.append(j)
+        # A camera too new to judge (too few bins since the change to show a step of its
+        # own), one of several that explain the step or, when none does, one that could not
+        # be left out, may be the moved one, and the steps of the others (this one too) its
+        # move: wait for its bins rather than calibrate another camera again against it
+        # (the west room mid-session, cam_14 turned 3°: cam_15 failed 22 s later, and
+        # cam_11, whose own step was larger, was flagged; calibrated again against cam_14,
+        # the others moved 9 cm). One camera alone explaining it is ``_explained``'s to judge.
+        maybe_moved = explaining if explaining else undecided
+        if (len(maybe_moved) > 1 or not explaining) and any(self._unjudged(j, a) for j in maybe_moved):
+            return None
         if explaining:
             return self._explained(a, now, explaining)
-        # One of them that has too few bins since the change to show a step of its own
-        # yet may be the moved one, and the steps of the others (this one too) its move:
-        # wait for its bins rather than calibrate another camera again against it (the
-        # west room mid-session, cam_14 turned 3°: cam_15 failed 22 s later, and cam_11,
-        # whose own step was larger, was flagged; calibrated again against cam_14, the
-        # others moved 9 cm)
-        if any(self._unjudged(j, a) for j in undecided):
-            return None
         # measured alike: the failing camera's own step at the same split, all its bins
         mine = self._own_step(a.cam, a, now)
         bar = max(a.chi2, mine[0] if mine is not None else 0.0)
@@ -507,12 +509,7 @@ class Monitor:
         the one whose own bins since the change show a step already (the most
         significant); else, when one camera alone explains it and its own reference is too
         short to tell (it sees little, or its watch began about the change), that camera's;
-        else none yet: its own test will tell. None too while one of several is too new to
-        judge (``_unjudged``)."""
-        if len(explaining) > 1 and any(self._unjudged(j, a) for j in explaining):
-            # the one too new to judge may be the moved one and the other's step its doing
-            # (the west room mid-session: cam_14 turned 3°, cam_11's own step 0.35 m)
-            return None
+        else none yet: its own test will tell."""
         best = None
         untested = []
         for j in explaining:
@@ -623,11 +620,12 @@ class Monitor:
         gets a bin every 10-20 s instead of almost none: with a short reference of 3 bins it
         was never tested (the west room's cam_14 mid-session: 20-90 joints per 5 s)."""
         start = k.bin_start
-        if sum(len(d.X) for d in k.data if start <= d.time < now) < self.cfg.min_points:
+        in_bin = [d for d in k.data if start <= d.time < now]
+        if sum(len(d.X) for d in in_bin) < self.cfg.min_points:
             k.bin_start = max(start, now - max(self.cfg.max_bin_seconds, self.cfg.bin_seconds) + self.cfg.bin_seconds)
             return
         k.bin_start = now
-        b = self._bin(c, start, now, k.data, Rs, ts)
+        b = self._bin(c, start, now, in_bin, Rs, ts)
         if b is None:
             return
         k.bins.append(b)
