@@ -123,10 +123,11 @@ def _wait(pred, timeout: float, what: str, interval: float = 0.25):
 
 @pytest.mark.slow
 def test_dashboard_in_chromium_while_a_simulated_session_runs(svc, session_body, lab_dir, tmp_path):
+    # first: it skips without chromium, and a client opened before would be left unclosed
+    driver = _chrome(tmp_path)
     client = httpx.Client(base_url=svc.url, timeout=30)
     _stop_all(client)
     sid = client.post("/sessions", headers=AUTH, json=session_body).json()["id"]
-    driver = _chrome(tmp_path)
     sim_log = open(tmp_path / "sim.log", "w")
     sim = subprocess.Popen(
         [sys.executable, "-c", "from backend.cli import main; main()", "sensor", "sim", "--cameras", str(lab_dir),
