@@ -418,6 +418,31 @@ def test_one_odd_bin_is_no_step_three_moved_bins_are():
     assert found is not None and found[3] == start[-3] and abs(found[1] - 0.05) < 0.02
 
 
+def test_a_strong_bin_after_a_step_counts_when_the_others_agree_with_it():
+    """Three bins after a step, one with four times the information of a reference bin and
+    two weaker than one: the step is significant without the strong bin only at
+    χ² about 30, but the strong bin is where the other two put the camera, so it is no
+    odd bin to leave out (the bar's seed 1 waited 50 s for a second strong bin). The same
+    strong bin moved alone, the other two where the reference is, is still no step."""
+    from backend.monitor import change_test
+
+    rng = np.random.default_rng(7)
+    sd = np.r_[[np.radians(0.1)] * 3, [0.01] * 3]
+    W = np.repeat(np.diag(1 / sd ** 2)[None], 30, axis=0)
+    W[-3:-1] /= 1.5 ** 2  # two weaker bins
+    W[-1] *= 4.0  # and a strong one
+    z = rng.normal(size=(30, 6)) * sd / np.sqrt(np.diagonal(W, axis1=1, axis2=2) * sd ** 2)
+    start = 5.0 * np.arange(30)
+    now = start[-1] + 5.0
+    moved = z.copy()
+    moved[-3:, 3] += 5 * sd[3]  # the camera moved by 5 cm three bins ago
+    found = change_test(moved, W, start, now, CFG, np.zeros((6, 6)))
+    assert found is not None and found[3] == start[-3] and abs(found[1] - 0.05) < 0.02
+    odd = z.copy()
+    odd[-1, 3] += 5 * sd[3]  # only the strong bin
+    assert change_test(odd, W, start, now, CFG, np.zeros((6, 6))) is None
+
+
 def test_a_step_is_found_in_bins_whose_rotation_and_translation_are_correlated():
     """A bin's resection pins a mix of rotation and translation tightly and the other mix
     loosely, along different directions in different bins (where the people were). The
