@@ -669,7 +669,8 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
     the bins of both sides about their own means (``_split_scatter``). Returns the most
     significant split (by its χ² over all its bins) that passes ``chi2`` and the size
     thresholds, also without any one of the bins after it (so at least
-    ``min_change_bins`` + 1 of them) and, given ``where`` (n, 2) (where in the image each
+    ``min_change_bins`` + 1 of them) that the others after it do not agree with (``agrees``)
+    and, given ``where`` (n, 2) (where in the image each
     bin's points were) and ``where_covariates``, with the bias that where explains
     (``_where_step``), as (χ², m, deg, data time of the change; the χ² and size the least
     of those), or None."""
