@@ -203,7 +203,8 @@ def _print_run(con, r: dict) -> None:
     b = r["bump"]
     con.print(f"  seed {r['seed']} bump {b}: calibration (shape m, deg) {r['calibration']}")
     con.print(f"  seed {r['seed']} bump {b[0]:.2f} m / {b[1]:g}°: before the bump {r['before_bump']}, flagged after "
-              f"{r['flagged_after']} s ({r['flagged_after_evidence']} s with evidence), +60 s {r['error_60']}, +120 s {r['error_120']}, others moved (aligned) "
+              f"{r['flagged_after']} s ({r['flagged_after_evidence']} s with evidence), +60 s {r['error_60']}, "
+              f"+120 s {r['error_120']}, others moved (aligned) "
               f"median {r['others_moved_median_mm']} max {r['others_moved_mm']} mm ({r['others_moved_worst']}), raw "
               f"{r['others_moved_raw_mm']} mm, false alarms {r['false_alarms']}, cameras watched at the bump "
               f"{r['watched_at_bump']}, {r['wall_s']:.0f} s wall")
@@ -273,8 +274,8 @@ def main(argv: list[str] | None = None) -> None:
 
     where = f"{len(cameras)} cameras of the lab" if cameras else "20-camera lab"
     t = Table(title=f"Bumped {args.camera} at {args.bump_time:g} s ({where}, 2 persons, start 0.10 m / 5°)")
-    for col in ("seed", "bump", "flagged after (s)", "of them with evidence (s)", "before: m / °", "+60 s: m / °", "+120 s: m / °",
-                "others moved, median / max (mm)", "other alarms"):
+    for col in ("seed", "bump", "flagged after (s)", "of them with evidence (s)", "before: m / °", "+60 s: m / °",
+                "+120 s: m / °", "others moved, median / max (mm)", "other alarms"):
         t.add_column(col)
     fmt = lambda e: "-" if e is None else f"{e[0]:.3f} / {e[1]:.2f}"  # noqa: E731
     for r in rows:
