@@ -44,7 +44,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -669,9 +669,9 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
     the bins of both sides about their own means (``_split_scatter``). Returns the most
     significant split (by its χ² over all its bins) that passes ``chi2`` and the size
     thresholds, also without any one of the bins after it (so at least
-    ``min_change_bins`` + 1 of them) that the others after it do not agree with (``agrees``)
-    and, given ``where`` (n, 2) (where in the image each
-    bin's points were) and ``where_covariates``, with the bias that where explains
+    ``min_change_bins`` + 1 of them) that the others after it do not agree with
+    (``agrees``) and, given ``where`` (n, 2) (where in the image each bin's points were)
+    and ``where_covariates``, with the bias that where explains
     (``_where_step``), as (χ², m, deg, data time of the change; the χ² and size the least
     of those), or None."""
     n = len(z)
@@ -700,8 +700,7 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
     best = None
     reference: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # split: the mean before it (once per split)
 
-    def step(j: int, after: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray] | None:
-        """(χ², the step, the mean of the bins ``after`` and its covariance) or None."""
+    def step(j: int, after: np.ndarray) -> _Step | None:
         Wj, kappa = calibrated(j)
         if j not in reference:
             reference[j] = _mean(z[:j], Wj[:j], kappa)[:2]
@@ -715,24 +714,24 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
         except np.linalg.LinAlgError:
             return None
         # NaN (no reference bin kept: infinite covariance) passes no "<=" threshold
-        return (chi2, d, zn, Sn) if np.isfinite(chi2) else None
+        return _Step(chi2, d, zn, Sn) if np.isfinite(chi2) else None
 
-    def agrees(j: int, i: int, rest: tuple) -> bool:
+    def agrees(j: int, i: int, rest: _Step) -> bool:
         """Bin i is where the other bins after split j put the camera (their mean ``rest``),
         and they show the step on their own at half the threshold's χ²."""
         Wj, kappa = calibrated(j)
-        r = z[i] - rest[2]
+        r = z[i] - rest.after
         try:
-            chi2 = float(r @ np.linalg.solve(kappa * (np.linalg.inv(Wj[i]) + rest[3]), r))
+            chi2 = float(r @ np.linalg.solve(kappa * (np.linalg.inv(Wj[i]) + rest.after_cov), r))
         except np.linalg.LinAlgError:
             return False
-        return chi2 <= _CHI2_6_Q99 and rest[0] > cfg.chi2 / 2
+        return chi2 <= _CHI2_6_Q99 and rest.chi2 > cfg.chi2 / 2
 
     for j in range(lo, n - cfg.min_change_bins):
         found = step(j, np.arange(j, n))
-        if found is None or found[0] <= cfg.chi2:
+        if found is None or found.chi2 <= cfg.chi2:
             continue
-        full_chi2 = found[0]
+        full_chi2 = found.chi2
         # ... and still without any one of the bins after it: one bin far off (a person
         # the camera sees oddly for a few seconds) is no step. A bin where the others put
         # the camera is no odd one, however much it weighs: the bar's seed 1 (cam_8 moved
@@ -741,16 +740,14 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
         # for another bin as strong
         for leave in range(j, n) if leave_one_out else ():
             without = step(j, np.delete(np.arange(j, n), leave - j))
-            if without is not None and without[0] >= found[0]:
-                continue
-            if without is not None and agrees(j, leave, without):
+            if without is not None and (without.chi2 >= found.chi2 or agrees(j, leave, without)):
                 continue
             found = without
-            if found is None or found[0] <= cfg.chi2:
+            if found is None or found.chi2 <= cfg.chi2:
                 break
-        if found is None or found[0] <= cfg.chi2:
+        if found is None or found.chi2 <= cfg.chi2:
             continue
-        chi2, d = found[:2]
+        chi2, d = found.chi2, found.step
         if where is not None and cfg.where_covariates:
             chi2 = min(chi2, _where_step(z, *calibrated(j), floor, j, where))
             if chi2 <= cfg.chi2:
@@ -762,6 +759,16 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
         if (trans > cfg.min_translation or rot > cfg.min_rotation) and (best is None or full_chi2 > best[0]):
             best = (full_chi2, (chi2, trans, rot, float(start[j])))
     return None if best is None else best[1]
+
+
+class _Step(NamedTuple):
+    """A split's step in ``change_test``: its χ², the step (6,), and the robust mean of the
+    bins after the split (6,) with its covariance (6, 6)."""
+
+    chi2: float
+    step: np.ndarray
+    after: np.ndarray
+    after_cov: np.ndarray
 
 
 def _where(bins: list) -> np.ndarray | None:
