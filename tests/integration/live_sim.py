@@ -10,12 +10,14 @@ from typing import Any, Callable
 
 def publish_room(endpoint: str, site: str, cams: tuple[str, ...], persons: int, heights: tuple[float, ...],
                  duration: float, seed: int, speed: float, lab: str, ready, stop,
-                 quiet: dict[str, float] | None = None, sim: dict | None = None) -> None:
+                 quiet: dict[str, float] | None = None, sim: dict | None = None, release=None) -> None:
     """``cams`` of the lab as a scene of their own (its room plan: the walkers stay where
     the cameras look), ``persons`` walkers of ``heights``; messages simulated first, then
     published through Zenoh paced at ``speed`` x real time. ``ready``/``stop``:
     multiprocessing events. ``quiet``: sensor -> s of data in which it sees nobody (a
-    corner people reach later). ``sim``: more ``SimConfig`` fields (e.g. clock offsets)."""
+    corner people reach later), or until ``release`` (a multiprocessing event) is set, so a
+    test can end it at a point of the service's progress rather than of the wall clock.
+    ``sim``: more ``SimConfig`` fields (e.g. clock offsets)."""
     import dataclasses
     import signal
     import time
@@ -40,7 +42,7 @@ def publish_room(endpoint: str, site: str, cams: tuple[str, ...], persons: int, 
                 break
             if stop.is_set():
                 break
-            if quiet and m.stamp - s0 < quiet.get(m.sensor, 0.0):
+            if quiet and m.stamp - s0 < quiet.get(m.sensor, 0.0) and not (release and release.is_set()):
                 m = dataclasses.replace(m, persons=())
             pub.publish(m)
 
@@ -84,13 +86,14 @@ def poll(client: Any, path: str, pred: Callable[[dict], bool], timeout: float, w
 class SensorProcess:
     """Simulated sensors in a spawned process, as a context: started, ready (they found the
     service), stopped and joined. ``args(ready, stop)`` gives ``target``'s arguments with
-    the two multiprocessing events where it takes them."""
+    the two multiprocessing events where it takes them; ``release`` is a third, for a
+    target that takes it (``publish_room``)."""
 
     def __init__(self, target: Callable[..., None], args: Callable[[Any, Any], tuple]):
         import multiprocessing
 
         ctx = multiprocessing.get_context("spawn")
-        self.ready, self.stop_event = ctx.Event(), ctx.Event()
+        self.ready, self.stop_event, self.release = ctx.Event(), ctx.Event(), ctx.Event()
         self.proc = ctx.Process(target=target, daemon=True, args=args(self.ready, self.stop_event))
 
     def __enter__(self) -> "SensorProcess":
