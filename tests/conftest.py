@@ -16,3 +16,12 @@ def lab_dir() -> Path:
         if (p / "intrinsics.yaml").is_file():
             return p
     pytest.fail("the 20-camera lab (shared/data/ais_lab20) is not beside the checkout")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Everything in tests/integration is ``serial``: real services fed by sensors in real
+    time, whose tests a second worker's load would turn into races (.ci/run)."""
+    integration = REPO / "tests" / "integration"
+    for item in items:
+        if integration in item.path.parents:
+            item.add_marker(pytest.mark.serial)

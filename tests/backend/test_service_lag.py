@@ -19,6 +19,7 @@ from backend.perturb import perturb_extrinsics
 from backend.service import Solver, _warm_up
 
 MAX_LAG = 0.050
+pytestmark = pytest.mark.serial  # a loop's lag: measured alone
 
 
 @pytest.fixture(scope="module")

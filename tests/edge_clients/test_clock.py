@@ -15,6 +15,7 @@ pytest.importorskip("ntplib")
 
 from edge_clients.clock import Clock, NtpClock, make_clock  # noqa: E402
 
+pytestmark = pytest.mark.serial  # offsets measured by round trips on loopback
 NTP_EPOCH = 2208988800  # 1900 → 1970
 
 

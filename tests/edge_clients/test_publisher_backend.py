@@ -27,6 +27,7 @@ from backend.settings import ServiceSettings  # noqa: E402
 # Five cameras of the lab that see the same people most of the time.
 CAMS = ["cam_9", "cam_14", "cam_15", "cam_18", "cam_19"]
 SPEED = 3.0
+pytestmark = pytest.mark.serial  # sensor processes in real time feeding a live backend
 # The initial estimate is off by 0.1 m / 3° per camera (0.075 m / 2.4° mean, the first camera
 # kept); converged = the session says so, or its errors against the reference are this small.
 GOOD_POSITION, GOOD_ORIENTATION = 0.03, 0.5
