@@ -302,6 +302,8 @@ class Synchronizer:
         return reason
 
     def pop_ready(self, now: float) -> list[Frameset]:
+        if not np.isfinite(now):  # +inf would emit framesets forever, NaN none ever again
+            raise ValueError(f"the sync's clock must be a finite time, not {now}")
         out: list[Frameset] = []
         if self.next_time is None:
             return out

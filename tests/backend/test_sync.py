@@ -7,6 +7,8 @@ synchroniser's, not the test's approximation.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -300,3 +302,15 @@ def test_the_framesets_before_a_silence_come_out_before_the_jump():
     out = sync.pop_ready(T0 + 3600.0)
     assert len(out) >= 9 and all(len(f.views) == 2 for f in out)
     assert sync.next_time > T0 + 3599.0
+
+
+@pytest.mark.parametrize("now", [math.inf, math.nan])
+def test_a_clock_that_is_not_a_finite_time_is_refused_and_nothing_is_lost(now):
+    msgs = _stream("a", 13.0, 0.013, 3.0) + _stream("b", 29.0, 0.021, 3.0)
+    msgs.sort(key=lambda m: m.stamp)
+    sync = Synchronizer(SyncConfig(), ["a", "b"])
+    for m in msgs:
+        sync.push(m)
+    with pytest.raises(ValueError, match="finite time"):
+        sync.pop_ready(now)
+    assert 25 <= len(sync.pop_ready(T0 + 10.0)) <= 30  # the refused call took nothing
