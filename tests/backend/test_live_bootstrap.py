@@ -493,3 +493,49 @@ def test_a_stop_or_shutdown_during_an_attempt_does_not_wait_for_it(tmp_path, lab
         t0 = time.monotonic()
         st.stop(timeout=60)
     assert time.monotonic() - t0 < 30  # not the attempt's 300 s
+
+
+def test_an_initial_estimate_the_data_agree_with_is_checked_once_and_kept(tmp_path, collected):
+    """bootstrap.live_check on the service, the branch where nothing changes: an initial
+    estimate within its stated std (0.05 m / 2°) is checked on the archived frames (here
+    a bootstrap that finds the true poses) and kept as it is: the record says so, no
+    pipeline is swapped in, the poses are the initial ones. A rough estimate against the
+    real bootstrap, replaced by the data's shape: tests/integration/test_service_bootstrap.py."""
+    import functools
+    import time
+
+    import httpx
+
+    from backend.cameras import dump_extrinsics
+    from backend.perturb import perturb_extrinsics
+    from backend.service import ServiceThread
+
+    full, inputs, cfg, msgs = collected
+    col = Collector(inputs.cameras, cfg, LiveOptions(), initial=False)
+    _run(col, msgs)
+    col.advance(msgs[-1].stamp + 1.0)
+    frames = list(col.frames)
+    assert frames[-1][0] - frames[0][0] > 20.0
+    R, t = np.array([full.poses[n].R for n in WEST]), np.array([full.poses[n].t for n in WEST])
+    initial = perturb_extrinsics({n: Extrinsics(full.poses[n], full.intrinsics[n].resolution) for n in WEST},
+                                 0.05, 2.0, seed=2)
+    body = {"intrinsics_yaml": inputs.intrinsics_yaml, "initial_yaml": dump_extrinsics(initial),
+            "config": {"bootstrap": {"max_seconds": 20.0}}}
+    with ServiceThread(_settings(tmp_path)) as st, httpx.Client(base_url=st.url, timeout=60) as c:
+        st.service.bootstrap_fn = functools.partial(truth_job, R, t, np.ones(len(WEST), bool))
+        sid = c.post("/sessions", json=body).json()["id"]
+        pipeline = st.call(lambda: st.service.active.pipeline)
+        st.call(lambda: pipeline.frames.extend(frames))  # the archive of 30 s of data: the check is due
+        deadline = time.monotonic() + 120
+        while ((s := c.get(f"/sessions/{sid}").json())["initial_check"] or {}).get("phase") != "done":
+            assert time.monotonic() < deadline and s["state"] != "failed", s["reason"]
+            time.sleep(0.2)
+        check = s["initial_check"]
+        assert not check["used"] and check["data_seconds"] > 20.0, check
+        assert "the initial estimate is used as it is" in check["note"] and "cycle" not in check
+        assert not s["reason"].startswith("the initial estimate checked") and s["bootstrap"] is None
+        assert st.call(lambda: st.service.active.pipeline) is pipeline  # nothing swapped in
+        got = parse_extrinsics(c.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text)
+        for n in WEST:
+            assert np.allclose(got[n].pose.t, initial[n].pose.t) and np.allclose(got[n].pose.R, initial[n].pose.R)
+        c.post(f"/sessions/{sid}/stop")

@@ -155,8 +155,9 @@ def test_an_initial_estimate_is_checked_against_the_data_and_a_rough_one_replace
     archived frames (after 60 s of data) and reconciles the two, as ``extrcal
     calibrate`` does. An estimate 1 m / 30° off (stated 0.25 m / 10°) is replaced by the
     data's shape in its frame and scale, between cycles, and the session calibrates on
-    from there, also after a restart, which does not check again; a good one
-    (0.05 m / 2°) is kept and the session goes on untouched."""
+    from there, also after a restart, which does not check again. (A good one kept as it
+    is: tests/backend/test_live_bootstrap.py, the service with a bootstrap that finds the
+    truth.)"""
     from backend.perturb import perturb_extrinsics
 
     site = "check"
@@ -197,15 +198,6 @@ def test_an_initial_estimate_is_checked_against_the_data_and_a_rough_one_replace
             stopped = client.post(f"/sessions/{sid}/stop").json()
             result = parse_extrinsics(client.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text)
 
-            good = {**body, "name": "good", "initial_yaml": dump_extrinsics(perturb_extrinsics(truth, 0.05, 2.0, seed=2))}
-            sid2 = client.post("/sessions", json=good).json()["id"]
-            kept = _poll(client, f"/sessions/{sid2}", lambda s: (s["initial_check"] or {}).get("phase") == "done"
-                         or s["state"] == "failed", 240, "the good initial estimate was not checked", seen)
-            assert kept["state"] != "failed", kept["reason"]
-            assert not kept["initial_check"]["used"] and "the initial estimate is used as it is" in \
-                kept["initial_check"]["note"], kept["initial_check"]
-            assert "cycle" not in kept["initial_check"] and not kept["reason"].startswith("the initial estimate checked")
-            client.post(f"/sessions/{sid2}/stop")
     assert stopped["state"] == "stopped" and stopped["final_batch"]["ran"]
     acc = evaluate({k: v.pose for k, v in result.items()}, {k: v.pose for k, v in truth.items()})
     print(acc.summary())
