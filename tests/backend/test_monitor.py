@@ -10,7 +10,7 @@ import pytest
 from backend.associate import Hypothesis
 from backend.config import MonitorConfig
 from backend.geometry import pose_local, pose_retract, project_normalised as _project, rotation_angle_deg, so3_exp
-from backend.monitor import Correspondences, Monitor, correspondences, resect
+from backend.monitor import Alarm, Correspondences, Monitor, correspondences, resect
 
 F = 425.0  # px
 SWAP = 0.05  # share of frames with a view given to the wrong person
@@ -495,3 +495,28 @@ def test_points_far_from_the_others_weigh_less():
     assert exact is not None and loose is not None
     assert np.all(np.linalg.eigvalsh(exact.info - loose.info) > -1e-6)  # less information
     assert np.trace(np.linalg.inv(loose.info)) > 10 * np.trace(np.linalg.inv(exact.info))
+
+
+@pytest.mark.parametrize("without_8, flagged", [(10.4, 8), (30.0, 9)])
+def test_a_step_that_falls_to_a_quarter_without_a_camera_is_blamed_on_it(monkeypatch, without_8, flagged):
+    """The blame's rule on the lab's case (seed 1, lenses 1 % off, keypoints on the outline,
+    cam_8 turned 2°): cam_9's test fails first (χ² 108.6); without cam_8's rays its step
+    falls to χ² 10.4, over a quarter of the threshold (lenses off leave a little step of
+    their own in every camera), and without cam_3's it stays; cam_8's own bins step (χ²
+    1242, 2.1°). No longer significant and a quarter of what it was: cam_8 is flagged,
+    not cam_9 (before, cam_9 was, and calibrated again against the moved camera). A fall
+    to χ² 30, still over a quarter of 108.6, leaves the alarm cam_9's."""
+    import backend.monitor as monitor
+
+    m = Monitor(CFG, np.full(10, F))
+    m.cams[8].anchor = (np.eye(3), np.zeros(3))  # watched
+    a = Alarm(250.0, 9, 108.6, 0.235, 0.65, 235.0)
+    without = {8: (without_8, 0.081, 0.354, None), 3: (94.0, 0.188, 0.436, None)}
+    monkeypatch.setattr(m, "_suspects", lambda alarm, watched: [8, 3])
+    monkeypatch.setattr(m, "_bins_without", lambda alarm, j, R, t: j)  # stands for the bins without j
+    monkeypatch.setattr(monitor, "_step_at", lambda bins, since, now, cfg, floor: without[bins])
+    monkeypatch.setattr(m, "_unjudged", lambda j, alarm: False)
+    monkeypatch.setattr(m, "_own_step", lambda j, alarm, now: {8: (1242.0, 0.033, 2.08, None),
+                                                                   9: (108.6, 0.235, 0.65, None)}.get(j))
+    got = m._blame(a, 250.0, np.ones(10, bool), np.zeros((10, 3, 3)), np.zeros((10, 3)))
+    assert got is not None and got.cam == flagged, got
