@@ -22,6 +22,7 @@ import argparse
 import asyncio
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -81,8 +82,6 @@ def run(seconds: float, seed: int, cache: Path) -> dict:
     # the bootstrap on its first 60 s, as the service's first attempt; the hand-over on all
     job = col.job()
     first = tuple(f for f in job.frames if f[0] - job.frames[0][0] <= 60.0)
-    from dataclasses import replace
-
     outcome = run_job(replace(job, frames=first, data_seconds=60.0))
     assert outcome.result is not None, outcome.error
     print(f"  bootstrap on the first 60 s: {outcome.seconds:.1f} s", file=sys.stderr, flush=True)
