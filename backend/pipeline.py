@@ -787,8 +787,7 @@ class Pipeline:
         # watched from their convergence until the monitor finds them moved; a camera
         # calibrated again once its adjustments are done: its watch's reference is the pose
         # they leave (one begun before the last would see it as a step)
-        adjusting = np.isin(np.arange(C), [c for _, c, _ in self._recalibrate_due])
-        self.watched |= converged & ~self.monitor.recalibrating() & ~adjusting
+        self.watched |= converged & ~self._calibrating_again()
         found, poses = self.monitor.evaluate(float(self.clock or 0.0), self.watched, rf.R, rf.t)
         names = []
         for alarm in found:
@@ -810,9 +809,14 @@ class Pipeline:
         # move place it; a cycle's few dozen hypotheses only pull it about (cam_3's 2° bump:
         # 0.16-0.20° off after its first adjustment, 0.27-0.36° after the next half minute
         # of cycles, 0.69° for a moment between two resections)
-        again = self.monitor.recalibrating() | np.isin(np.arange(C), [c for _, c, _ in self._recalibrate_due])
-        rf.held = (self.watched | again) & m.hold
+        rf.held = (self.watched | self._calibrating_again()) & m.hold
         return names
+
+    def _calibrating_again(self) -> np.ndarray:
+        """(C,) bool: the cameras being calibrated again, from their alarm (the monitor's
+        resections) to their last adjustment (``_recalibrate_due``)."""
+        adjusting = np.isin(np.arange(len(self.names)), [c for _, c, _ in self._recalibrate_due])
+        return self.monitor.recalibrating() | adjusting
 
     def step(self, now: float) -> CycleReport | None:
         """Front end up to ``now`` and, when due, one cycle solved in this thread."""

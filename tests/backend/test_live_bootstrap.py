@@ -373,19 +373,26 @@ def truth_job(R, t, located, job):
                                    "floor frame: the truth", 6, 10, len(job.frames), job.data_seconds, 1.0), None, 0.0)
 
 
+def _collected_whole(collected) -> tuple[Collector, np.ndarray, np.ndarray]:
+    """A collector over the whole simulation, and the cameras' true poses: R (C, 3, 3),
+    t (C, 3), in WEST's order (what ``truth_job`` gives)."""
+    full, inputs, cfg, msgs = collected
+    col = Collector(inputs.cameras, cfg, LiveOptions(), initial=False)
+    _run(col, msgs)
+    col.advance(msgs[-1].stamp + 1.0)
+    return col, np.array([full.poses[n].R for n in WEST]), np.array([full.poses[n].t for n in WEST])
+
+
 def _bootstrapped_without_cam_14(st, c, collected) -> tuple[str, dict]:
     """A session of the collected data whose bootstrap (the true poses) leaves cam_14 out,
     handed over; returns its id and its record then."""
     import functools
     import time
 
-    full, inputs, cfg, msgs = collected
-    col = Collector(inputs.cameras, cfg, LiveOptions(), initial=False)
-    _run(col, msgs)
-    col.advance(msgs[-1].stamp + 1.0)
+    inputs = collected[1]
+    col, R, t = _collected_whole(collected)
     frames, seen = list(col.frames), col.seen.copy()
     located = np.array([n != "cam_14" for n in WEST])
-    R, t = np.array([full.poses[n].R for n in WEST]), np.array([full.poses[n].t for n in WEST])
     body = {"intrinsics_yaml": inputs.intrinsics_yaml,
             "config": {"bootstrap": {"live_first": 20.0, "max_seconds": 20.0}}}
     st.service.bootstrap_fn = functools.partial(truth_job, R, t, located)
@@ -510,13 +517,10 @@ def test_an_initial_estimate_the_data_agree_with_is_checked_once_and_kept(tmp_pa
     from backend.perturb import perturb_extrinsics
     from backend.service import ServiceThread
 
-    full, inputs, cfg, msgs = collected
-    col = Collector(inputs.cameras, cfg, LiveOptions(), initial=False)
-    _run(col, msgs)
-    col.advance(msgs[-1].stamp + 1.0)
+    full, inputs = collected[:2]
+    col, R, t = _collected_whole(collected)
     frames = list(col.frames)
     assert frames[-1][0] - frames[0][0] > 20.0
-    R, t = np.array([full.poses[n].R for n in WEST]), np.array([full.poses[n].t for n in WEST])
     initial = perturb_extrinsics({n: Extrinsics(full.poses[n], full.intrinsics[n].resolution) for n in WEST},
                                  0.05, 2.0, seed=2)
     body = {"intrinsics_yaml": inputs.intrinsics_yaml, "initial_yaml": dump_extrinsics(initial),
