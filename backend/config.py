@@ -225,6 +225,16 @@ class MonitorConfig(_Section):
                                    "points were in the image explains (linear in their mean position): a lens a little off "
                                    "its calibration, or keypoints off the joints, bias a camera's data-only pose by where "
                                    "the people are in its view, and people moving to another part of it is no move")
+    lens_covariates: bool = Field(True, description="... and with the bias a lens off its calibration file (focal lengths, "
+                                  "principal point) gives each bin's pose, which depends on where and how deep its points "
+                                  "were; the lens's error fitted with the step (prior std lens_std)")
+    lens_std: float = Field(0.02, gt=0, description="the lens's relative error the test allows for a priori (of the focal "
+                            "length; the principal point's shift as a fraction of it)")
+    odd_bin_level: float = Field(0.05, gt=0, lt=1, description="a step must pass without any one of the bins after "
+                                 "it, and without more when the camera's own reference has odd bins (beyond the 99th "
+                                 "percentile about its mean) so often that more than one among those after it is likelier "
+                                 "than this (binomial): lenses a little off and keypoints off the joints make a camera's "
+                                 "bins odd now and then, two in a row are no move")
     bin_std_translation: float = Field(0.05, ge=0, description="m: most error of one bin's resection that its information does "
                                        "not show (where the people were, the others' own errors); the share added to each bin's "
                                        "covariance is measured on the camera's own bins")
