@@ -234,7 +234,7 @@ class MonitorConfig(_Section):
                                  "it, and without more when the camera's own reference has odd bins (beyond the 99th "
                                  "percentile about its mean) so often that more than one among those after it is likelier "
                                  "than this (binomial): lenses a little off and keypoints off the joints make a camera's "
-                                 "bins odd now and then, two in a row are no move")
+                                 "bins odd now and then, and two odd ones after a split are no move")
     bin_std_translation: float = Field(0.05, ge=0, description="m: most error of one bin's resection that its information does "
                                        "not show (where the people were, the others' own errors); the share added to each bin's "
                                        "covariance is measured on the camera's own bins")

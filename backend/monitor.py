@@ -315,7 +315,8 @@ class _Camera:
     data: deque = field(default_factory=deque)  # Correspondences, oldest first
     bin_start: float | None = None
     # closed bins: (start, end, z (6,) the resection's tangent offset from the anchor,
-    # in the frame of the others, info (6, 6) its information)
+    # in the frame of the others, info (6, 6) its information, where (2,) its points'
+    # mean in the image, lens (6, 4) ``Resection.lens``)
     bins: list = field(default_factory=list)
     anchor: tuple[np.ndarray, np.ndarray] | None = None  # the camera's estimate when its watch began
     # the cameras its points come from: those trusted when its watch began (one joining
@@ -620,10 +621,11 @@ class Monitor:
 
     def _bin(self, c: int, start: float, end: float, data: Sequence[Correspondences], Rs: np.ndarray, ts: np.ndarray
              ) -> tuple | None:
-        """Camera c's bin [start, end) of ``data``: (start, end, z, info, where), its
-        resection in the anchor's frame and where in the image its points were (2,) (their
-        mean, normalised); None when too little was seen (the bin says nothing; its data
-        still count for a recalibration) or no pose came of it."""
+        """Camera c's bin [start, end) of ``data``: (start, end, z, info, where, lens), its
+        resection in the anchor's frame, where in the image its points were (2,) (their
+        mean, normalised) and the resection's answer to a lens error; None when too
+        little was seen (the bin says nothing; its data still count for a
+        recalibration) or no pose came of it."""
         in_bin = [d for d in data if start <= d.time < end]
         if sum(len(d.X) for d in in_bin) < self.cfg.min_points:
             return None
@@ -632,6 +634,8 @@ class Monitor:
             return None
         where = np.concatenate([d.xy for d in in_bin]).mean(axis=0)
         z = pose_local(*self.cams[c].anchor, *self._in_anchor_frame(c, r.R, r.t, Rs, ts))
+        # r.lens is in the resection's tangent; the carry into the anchor frame is a small
+        # similarity, which leaves it as it is to first order
         return start, end, z, r.info, where, r.lens
 
     def _close_bin(self, c: int, k: _Camera, now: float, Rs: np.ndarray, ts: np.ndarray) -> None:
