@@ -333,11 +333,11 @@ def test_a_resection_says_how_a_lens_error_moves_it():
 
 def test_two_odd_bins_are_no_step_when_the_cameras_bins_are_often_odd():
     """Lenses a little off and keypoints on the outline make a camera's bins odd now and
-    then (lab seed 304's cam_19: 3 of the 33 bins before its window beyond the 99th percentile,
-    and two of the nine after a split, in different directions, which made a false alarm
-    on their own). Two strong odd bins among weak ones after a split: a step when the
-    camera's reference has no odd bin (two in nine are then unlikely), none when its
-    reference has three; a move of 4 cm with that reference is still found at its
+    then (lab seed 304's cam_19: 3 of the 33 bins before its window beyond the 99th
+    percentile, and two of the nine after a split, in different directions, which made a
+    false alarm on their own). Two strong odd bins among weak ones after a split: a step
+    when the camera's reference has no odd bin (two in nine are then unlikely), none when
+    its reference has three; a move of 4 cm with that reference is still found at its
     split."""
     from backend.monitor import _odd_bins, change_test
 
@@ -363,6 +363,7 @@ def test_two_odd_bins_are_no_step_when_the_cameras_bins_are_often_odd():
     moved[split:, 3] += 0.04
     found = change_test(moved, W, start, now, CFG, np.zeros((6, 6)))
     assert found is not None and found[3] == start[split] and found[1] > 0.03, found
+
 
 def _bins(rng: np.random.Generator, step: np.ndarray, since: float, n: int = 24) -> list:
     """n 5 s bins of a camera's resections (start, end, z, info): noise of 0.03° / 1 mm,
