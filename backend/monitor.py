@@ -45,12 +45,12 @@ the camera over all its data since the move (the watched cameras held) at
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from dataclasses import dataclass, field
 from typing import NamedTuple, Sequence
 
 import numpy as np
+from scipy.stats import binom
 
 from .associate import Hypothesis
 from .config import MonitorConfig
@@ -920,14 +920,9 @@ def _odd_bins(after: int, share: float, level: float) -> int:
     at the rate ``share`` leave more than that many odd among them with a probability
     above ``level`` (binomial)."""
     k = 1
-    while k < after and _binomial_sf(k, after, share) > level:
+    while k < after and binom.sf(k, after, share) > level:  # P(more than k odd)
         k += 1
     return k
-
-
-def _binomial_sf(k: int, n: int, p: float) -> float:
-    """P(X > k) for X binomial with n trials of probability p."""
-    return max(0.0, 1.0 - sum(math.comb(n, i) * p ** i * (1 - p) ** (n - i) for i in range(k + 1)))
 
 
 def _chi_about_mean(z: np.ndarray, W: np.ndarray) -> np.ndarray:
