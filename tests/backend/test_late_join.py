@@ -23,6 +23,7 @@ WEST = ("cam_11", "cam_12", "cam_13", "cam_14", "cam_15", "cam_16", "cam_17")
 LATE = "cam_17"
 QUIET = 45.0  # s in which LATE sees nobody
 BOOT = ["bootstrap.max_seconds=40", "bootstrap.min_pair_frames=20"]
+SMALL_FINAL = ["refine.batch_size=300"]  # for the tests of "unchanged": the final batch runs, smaller
 
 
 @pytest.fixture(scope="module")
@@ -107,7 +108,8 @@ def test_a_run_in_which_no_camera_joins_is_unchanged(west):
     placed = [n for n in WEST if n != LATE]
     cams = CameraSet.combine({n: intr[n] for n in placed},
                              {n: Extrinsics(truth[n], intr[n].resolution) for n in placed})
-    cfg = EngineConfig.load(None, ["bootstrap.resect_min_frames=100000", "refine.final_batch_from_start=true"])
+    cfg = EngineConfig.load(None, ["bootstrap.resect_min_frames=100000", "refine.final_batch_from_start=true",
+                                   *SMALL_FINAL])
     plain = _run(cams, cfg, msgs).state()
     joining = JoiningPipeline(cams, cfg, intrinsics=intr, names=WEST, seed=3)
     state = _run(cams, cfg, msgs, joining).state()
@@ -126,7 +128,7 @@ def test_a_run_with_every_camera_placed_is_unchanged(west, tmp_path):
     outs = []
     for late in ("true", "false"):
         out = tmp_path / f"out_{late}.yaml"
-        _calibrate(d, out, BOOT + [f"bootstrap.late={late}"], "seen.msgpack")
+        _calibrate(d, out, BOOT + SMALL_FINAL + [f"bootstrap.late={late}"], "seen.msgpack")
         outs.append(out.read_text())
     assert set(load_extrinsics(tmp_path / "out_true.yaml")) == set(WEST)
     assert "placed after the bootstrap" not in outs[0] and outs[0] == outs[1]

@@ -32,7 +32,10 @@ pytestmark = pytest.mark.slow
 SPEED = 5.0  # simulated seconds per wall second
 HEIGHTS = (1.96, 1.70)
 # the first attempt at 40 s of data, the last before accepting anything at 60 s: a short test
-BOOT = {"bootstrap": {"live_first": 40.0, "live_interval": 20.0, "max_seconds": 60.0}}
+# (and a final batch of 300 hypotheses, not 1000: it runs twice when a session stops, from
+# the online estimate and from the bootstrap, and that is not what these tests are about)
+FINAL = {"batch_size": 300}
+BOOT = {"bootstrap": {"live_first": 40.0, "live_interval": 20.0, "max_seconds": 60.0}, "refine": FINAL}
 
 
 class Sensors(SensorProcess):
@@ -120,7 +123,7 @@ def test_a_camera_the_bootstrap_left_out_joins_the_running_session(tmp_path, lab
     late = "cam_17"
     site = "bootlate"
     config = {"bootstrap": {"live_first": 30.0, "live_interval": 10.0, "max_seconds": 40.0,
-                            "late_join_interval": 10.0}}
+                            "late_join_interval": 10.0}, "refine": FINAL}
     settings, endpoint, truth, body = _setup(tmp_path, lab_dir, site, config)
     seen: list[dict] = []
     with ServiceThread(settings) as st, httpx.Client(base_url=st.url, timeout=60) as client:
@@ -161,7 +164,7 @@ def test_an_initial_estimate_is_checked_against_the_data_and_a_rough_one_replace
     from backend.perturb import perturb_extrinsics
 
     site = "check"
-    config = {"bootstrap": {"max_seconds": 60.0}}  # a short test: the check after 60 s of data, not 120
+    config = {"bootstrap": {"max_seconds": 60.0}, "refine": FINAL}  # a short test: the check after 60 s of data, not 120
     settings, endpoint, truth, body = _setup(tmp_path, lab_dir, site, config)
     body.pop("person_height")
     seen: list[dict] = []
