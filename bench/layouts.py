@@ -51,8 +51,9 @@ LAYOUTS = {
 }
 
 
-def simulate(layout: str, persons: int, duration: float, seed: int, cache: Path) -> Path:
-    """The recording of one layout and seed (its truth sidecar, its camera directory), cached."""
+def simulate(layout: str, persons: int, duration: float, seed: int, cache: Path, sim_set: dict | None = None) -> Path:
+    """The recording of one layout and seed (its truth sidecar, its camera directory), cached;
+    ``sim_set``: other simulator settings (bumps, lenses, detectors)."""
     from edge_clients.sim import SimConfig, Simulator, Truth
     from edge_clients.sim.scenes import make, write_scene
 
@@ -61,6 +62,8 @@ def simulate(layout: str, persons: int, duration: float, seed: int, cache: Path)
     for f in sorted((REPO / "edge_clients" / "sim").glob("*.py")):
         h.update(f.read_bytes())
     h.update(repr((layout, kw, persons, duration, seed, HEIGHTS[:persons])).encode())
+    if sim_set:
+        h.update(repr(sorted(sim_set.items())).encode())
     out = cache / f"{layout}_p{persons}_d{duration:g}_s{seed}_{h.hexdigest()[:10]}.msgpack"
     if out.is_file() and Truth.sidecar_path(out).is_file():
         return out
@@ -69,7 +72,8 @@ def simulate(layout: str, persons: int, duration: float, seed: int, cache: Path)
     write_scene(scene, cameras_of(out), f"generated {layout}")
     tmp = cache / f".{os.getpid()}.{out.name}"
     heights = tuple((HEIGHTS * persons)[:persons])
-    Simulator(scene, SimConfig(persons=persons, duration=duration, seed=seed, heights=heights)).write(tmp)
+    Simulator(scene, SimConfig(**{**(sim_set or {}), "persons": persons, "duration": duration, "seed": seed,
+                                  "heights": heights})).write(tmp)
     os.replace(Truth.sidecar_path(tmp), Truth.sidecar_path(out))
     os.replace(tmp, out)
     return out

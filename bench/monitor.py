@@ -5,8 +5,11 @@ it is calibrated again, how still the others stay; and false alarms without bump
     python bench/monitor.py --bumps 0.03/0,0/2 --seeds 2 --quiet-runs 2 --jobs 2
     python bench/monitor.py --cameras cam_11,cam_12,cam_13,cam_14,cam_15,cam_16,cam_17 --camera cam_14 \
         --bumps 0/3 --seeds 4 --calibrate 120 --bump-time 240   # the west room, a small one
+    python bench/monitor.py --layout room8 --camera cam_5 --bumps 0.03/0,0/2 --seeds 2 --calibrate 120 \
+        --bump-time 240   # a generated room (bench/layouts.py): wide lenses, nothing tuned there
 
-The 20-camera lab (or --cameras: a part of it as a room of its own), 2 persons; the
+The 20-camera lab (or --cameras: a part of it as a room of its own; or --layout: one of
+bench/layouts.py's generated rooms, walkers of 1.80 / 1.65 m), 2 persons; the
 calibration starts from the reference perturbed by 0.10 m / 5° (the first camera kept).
 A session calibrates from the first --calibrate s (180) of the recording as ``extrcal
 calibrate`` does, final batch included; the monitoring session
@@ -45,6 +48,8 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
 from accuracy import lab_dir, sim_settings, simulate  # noqa: E402
+from layouts import LAYOUTS, cameras_of  # noqa: E402
+from layouts import simulate as simulate_layout  # noqa: E402
 
 
 def _aligned_error(poses: dict, truth: dict, bumped: str) -> tuple[float, float]:
@@ -62,7 +67,7 @@ def _aligned_error(poses: dict, truth: dict, bumped: str) -> tuple[float, float]
 
 def run(seed: int, bump: tuple[float, float] | None, camera: str, bump_time: float, duration: float,
         cache: Path, calibrate: float = 180.0, overrides: tuple[str, ...] = (), cameras: tuple[str, ...] = (),
-        sim: tuple[tuple[str, object], ...] = ()) -> dict:
+        sim: tuple[tuple[str, object], ...] = (), layout: str = "") -> dict:
     from backend.cameras import CameraSet, load_extrinsics, load_intrinsics
     from backend.config import EngineConfig
     from backend.perturb import perturb_extrinsics
@@ -71,9 +76,13 @@ def run(seed: int, bump: tuple[float, float] | None, camera: str, bump_time: flo
     from proto import read_recording
 
     sim_set = {**dict(sim), **({"bumps": ((bump_time, camera, bump[0], bump[1]),)} if bump else {})}
-    rec = simulate(2, duration, seed, cache, sim_set, cameras)
+    if layout:
+        rec = simulate_layout(layout, 2, duration, seed, cache, sim_set)
+        lab = cameras_of(rec)
+    else:
+        rec = simulate(2, duration, seed, cache, sim_set, cameras)
+        lab = lab_dir()
     truth = Truth.load(Truth.sidecar_path(rec))
-    lab = lab_dir()
     ref = {n: e for n, e in load_extrinsics(lab / "reference.yaml").items() if not cameras or n in cameras}
     intrinsics = {n: i for n, i in load_intrinsics(lab / "intrinsics.yaml").items() if not cameras or n in cameras}
     cams = CameraSet.combine(intrinsics, perturb_extrinsics(ref, 0.10, 5.0, seed=seed))
@@ -222,6 +231,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--cameras", default="", metavar="NAME,NAME,...",
                     help="a part of the lab as a room of its own, e.g. the west room's cam_11,...,cam_17 (the live "
                          "monitor test's; --camera cam_14); default: all 20")
+    ap.add_argument("--layout", default="", choices=["", *LAYOUTS],
+                    help="a generated room of bench/layouts.py instead of the lab (its cameras are cam_0, cam_1, ...)")
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--calibrate", type=float, default=180.0,
                     help="s of data the session calibrates from (final batch included) before the watch; 0: the "
@@ -251,10 +262,18 @@ def main(argv: list[str] | None = None) -> None:
     cameras = tuple(c for c in args.cameras.split(",") if c)
     if cameras and args.camera not in cameras:
         raise SystemExit(f"--camera {args.camera} is not one of --cameras {args.cameras}")
+    if args.layout and cameras:
+        raise SystemExit("--cameras picks cameras of the lab; with --layout the room's cameras are all watched")
+    if args.layout:
+        from edge_clients.sim.scenes import make
+
+        names = make(LAYOUTS[args.layout][0], **LAYOUTS[args.layout][1]).names
+        if args.camera not in names:
+            raise SystemExit(f"--camera {args.camera} is not a camera of {args.layout} ({', '.join(names)})")
     jobs = [(seed, b, args.camera, args.bump_time, args.bump_time + args.after, args.cache, args.calibrate, sets,
-             cameras, sim) for seed in range(args.seeds) for b in bumps]
+             cameras, sim, args.layout) for seed in range(args.seeds) for b in bumps]
     jobs += [(args.quiet_seed + k, None, args.camera, 0.0, args.quiet_duration, args.cache, args.calibrate, sets,
-              cameras, sim) for k in range(args.quiet_runs)]
+              cameras, sim, args.layout) for k in range(args.quiet_runs)]
     wall = time.perf_counter()
     results = []
     # each run is printed as it ends: a long quiet bench interrupted keeps the hours it ran
@@ -272,7 +291,7 @@ def main(argv: list[str] | None = None) -> None:
     rows = [r for r in results if r["bump"] is not None]
     quiet = [r for r in results if r["bump"] is None]
 
-    where = f"{len(cameras)} cameras of the lab" if cameras else "20-camera lab"
+    where = args.layout or (f"{len(cameras)} cameras of the lab" if cameras else "20-camera lab")
     t = Table(title=f"Bumped {args.camera} at {args.bump_time:g} s ({where}, 2 persons, start 0.10 m / 5°)")
     for col in ("seed", "bump", "flagged after (s)", "of them with evidence (s)", "before: m / °", "+60 s: m / °",
                 "+120 s: m / °", "others moved, median / max (mm)", "other alarms"):
