@@ -247,6 +247,9 @@ class MonitorConfig(_Section):
     min_rotation: float = Field(0.3, ge=0, description="deg ... or rotation, that flag a converged camera as moved")
     recalibrate_seconds: float = Field(60.0, gt=0, description="s of data since the change a flagged camera is calibrated "
                                        "again from (one resection over all of it every bin, the others fixed)")
+    recalibrate_every: float = Field(20.0, gt=0, description="s of data between the flagged camera's adjustments over all "
+                                     "its data since the change, from recalibrate_seconds to twice that (the last): its "
+                                     "pose is held in between, so the pose two minutes after a move is from the latest")
     hold: bool = Field(True, description="watched cameras keep their pose: the cycles calibrate only the others (and a moved "
                        "camera against them); a calibrated camera changes when the monitor finds it moved, not by the "
                        "cycles' noise or a moved camera's pull before it is found")
