@@ -518,10 +518,15 @@ class Pipeline:
         """A moved camera calibrated again by an adjustment over every archived frame since
         its move, the watched cameras held (tight priors), its own prior the monitor's
         resection with the uncertainty re-opened: the resection a bin at a time took the
-        others' points as given; the adjustment weighs every view, as the session did."""
-        m = self.cfg.monitor
+        others' points as given; the adjustment weighs every view, as the session did.
+        Its hypotheses need ``associate.min_views_unsettled`` views, as the first
+        adjustment's: the camera is unsettled, and two views, its own and one other, pair
+        people along their epipolar line that no third view checks (the generated steep
+        room's 2° turn: 0.60° off at +120 s with two views allowed, 0.02° with three)."""
+        m, a = self.cfg.monitor, self.cfg.associate
         cov = np.diag([np.radians(m.reopen_std_rotation) ** 2] * 3 + [m.reopen_std_translation ** 2] * 3)
-        return self._one_camera_problem(cam, cov, (f for f in self.frames if f[0] >= since), "recalibrate")
+        p = self._one_camera_problem(cam, cov, (f for f in self.frames if f[0] >= since), "recalibrate")
+        return replace(p, associate=p.associate.model_copy(update={"min_views": a.min_views_unsettled}))
 
     def _dispute_problem(self, cam: int) -> Problem:
         """A camera the cycles keep disagreeing with (``_count_disputes``) decided by an

@@ -568,6 +568,8 @@ def test_a_moved_camera_is_calibrated_again_by_an_adjustment_with_the_others_hel
     p._recalibrate_due[0] = (p.clock, c, p.frames[0][0])
     problem = p.next_problem(p.clock)
     assert problem.kind == "recalibrate" and problem.moved == (c,) and len(problem.frames) > 100
+    # the camera is unsettled: its hypotheses need a third view, as the first adjustment's
+    assert problem.associate.min_views == p.cfg.associate.min_views_unsettled == 3
     report = p.apply(problem, solve(problem))
     assert report.accepted, report.reason
     assert report.recalibrated == (p.names[c],)  # its last adjustment: a new calibration to version
