@@ -526,7 +526,7 @@ class Pipeline:
         m, a = self.cfg.monitor, self.cfg.associate
         cov = np.diag([np.radians(m.reopen_std_rotation) ** 2] * 3 + [m.reopen_std_translation ** 2] * 3)
         p = self._one_camera_problem(cam, cov, (f for f in self.frames if f[0] >= since), "recalibrate")
-        return replace(p, associate=p.associate.model_copy(update={"min_views": a.min_views_unsettled}))
+        return replace(p, associate=p.associate.model_copy(update={"min_views": max(a.min_views, a.min_views_unsettled)}))
 
     def _dispute_problem(self, cam: int) -> Problem:
         """A camera the cycles keep disagreeing with (``_count_disputes``) decided by an
