@@ -164,7 +164,10 @@ def test_an_initial_estimate_is_checked_against_the_data_and_a_rough_one_replace
     from backend.perturb import perturb_extrinsics
 
     site = "check"
-    config = {"bootstrap": {"max_seconds": 60.0}, "refine": FINAL}  # a short test: the check after 60 s of data, not 120
+    # a short test: the check after 60 s of data, not 120 (the final batch keeps its 1000
+    # hypotheses: after the restart it has only a minute of data, and 300 left a camera
+    # 0.52° off in a CI run)
+    config = {"bootstrap": {"max_seconds": 60.0}}
     settings, endpoint, truth, body = _setup(tmp_path, lab_dir, site, config)
     body.pop("person_height")
     seen: list[dict] = []
