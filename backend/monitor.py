@@ -40,7 +40,8 @@ resection over all its correspondences since then with the others fixed, until
 of points for start their reference over (their points come without it from then on),
 the others drop their bins since the change. The pipeline applies the poses, adjusts
 the camera over all its data since the move (the watched cameras held) at
-``recalibrate_seconds`` and twice that, and watches it again once converged.
+``recalibrate_seconds``, every ``recalibrate_every`` after, up to twice that, and watches
+it again once converged.
 """
 
 from __future__ import annotations

@@ -32,8 +32,8 @@ pytestmark = pytest.mark.slow
 SPEED = 5.0  # simulated seconds per wall second
 HEIGHTS = (1.96, 1.70)
 # the first attempt at 40 s of data, the last before accepting anything at 60 s: a short test
-# (and a final batch of 300 hypotheses, not 1000: it runs twice when a session stops, from
-# the online estimate and from the bootstrap, and that is not what these tests are about)
+# (and, for the two tests that are not about it, a final batch of 300 hypotheses, not 1000:
+# it runs twice when a session stops, from the online estimate and from the bootstrap)
 FINAL = {"batch_size": 300}
 BOOT = {"bootstrap": {"live_first": 40.0, "live_interval": 20.0, "max_seconds": 60.0}, "refine": FINAL}
 
