@@ -9,7 +9,7 @@ it is calibrated again, how still the others stay; and false alarms without bump
         --bump-time 240   # a generated room (bench/layouts.py): wide lenses, nothing tuned there
 
 The 20-camera lab (or --cameras: a part of it as a room of its own; or --layout: one of
-bench/layouts.py's generated rooms, walkers of 1.80 / 1.65 m), 2 persons; the
+bench/layouts.py's generated rooms, walkers of 1.80 / 1.65 m), 2 persons (--persons); the
 calibration starts from the reference perturbed by 0.10 m / 5° (the first camera kept).
 A session calibrates from the first --calibrate s (180) of the recording as ``extrcal
 calibrate`` does, final batch included; the monitoring session
@@ -67,7 +67,7 @@ def _aligned_error(poses: dict, truth: dict, bumped: str) -> tuple[float, float]
 
 def run(seed: int, bump: tuple[float, float] | None, camera: str, bump_time: float, duration: float,
         cache: Path, calibrate: float = 180.0, overrides: tuple[str, ...] = (), cameras: tuple[str, ...] = (),
-        sim: tuple[tuple[str, object], ...] = (), layout: str = "") -> dict:
+        sim: tuple[tuple[str, object], ...] = (), layout: str = "", persons: int = 2) -> dict:
     from backend.cameras import CameraSet, load_extrinsics, load_intrinsics
     from backend.config import EngineConfig
     from backend.perturb import perturb_extrinsics
@@ -77,10 +77,10 @@ def run(seed: int, bump: tuple[float, float] | None, camera: str, bump_time: flo
 
     sim_set = {**dict(sim), **({"bumps": ((bump_time, camera, bump[0], bump[1]),)} if bump else {})}
     if layout:
-        rec = simulate_layout(layout, 2, duration, seed, cache, sim_set)
+        rec = simulate_layout(layout, persons, duration, seed, cache, sim_set)
         lab = cameras_of(rec)
     else:
-        rec = simulate(2, duration, seed, cache, sim_set, cameras)
+        rec = simulate(persons, duration, seed, cache, sim_set, cameras)
         lab = lab_dir()
     truth = Truth.load(Truth.sidecar_path(rec))
     ref = {n: e for n, e in load_extrinsics(lab / "reference.yaml").items() if not cameras or n in cameras}
@@ -234,6 +234,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--layout", default="", choices=["", *LAYOUTS],
                     help="a generated room of bench/layouts.py instead of the lab (its cameras are cam_0, cam_1, ...)")
     ap.add_argument("--seeds", type=int, default=1)
+    ap.add_argument("--persons", type=int, default=2, choices=[1, 2, 3, 4, 6, 8],
+                    help="walkers (the lab's heights as bench/accuracy.py's; a layout's alternate 1.80 / 1.65 m)")
     ap.add_argument("--calibrate", type=float, default=180.0,
                     help="s of data the session calibrates from (final batch included) before the watch; 0: the "
                          "online pipeline from the start, without the final batch, watched as its cameras converge")
@@ -271,9 +273,9 @@ def main(argv: list[str] | None = None) -> None:
         if args.camera not in names:
             raise SystemExit(f"--camera {args.camera} is not a camera of {args.layout} ({', '.join(names)})")
     jobs = [(seed, b, args.camera, args.bump_time, args.bump_time + args.after, args.cache, args.calibrate, sets,
-             cameras, sim, args.layout) for seed in range(args.seeds) for b in bumps]
+             cameras, sim, args.layout, args.persons) for seed in range(args.seeds) for b in bumps]
     jobs += [(args.quiet_seed + k, None, args.camera, 0.0, args.quiet_duration, args.cache, args.calibrate, sets,
-              cameras, sim, args.layout) for k in range(args.quiet_runs)]
+              cameras, sim, args.layout, args.persons) for k in range(args.quiet_runs)]
     wall = time.perf_counter()
     results = []
     # each run is printed as it ends: a long quiet bench interrupted keeps the hours it ran
@@ -292,7 +294,7 @@ def main(argv: list[str] | None = None) -> None:
     quiet = [r for r in results if r["bump"] is None]
 
     where = args.layout or (f"{len(cameras)} cameras of the lab" if cameras else "20-camera lab")
-    t = Table(title=f"Bumped {args.camera} at {args.bump_time:g} s ({where}, 2 persons, start 0.10 m / 5°)")
+    t = Table(title=f"Bumped {args.camera} at {args.bump_time:g} s ({where}, {args.persons} persons, start 0.10 m / 5°)")
     for col in ("seed", "bump", "flagged after (s)", "of them with evidence (s)", "before: m / °", "+60 s: m / °",
                 "+120 s: m / °", "others moved, median / max (mm)", "other alarms"):
         t.add_column(col)
