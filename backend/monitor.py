@@ -698,11 +698,11 @@ def change_test(z: np.ndarray, W: np.ndarray, start: np.ndarray, now: float, cfg
     thresholds, also without any one of the bins after it (so at least
     ``min_change_bins`` + 1 of them) that the others after it do not agree with
     (``agrees``), without more of them, agreeing or not, when the reference's odd bins
-    make more than one odd bin there likely (``_odd_bins``), and, given ``where`` (n, 2) (where in the image
-    each bin's points were) and ``where_covariates``, or ``lens`` (n, 6, 4) (each bin's
-    answer to a lens error, ``Resection.lens``) and ``lens_covariates``, with the bias they
-    explain (``_bias_step``), as (χ², m, deg, data time of the change; the χ² and size the least
-    of those), or None."""
+    make more than one odd bin there likely (``_odd_bins``), and, given ``where`` (n, 2)
+    (where in the image each bin's points were) and ``where_covariates``, or ``lens``
+    (n, 6, 4) (each bin's answer to a lens error, ``Resection.lens``) and
+    ``lens_covariates``, with the bias they explain (``_bias_step``), as (χ², m, deg,
+    data time of the change; the χ² and size the least of those), or None."""
     n = len(z)
     # the window in data time, or in bins for a camera whose bins are longer (it sees
     # little): a step at the start of its first watch had left a 60 s window before it

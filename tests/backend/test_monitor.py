@@ -365,7 +365,7 @@ def test_two_odd_bins_are_no_step_when_the_cameras_bins_are_often_odd():
     moved = often.copy()
     moved[split:, 3] += 0.04
     assert change_test(moved, W, start, now, CFG, np.zeros((6, 6))) is None
-    moved[split:, 3] += 0.04
+    moved[split:, 3] += 0.04  # 8 cm
     found = change_test(moved, W, start, now, CFG, np.zeros((6, 6)))
     assert found is not None and found[3] == start[split] and found[1] > 0.06, found
 
@@ -376,8 +376,8 @@ def test_odd_bins_that_agree_with_each_other_are_no_step_when_the_cameras_bins_a
     bins after the split at 675.4 s, three of them odd against the reference (χ² 31-45),
     each agreeing with the other five (χ² 11-17 < the 99th percentile); the reference has
     3 odd bins of 33. Kept as agreeing they made a step of 2.7 cm at χ² 42.3; left out, as
-    odd bins of such a camera, they make none. The same bins with the step made 2 cm larger
-    are still one."""
+    odd bins of such a camera, they make none. The same bins with 2 cm added after the
+    split make a step, at that split."""
     from backend.monitor import change_test
 
     x = np.load(Path(__file__).parent / "data" / "monitor_lab_seed263_cam10.npz")
