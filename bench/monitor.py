@@ -47,7 +47,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
-from accuracy import lab_dir, sim_settings, simulate  # noqa: E402
+from accuracy import HEIGHTS, lab_dir, sim_settings, simulate  # noqa: E402
 from layouts import LAYOUTS, cameras_of  # noqa: E402
 from layouts import simulate as simulate_layout  # noqa: E402
 
@@ -234,7 +234,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--layout", default="", choices=["", *LAYOUTS],
                     help="a generated room of bench/layouts.py instead of the lab (its cameras are cam_0, cam_1, ...)")
     ap.add_argument("--seeds", type=int, default=1)
-    ap.add_argument("--persons", type=int, default=2, choices=[1, 2, 3, 4, 6, 8],
+    ap.add_argument("--persons", type=int, default=2, choices=sorted(HEIGHTS),
                     help="walkers (the lab's heights as bench/accuracy.py's; a layout's alternate 1.80 / 1.65 m)")
     ap.add_argument("--calibrate", type=float, default=180.0,
                     help="s of data the session calibrates from (final batch included) before the watch; 0: the "
