@@ -134,6 +134,7 @@ class Pipeline:
         self._lead_samples = 0
         self._periods: dict[str, list[float]] = {}  # per sensor: [last stamp, its frame period (s, average)]
         self._first_stamp: float | None = None
+        self._far: frozenset[str] = frozenset()  # the sensors whose stamps started the estimate ("auto")
         if self.cfg.clock.estimate is True:
             self._start_estimating()
         self.retimed: dict[str, int] = {}  # sensor -> archived views timed again at the end
@@ -322,7 +323,24 @@ class Pipeline:
                         "offsets from the data from now on, %.0f s into it (clock.estimate = auto)", ", ".join(far),
                         ", ".join(f"{1000 * v:+.0f} ms" for v in far.values()),
                         now - self._first_stamp)
+            self._far = frozenset(far)
             self._start_estimating()
+
+    def clock_states(self) -> tuple:
+        """The sensors' clock offsets as ``state()`` reports them (none while not estimating)."""
+        return self.clocks.clocks() if self.estimating else ()
+
+    def timing_undecided(self) -> list[str]:
+        """Sensors the data say are mistimed whose offset is not applied yet: those whose
+        stamps started the estimate ("auto") while they have no estimate, and those with an
+        estimate of at least ``clock.min_apply`` awaiting its confirmation. Work on the
+        archived frames that cannot time them again (the check of the initial estimate)
+        waits for them."""
+        if not self.estimating:
+            return []
+        c, min_apply = self.clocks, self.cfg.clock.min_apply
+        return [n for i, n in enumerate(self.names) if c.applied[i] == 0.0
+                and (abs(c.offset[i]) >= min_apply if np.isfinite(c.offset[i]) else n in self._far)]
 
     def clock_job(self, now: float | None) -> ClockJob | None:
         """The clock offsets' estimate when due (``clock.estimate``, every
@@ -958,7 +976,7 @@ class Pipeline:
         calibrated = [c for c in cams if c.cycles > 0 or c.moved_at is not None]
         converged = bool(calibrated) and all(c.converged for c in calibrated)
         return CalibrationState(self.clock, self.cycle, tuple(cams), converged, self.counters(), self.last_report,
-                                clocks=self.clocks.clocks() if self.estimating else (),
+                                clocks=self.clock_states(),
                                 scale_check=self.scale_check.to_dict() if self.scale_check is not None else None)
 
     def skeletons(self, n: int = 4) -> list[list[list[float] | None]]:

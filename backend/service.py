@@ -763,6 +763,9 @@ class Service:
                 s.clock_idle.set()
             with self.work.measure("apply_clock"):
                 s.pipeline.apply_clock(job, result)
+                # /status shows the estimate as it is now: the state is otherwise taken after
+                # a cycle, and cycles wait while the solver runs a long job
+                s.state = replace(s.state, clocks=s.pipeline.clock_states())
 
     async def _bootstrap_loop(self) -> None:
         """Sessions that bootstrap (backend/live_bootstrap.py): the collector says when an
@@ -850,7 +853,17 @@ class Service:
         if check.get("phase") == "done" or s.checking or s.checked is not None or not rec.state.active:
             return False
         frames = getattr(p, "frames", None)
-        if not frames or frames[-1][0] - frames[0][0] < b.max_seconds:
+        if not frames or (span := frames[-1][0] - frames[0][0]) < b.max_seconds:
+            return False
+        # a bootstrap on views mistimed by tens of ms would judge the estimate by a distorted
+        # shape; once the offsets are applied it is skipped (``_check_initial``). Up to twice
+        # max_seconds of data: an estimate that is never confirmed must not hold it for good.
+        undecided = p.timing_undecided()
+        if undecided and span < 2 * b.max_seconds:
+            note = f"waiting for the clock offsets of {', '.join(undecided)} to be decided"
+            if check.get("note") != note:
+                rec.initial_check = {**check, "phase": "waiting", "data_seconds": span, "note": note}
+                self._save_record(s)
             return False
         return check.get("tried_at") is None or frames[-1][0] >= check["tried_at"] + b.live_interval
 

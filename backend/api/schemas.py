@@ -159,7 +159,7 @@ class SessionDetail(SessionSummary):
                                          "method; initial_rel_std; sigmas apart; mode; factor applied, 1 = kept; "
                                          "refused) and its summary")
     initial_check: dict[str, Any] | None = Field(None, description="a session with an initial estimate "
-                                                 "(bootstrap.live_check): phase (running; waiting: to be tried again with more data; done), attempts, data_seconds, used "
+                                                 "(bootstrap.live_check): phase (running; waiting: to be tried again with more data, or for a clock offset the data found to be applied; done), attempts, data_seconds, used "
                                                  "(the session went on from the data's shape), reconciled (per camera: "
                                                  "the initial estimate's distance from the data's shape, refused, "
                                                  "overruled), note")

@@ -603,25 +603,35 @@ def test_auto_starts_the_estimate_when_a_sensor_s_stamps_run_apart(offsets, star
     """clock.estimate = "auto" (the default): a sensor 90 ms late or 150 ms early shows in
     its stamps as they arrive, and the estimate starts within 20 s of data (a warning
     names the sensor); with every clock synchronised it never starts, and nothing of it
-    runs (no records, no raw archive, no clocks in the state)."""
+    runs (no records, no raw archive, no clocks in the state). The sensor is one whose
+    timing is undecided (the check of the initial estimate waits for it) until an offset
+    is applied to it."""
     cams, msgs = six_cameras(30.0, 4, offsets)
     cfg = EngineConfig.from_dict({"refine": {"final_batch": False}})
     assert cfg.clock.estimate == "auto"
     p = Pipeline(cams, cfg)
-    started = None
+    started = undecided = None
     for msg in msgs:
         p.push(msg)
         if p.clock is not None:
             p.advance(p.clock)
             if started is None and p.estimating:
-                started = p.clock - msgs[0].stamp
+                started, undecided = p.clock - msgs[0].stamp, p.timing_undecided()
     assert (started is not None) == starts, started
     if starts:
         assert started < 20.0 and p.raw is not None and p.clocks.records
+        assert undecided == list(offsets)
+        late = p.names.index(undecided[0])
+        p.clocks.applied[late] = offsets[undecided[0]]
+        assert p.timing_undecided() == []
+        # a sensor with an estimate beyond NTP's spread, not applied yet, is undecided too
+        other = (late + 1) % len(p.names)
+        p.clocks.offset[other] = 2 * cfg.clock.min_apply
+        assert p.timing_undecided() == [p.names[other]]
         q = Pipeline.restore(cams, cfg, p.snapshot())
         assert q.estimating  # a restarted session goes on estimating
     else:
-        assert p.raw is None and not p.clocks.records and p.state().clocks == ()
+        assert p.raw is None and not p.clocks.records and p.state().clocks == () and p.timing_undecided() == []
         off = Pipeline.restore(cams, cfg, p.snapshot())
         assert not off.estimating
 

@@ -1,7 +1,8 @@
 """A sensor whose clock is 120 ms off, on a live service with the default configuration
 (real Zenoh on loopback, real uvicorn): its stamps as they arrive start the clock offsets'
 estimate (`clock.estimate = "auto"`), which runs in the service's thread; `/status` shows
-its offset applied, the session's final batch (in its solver process) times its archived
+its offset applied (as soon as it is: not after the next cycle, which may wait
+while the solver works), the session's final batch (in its solver process) times its archived
 views again with it (backend/retime.py), and the result is within the bars. The engine's
 own figures are bench/clock_offsets.py's."""
 
@@ -54,6 +55,11 @@ def test_a_sensor_with_a_bad_clock_is_timed_and_its_archive_timed_again(tmp_path
         result_text = client.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text
     assert stopped["state"] == "stopped" and stopped["final_batch"]["ran"], stopped["final_batch"]
     assert stopped["final_batch"]["retimed"].get(LATE, 0) > 0, stopped["final_batch"]
+    # the check of the initial estimate (due at 120 s of data) never bootstraps on views of
+    # a sensor found mistimed: it waits for the offset, and once it is applied skips
+    check = stopped["initial_check"]
+    assert check is None or check["note"].startswith(("waiting for the clock offsets of cam_13",
+                                                      "not checked: clock offsets were applied")), check
     result = parse_extrinsics(result_text)
     acc = evaluate({k: v.pose for k, v in result.items()}, {k: v.pose for k, v in truth.items()})
     print(acc.summary())
