@@ -34,7 +34,7 @@ from proto import KeypointMessage
 
 from .associate import Associator
 from .cameras import CameraSet
-from .clock_offsets import ClockJob, ClockOffsetEstimator, ClockResult
+from .clock_offsets import ClockJob, ClockOffsetEstimator, ClockResult, SensorClock
 from .config import EngineConfig
 from .geometry import pose_local, pose_std
 from .monitor import Alarm, Monitor
@@ -326,7 +326,7 @@ class Pipeline:
             self._far = frozenset(far)
             self._start_estimating()
 
-    def clock_states(self) -> tuple:
+    def clock_states(self) -> tuple[SensorClock, ...]:
         """The sensors' clock offsets as ``state()`` reports them (none while not estimating)."""
         return self.clocks.clocks() if self.estimating else ()
 

@@ -845,7 +845,9 @@ class Service:
         """A session with an initial estimate it was not told to distrust, not checked yet
         (``bootstrap.live_check``), with ``bootstrap.max_seconds`` of frames archived (what
         ``extrcal calibrate`` bootstraps on: at 60 s a camera of the lab was chained 160°
-        off) and, after an attempt the data did not allow, ``live_interval`` more."""
+        off) and, after an attempt the data did not allow, ``live_interval`` more. It waits
+        while a sensor's clock is found off and its offset not yet applied
+        (``Pipeline.timing_undecided``), up to twice ``max_seconds`` of frames."""
         b, rec, p = s.inputs.config.bootstrap, s.record, s.pipeline
         if not b.live_check or b.with_initial == "never" or s.inputs.initial_yaml is None or rec.bootstrap is not None:
             return False
