@@ -886,7 +886,8 @@ class Service:
         tries = int((rec.initial_check or {}).get("attempts", 0)) + 1
         if p.clocks.applied.any():  # archived views timed with offsets a new pipeline would not know
             rec.initial_check = {"phase": "done", "used": False, "data_seconds": span,
-                                 "note": "not checked: clock offsets were applied before it was due"}
+                                 "note": "not checked: clock offsets were applied, and the archived views were "
+                                         "timed without them"}
             self._save_record(s)
             return
         job = BootstrapJob(tries, frames, tuple(p.names), p.focal.copy(), cfg, tuple(p.scale_heights or ()),

@@ -551,7 +551,7 @@ def test_the_check_of_an_initial_estimate_waits_for_a_clock_offset_and_is_skippe
     bootstrap on the archived frames would judge the initial estimate by views mistimed
     by that much, so the check waits and the record says for which sensor. Once the
     offset is applied the check is skipped, as for offsets applied before it was due (the
-    archived views were timed with other offsets). The bootstrap here finds the truth: had
+    archived views were timed without them). The bootstrap here finds the truth: had
     it run, the record would say the estimate was kept."""
     import functools
     import time
