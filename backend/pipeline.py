@@ -333,14 +333,15 @@ class Pipeline:
     def timing_undecided(self) -> list[str]:
         """Sensors the data say are mistimed whose offset is not applied yet: those whose
         stamps started the estimate ("auto") while they have no estimate, and those with an
-        estimate of at least ``clock.min_apply`` awaiting its confirmation. Work on the
-        archived frames that cannot time them again (the check of the initial estimate)
-        waits for them."""
+        estimate of at least ``clock.min_apply`` and a std within ``clock.max_std`` (one
+        that can be applied) awaiting its confirmation. Work on the archived frames that
+        cannot time them again (the check of the initial estimate) waits for them."""
         if not self.estimating:
             return []
-        c, min_apply = self.clocks, self.cfg.clock.min_apply
+        c, cfg = self.clocks, self.cfg.clock
         return [n for i, n in enumerate(self.names) if c.applied[i] == 0.0
-                and (abs(c.offset[i]) >= min_apply if np.isfinite(c.offset[i]) else n in self._far)]
+                and (abs(c.offset[i]) >= cfg.min_apply and c.std[i] <= cfg.max_std if np.isfinite(c.offset[i])
+                     else n in self._far)]
 
     def clock_job(self, now: float | None) -> ClockJob | None:
         """The clock offsets' estimate when due (``clock.estimate``, every

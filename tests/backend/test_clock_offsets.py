@@ -624,10 +624,13 @@ def test_auto_starts_the_estimate_when_a_sensor_s_stamps_run_apart(offsets, star
         late = p.names.index(undecided[0])
         p.clocks.applied[late] = offsets[undecided[0]]
         assert p.timing_undecided() == []
-        # a sensor with an estimate beyond NTP's spread, not applied yet, is undecided too
+        # a sensor with an estimate beyond NTP's spread, not applied yet, is undecided too,
+        # unless its std says it cannot be applied (it would hold the check for nothing)
         other = (late + 1) % len(p.names)
-        p.clocks.offset[other] = 2 * cfg.clock.min_apply
+        p.clocks.offset[other], p.clocks.std[other] = 2 * cfg.clock.min_apply, cfg.clock.max_std
         assert p.timing_undecided() == [p.names[other]]
+        p.clocks.std[other] = 2 * cfg.clock.max_std
+        assert p.timing_undecided() == []
         q = Pipeline.restore(cams, cfg, p.snapshot())
         assert q.estimating  # a restarted session goes on estimating
     else:

@@ -587,7 +587,7 @@ def test_the_check_of_an_initial_estimate_waits_for_a_clock_offset_and_is_skippe
 
         def found():
             pipeline.estimating = True
-            pipeline.clocks.offset[late] = 0.12
+            pipeline.clocks.offset[late], pipeline.clocks.std[late] = 0.12, 0.003
             pipeline.frames.extend(frames)
         st.call(found)
         waiting = check(c, sid, lambda k: k.get("phase") == "waiting")
