@@ -339,9 +339,16 @@ class Pipeline:
         if not self.estimating:
             return []
         c, cfg = self.clocks, self.cfg.clock
-        return [n for i, n in enumerate(self.names) if c.applied[i] == 0.0
-                and (abs(c.offset[i]) >= cfg.min_apply and c.std[i] <= cfg.max_std if np.isfinite(c.offset[i])
-                     else n in self._far)]
+        out = []
+        for i, n in enumerate(self.names):
+            if c.applied[i] != 0.0:
+                continue
+            if not np.isfinite(c.offset[i]):
+                if n in self._far:
+                    out.append(n)
+            elif abs(c.offset[i]) >= cfg.min_apply and c.std[i] <= cfg.max_std:
+                out.append(n)
+        return out
 
     def clock_job(self, now: float | None) -> ClockJob | None:
         """The clock offsets' estimate when due (``clock.estimate``, every
