@@ -338,6 +338,8 @@ class ActiveSession:
     # the optimizer's last failure in this session (None: none yet); replaced, never changed
     solver_fault: dict[str, Any] | None = None
     last_accepted: int | None = None  # the last cycle folded into the estimate
+    # "resumed at cycle N after a restart (...)": kept in the reason while it waits for data
+    resumed: str | None = None
     # the live check of the initial estimate found it rough: the pipeline from the data's
     # shape, swapped in by the optimizer between cycles (``Service._check_initial``)
     checked: Any = None
@@ -615,7 +617,7 @@ class Service:
         if isinstance(pipeline, Collector):
             rec.reason = "resumed after a restart while bootstrapping: collecting again (frames are not kept)"
         self.clock = self._new_clock(inputs.config)
-        self.active = ActiveSession(rec, inputs, pipeline, pipeline.state())
+        self.active = ActiveSession(rec, inputs, pipeline, pipeline.state(), resumed=rec.reason)
         self.store.save_record(rec)
         log.info("session %s %s", rec.id, rec.reason)
 
@@ -1289,6 +1291,8 @@ class Service:
                 else:
                     reason = _waiting_reason(s.pipeline.counters(), s.inputs.config, self.sensors,
                                              s.inputs.cameras.names) + reason_suffix(s.record.bootstrap)
+                if s.resumed is not None:  # what the operator sees after a restart says so
+                    reason = f"{s.resumed}; {reason}"
                 if reason != s.record.reason:
                     s.record.reason = reason
                     self._save_record(s)

@@ -328,6 +328,12 @@ def test_resume_after_restart(tmp_path, lab_body):
         assert s["live"] and s["state"] == "waiting_for_data" and s["resumed"] == 1
         assert "resumed at cycle 0" in s["reason"]
         assert s["stop"]["duration"] == 600
+        # while it waits for data (the reason is refreshed every second) it still says so
+        deadline = time.monotonic() + 30
+        while "no messages from the session's cameras yet" not in (s := c.get(f"/sessions/{sid}").json())["reason"]:
+            assert time.monotonic() < deadline, s["reason"]
+            time.sleep(0.1)
+        assert s["reason"].startswith("resumed at cycle 0 after a restart")
         assert c.post(f"/sessions/{sid}/stop").json()["state"] == "stopped"
     with ServiceThread(settings) as st, httpx.Client(base_url=st.url, timeout=30) as c:
         s = c.get(f"/sessions/{sid}").json()

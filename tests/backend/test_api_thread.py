@@ -26,6 +26,7 @@ def svc(tmp_path):
         yield st
 
 
+@pytest.mark.serial  # the answers are timed against the loop's busy spell
 def test_status_answers_from_the_snapshot_while_the_loop_is_busy(svc):
     with httpx.Client(base_url=svc.url, timeout=30) as c:
         fresh = c.get("/status").json()

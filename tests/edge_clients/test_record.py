@@ -10,6 +10,7 @@ import time
 
 import msgpack
 import numpy as np
+import pytest
 
 from edge_clients.publisher import SensorPublisher
 from proto import KeypointMessage, Person, keys, read_recording
@@ -32,6 +33,7 @@ def wait_for(pred, timeout: float, what: str):
     raise AssertionError(f"timed out waiting for {what}")
 
 
+@pytest.mark.serial  # the flush is timed on the wall clock
 def test_record_process_flushes_every_second_counts_rejects_and_stops_on_sigterm(tmp_path):
     port = free_port()
     out = tmp_path / "rec.jsonl"

@@ -175,6 +175,7 @@ def test_replay_of_a_missing_or_empty_file_is_a_clear_error(tmp_path):
 # ---------------------------------------------------------------- round trip
 
 
+@pytest.mark.serial  # the replay's pace is measured on the wall clock
 def test_replay_record_round_trip_changes_nothing_but_the_time_shift(tmp_path, zenoh_pair):
     rec_session, pub_session, _ = zenoh_pair
     original = make_recording()
