@@ -44,6 +44,7 @@ from .refine import Refiner
 from .retime import RawArchive
 from .scale_check import ScaleCheck, check_run
 from .selection import HypothesisQueue
+from .stamp_watch import StampWatch
 from .state import CalibrationState, CameraState, Counters, CycleReport
 from .sync import Synchronizer
 
@@ -129,11 +130,7 @@ class Pipeline:
         # raw messages, to time the archived views again with the final offsets (backend/retime.py)
         self.raw: RawArchive | None = None
         self.estimating = False  # the clock offsets' estimate runs (clock.estimate; "auto": once the stamps say so)
-        self._leads: dict[str, deque[float]] = {}  # per sensor: its newest stamp minus all sensors' median, sampled
-        self._last_lead: float | None = None
-        self._lead_samples = 0
-        self._periods: dict[str, list[float]] = {}  # per sensor: [last stamp, its frame period (s, average)]
-        self._first_stamp: float | None = None
+        self.stamps = StampWatch(self.cfg.clock.auto_lead)  # "auto": whether the stamps run apart
         self._far: frozenset[str] = frozenset()  # the sensors whose stamps started the estimate ("auto")
         if self.cfg.clock.estimate is True:
             self._start_estimating()
@@ -203,7 +200,7 @@ class Pipeline:
                 self.raw.push(msg)
         self.last_seen[msg.sensor] = msg.stamp
         if self._watching_stamps:
-            self._frame_period(msg.sensor, msg.stamp)
+            self.stamps.observe(msg.sensor, msg.stamp)
         stamp = msg.stamp - self.sync.offset(msg.sensor)
         if arrival is None and (self.clock is None or stamp > self.clock):
             self.clock = stamp
@@ -284,45 +281,16 @@ class Pipeline:
         """``clock.estimate = "auto"`` and the estimate not started yet."""
         return not self.estimating and self.cfg.clock.estimate == "auto"
 
-    def _frame_period(self, sensor: str, stamp: float) -> None:
-        """A sensor's frame period: the running mean of the steps between its stamps, a
-        gap (a pause, a restart) left out."""
-        if self._first_stamp is None:
-            self._first_stamp = stamp
-        p = self._periods.setdefault(sensor, [stamp, 0.0])
-        step = stamp - p[0]
-        if 0.0 < step < 1.0:
-            p[1] = step if p[1] == 0.0 else 0.95 * p[1] + 0.05 * step
-        p[0] = stamp
-
     def _watch_stamps(self, now: float) -> None:
-        """``clock.estimate = "auto"``: every 0.5 s of data, each sensor's newest stamp
-        (plus half its frame period: how old its newest frame is on average) minus the
-        median of all sensors' (those heard from in the last 2 s), as the messages arrive,
-        live and in a recording alike. Synchronised sensors differ by their network and
-        detector delays; a clock off by more shows as its median over the last minute (at
-        least 10 s) beyond ``clock.auto_lead``, and the estimate starts. A few float ops
-        per sensor twice a second: nothing against the estimate's own cost."""
-        if self._last_lead is not None and now - self._last_lead < 0.5:
-            return
-        self._last_lead = now
-        periods = self._periods
-        fresh = {s: t + 0.5 * periods.get(s, (0.0, 0.0))[1] for s, t in self.last_seen.items() if now - t < 2.0}
-        if len(fresh) < 3:
-            return
-        mid = float(np.median(list(fresh.values())))
-        for s, t in fresh.items():
-            self._leads.setdefault(s, deque(maxlen=120)).append(t - mid)
-        self._lead_samples += 1
-        if self._lead_samples % 10:
-            return  # the medians every 5 s
-        far = {s: float(np.median(d)) for s, d in self._leads.items() if len(d) >= 20}
-        far = {s: v for s, v in far.items() if abs(v) > self.cfg.clock.auto_lead}
+        """``clock.estimate = "auto"``: the estimate starts once a sensor's stamps run
+        ``clock.auto_lead`` apart from the others' as they arrive (backend/stamp_watch.py),
+        live and in a recording alike."""
+        far = self.stamps.sample(now, self.last_seen)
         if far:
             log.warning("the stamps of %s run %s from the other sensors' as they arrive: estimating the sensors' clock "
                         "offsets from the data from now on, %.0f s into it (clock.estimate = auto)", ", ".join(far),
                         ", ".join(f"{1000 * v:+.0f} ms" for v in far.values()),
-                        now - self._first_stamp)
+                        now - self.stamps.first_stamp)
             self._far = frozenset(far)
             self._start_estimating()
 

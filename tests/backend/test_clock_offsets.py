@@ -654,5 +654,5 @@ def test_auto_is_not_started_by_a_sensor_that_paused():
         if p.clock is not None:
             p._watch_stamps(p.clock)
     assert not p.estimating
-    assert p._periods[quiet][1] == pytest.approx(np.median(np.diff([m.stamp for m in msgs if m.sensor == quiet])),
+    assert p.stamps.period(quiet) == pytest.approx(np.median(np.diff([m.stamp for m in msgs if m.sensor == quiet])),
                                                  rel=0.2)
