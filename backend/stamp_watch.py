@@ -40,8 +40,8 @@ class StampWatch:
 
     def observe(self, sensor: str, stamp: float) -> None:
         """A sensor's frame period: the running mean of the steps between its stamps, a
-        gap (a pause, a restart) left out (over its whole span, a sensor silent for a
-        minute read +87 ms at 30 Hz)."""
+        gap (a pause, a restart) left out (with the gap in, a 30 Hz sensor back from a
+        minute's silence read +87 ms)."""
         if self.first_stamp is None:
             self.first_stamp = stamp
         p = self._periods.setdefault(sensor, [stamp, 0.0])
