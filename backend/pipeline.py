@@ -285,7 +285,7 @@ class Pipeline:
         """``clock.estimate = "auto"``: the estimate starts once a sensor's stamps run
         ``clock.auto_lead`` apart from the others' as they arrive (backend/stamp_watch.py),
         live and in a recording alike."""
-        far = self.stamps.sample(now, self.last_seen)
+        far = self.stamps.sample(now)
         if far:
             log.warning("the stamps of %s run %s from the other sensors' as they arrive: estimating the sensors' clock "
                         "offsets from the data from now on, %.0f s into it (clock.estimate = auto)", ", ".join(far),

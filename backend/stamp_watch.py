@@ -14,7 +14,6 @@ the cheap signal that starts it. A few float ops per sensor twice a second.
 from __future__ import annotations
 
 from collections import deque
-from typing import Mapping
 
 import numpy as np
 
@@ -26,14 +25,14 @@ MIN_SAMPLES = 20  # 10 s
 
 
 class StampWatch:
-    """``observe`` every accepted message's stamp; ``sample(now, last_seen)`` as the data
-    clock advances. ``leads()``: each sensor's median lead (s) over the last minute."""
+    """``observe`` every accepted message's stamp; ``sample(now)`` as the data clock
+    advances. ``leads()``: each sensor's median lead (s) over the last minute."""
 
     def __init__(self, auto_lead: float):
         assert auto_lead > 0
         self.auto_lead = auto_lead
         self.first_stamp: float | None = None
-        self._periods: dict[str, list[float]] = {}  # per sensor: [last stamp, its frame period (s, average)]
+        self._periods: dict[str, list[float]] = {}  # per sensor: [newest stamp, its frame period (s, average)]
         self._leads: dict[str, deque[float]] = {}
         self._last_sample: float | None = None
         self._samples = 0
@@ -58,14 +57,14 @@ class StampWatch:
         """Each sensor's median lead (s) over the last minute, once it has 10 s of samples."""
         return {s: float(np.median(d)) for s, d in self._leads.items() if len(d) >= MIN_SAMPLES}
 
-    def sample(self, now: float, last_seen: Mapping[str, float]) -> dict[str, float] | None:
-        """A sample of the leads when 0.5 s of data passed since the last (``last_seen``:
-        each sensor's newest stamp); every 10th, the sensors whose median lead lies
-        beyond ``auto_lead`` (s, signed; empty: none), else None."""
+    def sample(self, now: float) -> dict[str, float] | None:
+        """A sample of the leads when 0.5 s of data passed since the last; every 10th, the
+        sensors whose median lead lies beyond ``auto_lead`` (s, signed; empty: none), else
+        None."""
         if self._last_sample is not None and now - self._last_sample < SAMPLE_EVERY:
             return None
         self._last_sample = now
-        fresh = {s: t + 0.5 * self.period(s) for s, t in last_seen.items() if now - t < FRESH}
+        fresh = {s: t + 0.5 * period for s, (t, period) in self._periods.items() if now - t < FRESH}
         if len(fresh) < 3:
             return None
         mid = float(np.median(list(fresh.values())))

@@ -34,16 +34,14 @@ def leads(path: Path, auto_lead: float) -> dict:
     """Replay ``path`` through the watch as the pipeline does offline (the data clock is
     the newest stamp; stamps of the far future or past are not screened here)."""
     watch = StampWatch(auto_lead)
-    last: dict[str, float] = {}
     clock = t0 = None
     worst: tuple[str, float, float] | None = None  # sensor, lead s, data s
     started = None
     for m in read_recording(path):
         watch.observe(m.sensor, m.stamp)
-        last[m.sensor] = m.stamp
         t0 = m.stamp if t0 is None else t0
         clock = m.stamp if clock is None or m.stamp > clock else clock
-        far = watch.sample(clock, last)
+        far = watch.sample(clock)
         if far is None:
             continue
         if far and started is None:

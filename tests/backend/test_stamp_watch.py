@@ -23,7 +23,7 @@ def _run(watch: StampWatch, seconds: float, offsets: dict[str, float], delays: d
                 last[s] = capture + offsets.get(s, 0.0)
                 watch.observe(s, last[s])
         if len(last) == len(NAMES):
-            far = watch.sample(max(last.values()), last)
+            far = watch.sample(max(last.values()))
             if far:
                 return far, t
     return None, None
