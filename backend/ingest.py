@@ -15,6 +15,7 @@ import math
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -176,9 +177,11 @@ class ServiceClock:
     """
 
     def __init__(self, mode: Literal["wall", "data"], *, speed: float = 1.0, grace: float = 1.0,
-                 max_jump: float = 5.0):
+                 max_jump: float = 5.0, monotonic: Callable[[], float] = time.monotonic):
         assert mode in ("wall", "data") and speed > 0
         self.mode = mode
+        # injectable so that tests step it rather than race the scheduler with sleeps
+        self._monotonic = monotonic
         self.speed = speed
         self.grace = grace
         self.max_jump = max_jump
@@ -192,7 +195,7 @@ class ServiceClock:
             return time.time()
         if self._high is None:
             return None
-        idle = time.monotonic() - self._last - self.grace
+        idle = self._monotonic() - self._last - self.grace
         return self._high + self.speed * idle if idle > 0 else self._high
 
     def observe(self, stamp: float, sensor: str | None = None) -> float:
@@ -203,7 +206,7 @@ class ServiceClock:
         now = self.now()
         # Data flows again: the run-on time (if any) is kept, so the clock never goes back.
         self._high = now
-        self._last = time.monotonic()
+        self._last = self._monotonic()
         key = sensor if sensor is not None else ""
         if now is not None and stamp - now > self.max_jump and (len(self._newest) < 2 or sensor is None):
             return now  # a lone stream far ahead: nothing confirms it

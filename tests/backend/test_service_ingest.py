@@ -57,14 +57,25 @@ def test_handoff_wakes_a_waiting_consumer():
         await asyncio.sleep(0.01)
         assert not consumer.done()
         threading.Thread(target=h.on_sample, args=(_Sample("k", b"x"),)).start()
-        batch = await asyncio.wait_for(consumer, 5)
+        batch = await asyncio.wait_for(consumer, 30)
         assert [a.payload for a in batch] == [b"x"]
 
     asyncio.run(main())
 
 
+class SteppedClock:
+    """A monotonic clock the test advances by hand: no sleeps racing the scheduler."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
 def test_data_clock_follows_the_newest_stamp():
-    c = ServiceClock("data", speed=10.0, grace=0.05, max_jump=5.0)
+    mono = SteppedClock()
+    c = ServiceClock("data", speed=10.0, grace=0.05, max_jump=5.0, monotonic=mono)
     assert c.now() is None
     assert c.observe(1000.0) == 1000.0
     assert c.observe(1000.5) == 1000.5 and c.now() == 1000.5
@@ -72,10 +83,11 @@ def test_data_clock_follows_the_newest_stamp():
     assert c.observe(1000.2) == 1000.5
     # a stamp far ahead does not drag the clock
     assert c.observe(2000.0) == 1000.5 and c.now() == 1000.5
-    # without data beyond the grace period the clock runs on at `speed`
-    time.sleep(0.15)
-    now = c.now()
-    assert 1000.5 + 10 * 0.09 <= now <= 1000.5 + 10 * 0.5
+    # within the grace period it waits; beyond it the clock runs on at `speed`
+    mono.t += 0.04
+    assert c.now() == 1000.5
+    mono.t += 0.11
+    assert c.now() == pytest.approx(1000.5 + 10 * 0.1)
 
 
 def test_wall_clock_is_the_host_clock():
@@ -98,20 +110,23 @@ def test_sensor_stats_rate_latency_offset():
 
 
 def test_data_clock_never_runs_ahead_of_slow_data_nor_back():
-    # data comes at 1 data-s per 0.1 wall-s (10x), the clock's run-on speed is 100x:
+    # data comes at 1 data-s per 0.03 wall-s (10x), the clock's run-on speed is 100x:
     # as long as messages flow, the clock is the newest stamp, not an extrapolation
-    c = ServiceClock("data", speed=100.0, grace=0.05, max_jump=5.0)
+    mono = SteppedClock()
+    c = ServiceClock("data", speed=100.0, grace=0.05, max_jump=5.0, monotonic=mono)
     stamp = 1000.0
     for _ in range(5):
         c.observe(stamp)
-        time.sleep(0.03)
+        mono.t += 0.03
         assert c.now() == stamp
         stamp += 0.3
     # silence: it runs on; when data resumes behind it, it does not step back
-    time.sleep(0.2)
+    mono.t += 0.2
     ran_on = c.now()
-    assert ran_on > stamp - 0.3 + 5
-    assert c.observe(stamp) >= ran_on and c.now() >= ran_on
+    assert ran_on == pytest.approx(stamp - 0.3 + 100 * (0.23 - 0.05))
+    assert c.observe(stamp) == ran_on and c.now() == ran_on
+    mono.t += 0.01  # data flows again: no run-on within the grace period
+    assert c.now() == ran_on
 
 
 def test_data_clock_follows_the_typical_sensor_not_one_whose_clock_jumped():

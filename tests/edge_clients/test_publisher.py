@@ -27,15 +27,15 @@ def test_packed_wire_format_and_liveliness_tokens():
         keys.all_alive("s1"), lambda s: alive.put((str(s.key_expr), s.kind == zenoh.SampleKind.PUT)))
     try:
         pub = SensorPublisher(sensor_side, "s1")
-        assert pub.wait_matched(["cam_1"], 10)
-        assert alive.get(timeout=5) == (keys.alive("s1", "cam_1"), True)
+        assert pub.wait_matched(["cam_1"], 30)
+        assert alive.get(timeout=30) == (keys.alive("s1", "cam_1"), True)
         kp = np.zeros((17, 3))
         kp[:, 0] = np.arange(17) + 0.1  # not float32-exact: the wire rounds it
         kp[:, 2] = 1.0
         msg = KeypointMessage(sensor="cam_1", seq=7, stamp=1.7e9 + 0.123456789, size=(848, 480),
                               persons=(Person(kp=kp),))
         pub.publish(msg)
-        raw = got.get(timeout=5)
+        raw = got.get(timeout=30)
         d = msgpack.unpackb(raw)
         assert isinstance(d["persons"][0]["kp"], bytes) and len(d["persons"][0]["kp"]) == 17 * 3 * 4
         back = decode(raw)
@@ -43,7 +43,7 @@ def test_packed_wire_format_and_liveliness_tokens():
         assert np.array_equal(back.persons[0].kp, kp.astype(np.float32).astype(np.float64))
         assert pub.stats["cam_1"].sent == 1 and pub.total == 1
         pub.close()
-        assert alive.get(timeout=5) == (keys.alive("s1", "cam_1"), False), "token gone when the sensor stops"
+        assert alive.get(timeout=30) == (keys.alive("s1", "cam_1"), False), "token gone when the sensor stops"
     finally:
         lsub.undeclare()
         sub.undeclare()
