@@ -169,7 +169,7 @@ def test_handoff_refuses_sensors_outside_the_session_on_the_zenoh_thread():
         t = threading.Thread(target=produce)
         t.start()
         t.join()
-        batch = await asyncio.wait_for(h.get_batch(100), 5)
+        batch = await asyncio.wait_for(h.get_batch(100), 30)
         assert [a.payload for a in batch] == [b"good"]  # only the session's sensor was queued
         assert h.received == 1 and h.dropped == 0 and h.refused == 100
         refused = h.take_refused()
