@@ -220,6 +220,8 @@ def calibrate(
                     + ", ".join(f"{n} {k}" for n, k in p.retimed.items()))
     if only_bootstrap:
         comment += f"\nnot calibrated online (kept the bootstrap's pose): {', '.join(only_bootstrap)}"
+    if p.split_check is not None:
+        comment += f"\n{p.split_check.summary()}"
     if rec is not None:
         comment += f"\n{rec.summary()}"
     scale = boot.scale if boot is not None else (check.people if check is not None else None)
@@ -274,6 +276,9 @@ def calibrate(
     for name, rep in p.preprocess.confidence_report().items():
         if rep["warning"]:
             console.print(f"[yellow]{name}: {rep['warning']}[/]", highlight=False)
+    if p.split_check is not None:
+        color = "yellow" if p.split_check.widened else "default"
+        console.print(f"[{color}]{p.split_check.summary()}[/]", highlight=False)
     if scale is not None:
         if boot is not None:
             console.print(f"metric {scale.summary()}", highlight=False)

@@ -195,6 +195,14 @@ class RefineConfig(_Section):
                                          "estimate: set by the hand-over), kept when it explains at least as many "
                                          "observations at a lower cost per observation")
     archive_frames: int = Field(10000, ge=100, description="preprocessed framesets kept for re-localisation and the final batch")
+    split_check: bool = Field(True, description="after the final batch, solve it again on each of two halves of the "
+                              "frames (alternate split_block s) and compare: a camera the halves place further apart "
+                              "than their own stds allow gets its std widened to what the data show (backend/"
+                              "split_check.py; costs about one more final batch)")
+    split_block: float = Field(10.0, gt=0, description="s: the blocks of frames the two halves alternate")
+    split_ratio: float = Field(2.5, gt=1, description="widen a camera's std when the halves' difference / sqrt(3) "
+                               "exceeds this many times the root sum of squares of the halves' stds (honest stds: "
+                               "below 2 nearly always)")
 
 
 class MonitorConfig(_Section):

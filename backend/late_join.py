@@ -213,10 +213,13 @@ class JoiningPipeline(Pipeline):
             j = self.joined
             if j.frames:
                 j.batch_adjust()
+                j.check_halves_safely()
             self.final_batch_start, self.cycle, self.last_report = j.final_batch_start, j.cycle, j.last_report
+            self.split_check = j.split_check
             return j.state()
         if self.frames:
             self.batch_adjust()
+            self.check_halves_safely()
         return self.state()
 
     @property

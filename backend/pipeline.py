@@ -44,6 +44,7 @@ from .refine import Refiner
 from .retime import RawArchive
 from .scale_check import ScaleCheck, check_run
 from .selection import HypothesisQueue
+from .split_check import SplitCheck, compare_halves, interleaved_halves
 from .stamp_watch import StampWatch
 from .state import CalibrationState, CameraState, Counters, CycleReport
 from .sync import Synchronizer
@@ -161,6 +162,7 @@ class Pipeline:
         self.final_batch_start: str | None = None  # the final batch kept: from the "estimate" or the "start"
         self.scale_heights = None if scale_heights is None else tuple(float(h) for h in scale_heights)
         self.scale_check: ScaleCheck | None = None
+        self.split_check: SplitCheck | None = None  # the final batch on two halves of the data
         self.clock: float | None = None
         self.cycle = 0
         self.cycles_rejected = 0
@@ -854,6 +856,7 @@ class Pipeline:
             self.batch_adjust()
             if self.estimating and self._calibrated():  # the offsets as the final poses see them
                 self.clocks.reestimate(self.clock, self.refiner.R, self.refiner.t, P=self.refiner.S)
+            self.check_halves_safely()
         if self.scale_heights is not None and self.scale_check is None and self.frames and self.cycle > 0:
             try:
                 self.check_scale()  # once: a second correction would scale the scale
@@ -892,6 +895,42 @@ class Pipeline:
         if self.scale_check is not None and self.scale_check.corrected:
             rf.rescale_frame(self.scale_check.apply)
         return self.scale_check
+
+    def check_halves_safely(self) -> None:
+        """``check_halves`` once, if ``refine.split_check``: a report on top of the result,
+        whose failure must not cost the final batch."""
+        if not self.cfg.refine.split_check or self.split_check is not None or not self.frames:
+            return
+        try:
+            self.check_halves()
+        except (ValueError, ArithmeticError, np.linalg.LinAlgError) as e:
+            log.warning("the split-half check failed, the stated std is kept: %s", e)
+
+    def check_halves(self) -> SplitCheck | None:
+        """The final batch on each of two interleaved halves of the archived frames, from
+        the result, compared with each other (backend/split_check.py): the cameras they
+        place further apart than the stated std allows get their covariance widened.
+        None when there are too few frames or a half fails."""
+        cfg = self.cfg.refine
+        frames = list(self.frames)
+        half = interleaved_halves(np.array([T for T, _ in frames]), cfg.split_block)
+        if min(int((half == 0).sum()), int((half == 1).sum())) < 10:
+            return None
+        cycle, out = self.cycle, []
+        for k in (0, 1):
+            p = self._batch_problem(max(10, cfg.batch_size // 2), self.cfg.select.min_spacing / 2,
+                                    [f for f, h in zip(frames, half) if h == k], final=True, seed=k)
+            sol = solve(p)
+            if not sol.ok:
+                self.cycle = cycle
+                return None
+            cov = np.where(np.isfinite(sol.cov_shape), sol.cov_shape, sol.cov)
+            out.append((sol.R, sol.t, sol.active & (self.refiner.cycles > 0), cov))
+        self.cycle = cycle  # the check is not a cycle of the calibration
+        rf = self.refiner
+        self.split_check = compare_halves(self.names, rf.S, out, cfg.split_ratio)
+        rf.widen(self.split_check.factor)
+        return self.split_check
 
     def batch_adjust(self) -> CycleReport:
         p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2, final=True)
@@ -953,7 +992,8 @@ class Pipeline:
         converged = bool(calibrated) and all(c.converged for c in calibrated)
         return CalibrationState(self.clock, self.cycle, tuple(cams), converged, self.counters(), self.last_report,
                                 clocks=self.clock_states(),
-                                scale_check=self.scale_check.to_dict() if self.scale_check is not None else None)
+                                scale_check=self.scale_check.to_dict() if self.scale_check is not None else None,
+                                split_check=self.split_check.to_dict() if self.split_check is not None else None)
 
     def skeletons(self, n: int = 4) -> list[list[list[float] | None]]:
         """The newest ``n`` hypotheses of distinct persons as 3D skeletons (17 joints, world
@@ -994,6 +1034,7 @@ class Pipeline:
             "clock_estimating": self.estimating,
             "scale_heights": None if self.scale_heights is None else list(self.scale_heights),
             "scale_check": self.scale_check.to_dict() if self.scale_check is not None else None,
+            "split_check": self.split_check.to_dict() if self.split_check is not None else None,
         }
 
     @classmethod
@@ -1011,6 +1052,8 @@ class Pipeline:
             p.scale_heights = tuple(float(h) for h in snapshot["scale_heights"])
         if snapshot.get("scale_check") is not None:
             p.scale_check = ScaleCheck.from_dict(snapshot["scale_check"])
+        if snapshot.get("split_check") is not None:
+            p.split_check = SplitCheck.from_dict(snapshot["split_check"])
         rf = p.refiner
         rf.R, rf.t, rf.P, rf.S = (np.array(snapshot[k], dtype=np.float64) for k in ("R", "t", "P", "S"))
         rf.R0, rf.t0 = np.array(snapshot["R0"]), np.array(snapshot["t0"])

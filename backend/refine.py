@@ -211,6 +211,15 @@ class Refiner:
         self.t[never] = apply(self.t[never])
         return self.keep_scale()
 
+    def widen(self, factor: np.ndarray) -> None:
+        """Each camera's covariances scaled by ``factor`` (C,) squared (std by ``factor``):
+        the spread the data show where it exceeds what the solve stated
+        (backend/split_check.py)."""
+        assert factor.shape == (len(self.P),) and np.all(factor >= 1.0)
+        f2 = (factor ** 2)[:, None, None]
+        self.P = self.P * f2
+        self.S = self.S * f2
+
     def change(self, c: int) -> tuple[float, float]:
         """Net pose change (m, deg) of camera c over its last ``converged_cycles`` cycles:
         a converging camera drifts; a converged one only jitters, which the filter averages."""

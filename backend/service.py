@@ -1473,7 +1473,10 @@ class Service:
                                        "far_from_start": [{"camera": n, "translation": m, "rotation": d, "chi2": x}
                                                           for n, m, d, x in s.pipeline.far_from_start()],
                                        # per sensor: archived views timed again with its final clock offset
-                                       "retimed": dict(s.pipeline.retimed)}
+                                       "retimed": dict(s.pipeline.retimed),
+                                       # the final batch on two halves of the data: stds widened where they disagree
+                                       "split_check": None if s.pipeline.split_check is None else
+                                       {**s.pipeline.split_check.to_dict(), "summary": s.pipeline.split_check.summary()}}
                     check = s.pipeline.scale_check
                     if check is not None:  # the initial estimate's scale against the people's
                         rec.scale = {**(rec.scale or {}), "check": check.to_dict(), "summary": check.summary()}

@@ -140,6 +140,7 @@ class CalibrationState:
     last_cycle: CycleReport | None
     clocks: tuple[SensorClock, ...] = ()  # sensor clock offsets (reference: the median sensor)
     scale_check: dict[str, Any] | None = None  # the initial estimate's scale against the people's (scale_check.py)
+    split_check: dict[str, Any] | None = None  # the final batch on two halves of the data (split_check.py)
 
     def camera(self, name: str) -> CameraState:
         for c in self.cameras:
@@ -167,4 +168,5 @@ class CalibrationState:
             "last_cycle": self.last_cycle.to_dict() if self.last_cycle else None,
             "clocks": {c.sensor: c.to_dict() for c in self.clocks},
             "scale_check": self.scale_check,
+            "split_check": self.split_check,
         }

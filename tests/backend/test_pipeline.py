@@ -736,3 +736,50 @@ def test_a_disputed_camera_whose_adjustment_agrees_keeps_its_estimate(lab):
     p.disputed.append(c)
     # the next report lists the restarts since the last one: the relocalised camera, not the kept one
     assert p.apply(p.next_problem(p.clock), replace(sol, R=rf.R.copy(), t=rf.t.copy())).restarted == (p.names[0],)
+
+
+def test_the_split_half_check_leaves_a_well_posed_run_alone_and_survives_a_snapshot(lab, run):
+    """The final batch on two halves of the frames: in this well-posed run they agree as
+    the stated std predicts, so nothing is widened (backend/split_check.py)."""
+    cams, _, _ = lab
+    p, _ = run
+    chk = p.split_check
+    assert chk is not None and chk.widened == [] and np.all(chk.factor == 1.0)
+    assert np.isfinite(chk.apart_m).sum() >= 5  # the cameras solved in both halves were judged
+    assert p.state().split_check == chk.to_dict() and p.state().cycle == p.cycle
+    q = Pipeline.restore(cams, EngineConfig(), json.loads(json.dumps(p.snapshot())))
+    assert q.state().split_check == p.state().split_check
+
+
+def test_the_split_half_check_widens_the_std_of_a_camera_the_halves_disagree_on(lab, run, monkeypatch):
+    """A camera one half places 0.3 m off: its std becomes what the halves show, the
+    others keep theirs, and the poses do not move."""
+    import copy
+
+    import backend.pipeline as pl
+
+    p = copy.deepcopy(run[0])
+    p.split_check = None
+    real = pl.solve
+    calls = []
+
+    def second_half_off(problem):
+        sol = real(problem)
+        calls.append(problem.kind)
+        if len(calls) == 2:  # the second half
+            t = sol.t.copy()
+            t[1] += [0.3, 0.0, 0.0]
+            sol = replace(sol, t=t)
+        return sol
+
+    monkeypatch.setattr(pl, "solve", second_half_off)
+    R, t, S = p.refiner.R.copy(), p.refiner.t.copy(), p.refiner.S.copy()
+    chk = p.check_halves()
+    assert calls == ["batch", "batch"] and chk is not None
+    assert chk.widened == [p.names[1]]
+    st_before = np.sqrt(np.trace(S[1, 3:, 3:]) / 3)
+    st_after = np.sqrt(np.trace(p.refiner.S[1, 3:, 3:]) / 3)
+    assert st_after == pytest.approx(st_before * chk.factor[1]) and chk.factor[1] > 2.5 and chk.apart_m[1] > 0.25
+    np.testing.assert_array_equal(np.delete(p.refiner.S, 1, axis=0), np.delete(S, 1, axis=0))
+    np.testing.assert_array_equal(p.refiner.R, R)
+    np.testing.assert_array_equal(p.refiner.t, t)

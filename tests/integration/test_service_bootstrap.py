@@ -100,6 +100,8 @@ def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, la
     assert stopped["state"] == "stopped" and stopped["final_batch"]["ran"]
     assert stopped["final_batch"]["far_from_start"] == []  # every camera where its data put it, within its std
     assert stopped["final_batch"]["retimed"] == {}  # no clock offsets estimated: no view timed again
+    # the final batch on two halves of the data ran in the solver and is reported
+    assert stopped["final_batch"]["split_check"]["summary"].startswith("split-half check")
 
     # the result: the placed cameras, the floor's frame and the people's scale in its header
     result = parse_extrinsics(result_text)
