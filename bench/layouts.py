@@ -135,6 +135,12 @@ def run(recording: Path, start: str, seed: int, persons: int, work: Path, overri
         return res
     res.update(position=a.position.mean, position_max=a.position.max, shape=a.shape_position.mean,
                orientation=a.orientation.mean, orientation_max=a.orientation.max, scale=a.scale)
+    # is the stated std honest? each camera's shape error against the std_translation it states
+    stds = {n: got[n].std_translation for n in a.per_camera if got[n].std_translation}
+    res["std_mean"] = float(np.mean(list(stds.values()))) if stds else float("nan")
+    res["beyond_3std"] = sum(1 for n, s in stds.items() if a.per_camera[n][2] > 3 * s)
+    res["cameras"] = len(a.per_camera)
+    res["split"] = next((ln for ln in header if ln.startswith("split-half check")), "")
     if initial is not None:
         b = evaluate({n: e.pose for n, e in initial.items()}, truth)
         res["initial_position"] = b.position.mean
@@ -148,20 +154,22 @@ def table(runs: list[dict], layouts: list[str], starts: list[str], args) -> str:
              f"uncalibrated, named above){' --set ' + ' '.join(args.overrides) if args.overrides else ''}",
              "",
              "| layout | start | ok | rigid pos (m) | worst camera (m) | shape pos (m) | orient (°) | worst (°) | scale "
-             "| initial rigid (m) | wall (s) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| stated std (m) | shape error > 3 std | initial rigid (m) | wall (s) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for lay in layouts:
         for st in starts:
             rs = [r for r in runs if r["layout"] == lay and r["start"] == st]
             ok = [r for r in rs if r["ok"]]
             short = sum(1 for r in ok if r["not_calibrated"])
             if not ok:
-                lines.append(f"| {lay} | {st} | 0/{len(rs)} | - | - | - | - | - | - | - | - |")
+                lines.append(f"| {lay} | {st} | 0/{len(rs)} | - | - | - | - | - | - | - | - | - | - |")
                 continue
             m = (lambda k, d=4: f"{np.mean([r[k] for r in ok]):.{d}f}")  # noqa: E731
             mx = (lambda k, d: f"{max(r[k] for r in ok):.{d}f}")  # noqa: E731
             lines.append(f"| {lay} | {st} | {len(ok)}/{len(rs)}" + (f" ({short} short)" if short else "")
                          + f" | {m('position')} | {mx('position_max', 3)} | "
                          f"{m('shape')} | {m('orientation', 3)} | {mx('orientation_max', 2)} | {m('scale')} | "
+                         f"{m('std_mean')} | {sum(r['beyond_3std'] for r in ok)}/{sum(r['cameras'] for r in ok)} | "
                          f"{m('initial_position', 3) if 'initial_position' in ok[0] else '-'} | {m('wall', 0)} |")
     return "\n".join(lines)
 
@@ -204,7 +212,9 @@ def main(argv: list[str] | None = None) -> None:
             con.print(f"  {r['layout']} {r['start']} seed {r['seed']}: " + (
                 f"rigid {r['position']:.4f} m (max {r['position_max']:.3f}), shape {r['shape']:.4f} m, "
                 f"{r['orientation']:.3f}° (max {r['orientation_max']:.2f}), scale {r['scale']:.4f}"
+                + f", stated std {r['std_mean']:.4f} m, {r['beyond_3std']} beyond 3 std"
                 + (f", not calibrated: {r['not_calibrated']}" if r['not_calibrated'] else "")
+                + (f"\n    {r['split']}" if r["split"] else "")
                 if r["ok"] else f"FAILED: {r['error']}") + f" | {r['wall']:.0f} s", highlight=False)
     con.print(table(runs, layouts, starts, args), highlight=False, soft_wrap=True)
     if args.out is not None:
