@@ -86,7 +86,7 @@ class SplitCheck:
         if not ok.any():
             return "split-half check: no camera was solved in both halves"
         worst = int(np.nanargmax(self.apart_m))
-        head = (f"split-half check: the two halves of the data agree within {np.nanmax(self.apart_m):.3f} m / "
+        head = (f"split-half check: the two halves of the data differ by up to {np.nanmax(self.apart_m):.3f} m / "
                 f"{np.nanmax(self.apart_deg):.2f}° ({self.names[worst]})")
         if not self.widened:
             return head + ", as the stated std predicts"
