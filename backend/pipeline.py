@@ -909,7 +909,7 @@ class Pipeline:
     def check_halves(self) -> SplitCheck | None:
         """The final batch on each of two interleaved halves of the archived frames, from
         the result, compared with each other (backend/split_check.py): the cameras they
-        place further apart than the stated std allows get their covariance widened.
+        place further apart than their own stds allow get their covariance widened.
         None when there are too few frames or a half fails."""
         cfg = self.cfg.refine
         frames = list(self.frames)

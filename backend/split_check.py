@@ -38,7 +38,7 @@ def interleaved_halves(times: np.ndarray, block: float) -> np.ndarray:
     return (np.floor((times - times.min()) / block).astype(np.int64) % 2)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SplitCheck:
     """The halves compared. Per camera (C,): apart_m, apart_deg the halves' difference
     after alignment (NaN: not in both); stated_m, stated_deg the std the full solve stated
