@@ -917,16 +917,17 @@ class Pipeline:
         if min(int((half == 0).sum()), int((half == 1).sum())) < 10:
             return None
         cycle, out = self.cycle, []
-        for k in (0, 1):
-            p = self._batch_problem(max(10, cfg.batch_size // 2), self.cfg.select.min_spacing / 2,
-                                    [f for f, h in zip(frames, half) if h == k], final=True, seed=k)
-            sol = solve(p)
-            if not sol.ok:
-                self.cycle = cycle
-                return None
-            cov = np.where(np.isfinite(sol.cov_shape), sol.cov_shape, sol.cov)
-            out.append((sol.R, sol.t, sol.active & (self.refiner.cycles > 0), cov))
-        self.cycle = cycle  # the check is not a cycle of the calibration
+        try:
+            for k in (0, 1):
+                p = self._batch_problem(max(10, cfg.batch_size // 2), self.cfg.select.min_spacing / 2,
+                                        [f for f, h in zip(frames, half) if h == k], final=True, seed=k)
+                sol = solve(p)
+                if not sol.ok:
+                    return None
+                cov = np.where(np.isfinite(sol.cov_shape), sol.cov_shape, sol.cov)
+                out.append((sol.R, sol.t, sol.active & (self.refiner.cycles > 0), cov))
+        finally:
+            self.cycle = cycle  # the check is not a cycle of the calibration
         rf = self.refiner
         self.split_check = compare_halves(self.names, rf.S, out, cfg.split_ratio)
         rf.widen(self.split_check.factor)

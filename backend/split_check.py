@@ -134,8 +134,8 @@ def compare_halves(names: Sequence[str], S: np.ndarray,
     st, sr = pose_std(S)
     (R0, t0, a0, P0), (R1, t1, a1, P1) = halves
     # what the two halves' own stds let their difference be, per axis (1D)
-    d_m = np.hypot(*(pose_std(P)[0] for P in (P0, P1)))
-    d_rad = np.hypot(*(pose_std(P)[1] for P in (P0, P1)))
+    (t0_std, r0_std), (t1_std, r1_std) = pose_std(P0), pose_std(P1)
+    d_m, d_rad = np.hypot(t0_std, t1_std), np.hypot(r0_std, r1_std)
     apart_m = np.full(C, np.nan)
     apart_deg = np.full(C, np.nan)
     both = a0 & a1 & np.isfinite(d_m) & (d_m > 0) & np.isfinite(d_rad) & (d_rad > 0)
