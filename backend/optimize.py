@@ -29,7 +29,7 @@ import numpy as np
 from .associate import Associator, Hypothesis, triangulate_hypotheses
 from .config import AssociateConfig, OptimizeConfig
 from .geometry import centres_fix_rotation, rotation_angle_deg, triangulate_batch
-from .people import label_persons, segments
+from .people import label_persons, oversized, segments
 from .preprocess import Detection
 from .selection import select_spaced
 
@@ -237,7 +237,10 @@ def hypotheses_and_persons(p: Problem) -> tuple[list[Hypothesis], np.ndarray]:
         hyps = list(p.hypotheses)
     person = np.full(len(hyps), -1, np.int64)
     if bones_wanted(p) and hyps:
-        person = label_persons(segments(hyps, p.R, p.t), links=_links(hyps))
+        seg = segments(hyps, p.R, p.t)
+        person = label_persons(seg, links=_links(hyps))
+        keep = ~oversized(seg, person, p.config.max_size_ratio)
+        hyps, person = [h for h, k in zip(hyps, keep) if k], person[keep]
     if p.frames and (p.max_hypotheses and len(hyps) > p.max_hypotheses or p.spacing > 0):
         index = {id(h): i for i, h in enumerate(hyps)}
         hyps = select_spaced(hyps, p.max_hypotheses or len(hyps), p.spacing, np.random.default_rng(p.seed),

@@ -272,6 +272,36 @@ def _label(seg: Segments, count: int | None, min_track: int, links: np.ndarray |
     return labels, track_of
 
 
+def oversized(seg: Segments, person: np.ndarray, ratio: float) -> np.ndarray:
+    """(N,) bool: hypotheses whose triangulated body is more than ``ratio`` times the
+    size of the largest person (``label_persons``' labels ``person`` (N,)): their views
+    met two persons. Size is the chain (shank + thigh + torso) against that person's
+    median one, or where a bone is missing the mean of the measured bones' ratios.
+
+    Two cameras that share no floor, with one walker in front of each on the line through
+    them, triangulate a giant beyond the far one: its rays cross near the plane of the
+    baseline, so the epipolar test cannot see it, and no third camera can. Measured in the
+    6-camera corridor (docs/bones.md, Session 33): such hypotheses came out 1.3-3x the
+    taller walker, the right ones at most 1.15x with the true poses."""
+    N = len(seg.time)
+    assert person.shape == (N,)
+    out = np.zeros(N, bool)
+    labelled = np.unique(person[person >= 0])
+    if ratio <= 0 or len(labelled) == 0:
+        return out
+    parts = np.stack([seg.shank, seg.thigh, seg.torso], axis=1)
+    ref = np.array([np.median(parts[person == k], axis=0) for k in labelled])  # labelled: all three finite
+    big = ref[np.argmax(ref.sum(axis=1))]
+    full = np.isfinite(parts).all(axis=1)
+    some = np.isfinite(parts).any(axis=1)
+    size = np.full(N, np.nan)
+    size[full] = parts[full].sum(axis=1) / big.sum()
+    part = some & ~full
+    size[part] = np.nanmean(parts[part] / big, axis=1)
+    out[some] = size[some] > ratio
+    return out
+
+
 def persons(seg: Segments, *, count: int | None = None, min_hypotheses: int = 10) -> list[Person]:
     """Tell persons apart (``label_persons``) and measure each: per-segment medians
     summed into the chain. Persons sorted tallest first."""

@@ -77,6 +77,64 @@ def test_bone_lengths_carry_scale_along_the_chain(chain):
     assert one.ok and one.final_error < one.initial_error and one.bone_lengths is not None
 
 
+def _giant(h, R, t, k: float):
+    """The two-view phantom of hypothesis h: its body blown up k times about its first
+    camera, which therefore sees it unchanged, and projected anew into the second: one
+    walker in front of each of two cameras whose rays meet beyond the far one."""
+    from backend.associate import Hypothesis, triangulate_hypotheses
+
+    a, b = int(h.cams[0]), int(h.cams[1])
+    X = t[a] + k * (triangulate_hypotheses([h], R, t)[0] - t[a])  # (17, 3), NaN = not triangulated
+    Xc = (X - t[b]) @ R[b]
+    xy = np.stack([h.xy[0], Xc[:, :2] / Xc[:, 2:]])
+    xy[:, ~np.isfinite(X).all(axis=1)] = np.nan
+    return Hypothesis(h.time, h.cams[:2].copy(), xy, h.sigma[:2].copy(), t[a] + k * (h.com - t[a]))
+
+
+def test_phantoms_far_larger_than_anyone_are_dropped_before_the_bones(chain):
+    """docs/bones.md, Session 33: in a corridor two cameras that share no floor, each with
+    a walker in front of it, triangulate a giant; a few such pairs bent a two-walker
+    corridor 0.2 m. Giants 1.6-2.2x the walker are dropped, the walker's own hypotheses kept."""
+    from backend.people import oversized
+
+    prob, _, _, _ = chain
+    cfg = prob.config.model_copy(update={"bones": "batch"})
+    real, person = hypotheses_and_persons(replace(prob, config=cfg, max_hypotheses=0, spacing=0.0))
+    rng = np.random.default_rng(0)
+    # of hypotheses measured whole (labelled): one measured in part is judged by fewer bones
+    giants = [_giant(real[i], prob.R, prob.t, k) for i, k in
+              zip(rng.choice(np.flatnonzero(person >= 0), 40, replace=False), rng.uniform(1.6, 2.2, 40))]
+    given = replace(prob, frames=(), hypotheses=tuple(real + giants), config=cfg)
+    kept, person = hypotheses_and_persons(given)
+    ids = {id(h) for h in kept}
+    assert not any(id(g) in ids for g in giants)
+    assert sum(id(h) in ids for h in real) >= 0.97 * len(real) and len(person) == len(kept)
+    # off: nothing dropped; without bones nothing is measured, so nothing either
+    off = replace(given, config=cfg.model_copy(update={"max_size_ratio": 0.0}))
+    assert len(hypotheses_and_persons(off)[0]) == len(real) + len(giants)
+    assert len(hypotheses_and_persons(replace(given, config=cfg.model_copy(update={"bones": "off"})))[0]) == len(
+        real) + len(giants)
+    seg = segments(real + giants, prob.R, prob.t)
+    assert not oversized(seg, np.full(len(real) + len(giants), -1), 1.3).any()  # no person to compare with
+
+
+def test_oversized_judges_missing_bones_by_those_measured():
+    from backend.people import Segments, oversized
+
+    N = 6
+    size = np.array([1.80, 1.65, 1.80, 2.70, 2.70, 1.90])
+    shank, thigh, torso = 0.246 * size, 0.245 * size, 0.2924 * size
+    shank[4] = thigh[4] = np.nan  # a giant seen only from the hips up
+    shank[5] = np.nan  # a real person's leg missing
+    torso[2] = np.nan
+    seg = Segments(np.arange(N) * 0.1, np.zeros((N, 3)), shank, thigh, torso, np.zeros((N, 2, 3)), np.zeros((N, 3)))
+    person = np.array([0, 1, -1, -1, -1, -1])
+    assert oversized(seg, person, 1.3).tolist() == [False, False, False, True, True, False]
+    assert not oversized(seg, person, 0.0).any()
+    allnan = replace(seg, shank=np.full(N, np.nan), thigh=np.full(N, np.nan), torso=np.full(N, np.nan))
+    assert not oversized(allnan, person, 1.3).any()
+
+
 @pytest.fixture(scope="module")
 def lab_room(lab_dir):
     """15 s of two walkers in the 20-camera lab, its true poses: (cameras, messages)."""
