@@ -144,6 +144,7 @@ class PairPose:
     s = 1, keyed by ``keys`` (N,) int = frame index * 17 + joint.
     bones: (len(BONE_NAMES),) float64 the median length of each bone over the agreeing
     frames for s = 1, NaN = seen too rarely (``pair_bones``).
+    size_spread: how much the person's size varies from frame to frame (``pair_size_spread``).
     """
 
     a: int
@@ -158,6 +159,7 @@ class PairPose:
     keys: np.ndarray = field(repr=False)
     depths: Mapping[int, np.ndarray] = field(repr=False)
     bones: np.ndarray = field(default_factory=lambda: np.full(len(BONE_NAMES), np.nan), repr=False)
+    size_spread: float = float("nan")  # ``pair_size_spread``
 
     def __post_init__(self) -> None:
         assert self.R.shape == (3, 3) and self.t.shape == (3,)
@@ -304,9 +306,39 @@ def pair_poses(frames: Sequence[Frame], cameras: int, focal: np.ndarray, cfg: Bo
         keys = (fid[sel] * 17 + jid[sel])[fine]
         res = float(np.median(np.abs(sampson_px(R, t, xa[sel], xb[sel], f))))
         points = za[fine, None] * np.c_[xa[sel][fine], np.ones(int(fine.sum()))]
+        bones = pair_bones(keys, points)
         out.append(PairPose(a, b, R, t, good, len(fis), int(sel.sum()), res, angle, keys,
-                            {a: za[fine], b: zb[fine]}, pair_bones(keys, points)))
+                            {a: za[fine], b: zb[fine]}, bones, pair_size_spread(keys, points, bones)))
     return out, len(tried)
+
+
+def _frame_bones(keys: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(F, len(BONES)) each bone's length in each frame of ``keys`` (NaN = a joint missing)."""
+    frame, joint = np.divmod(keys, 17)
+    uf, row = np.unique(frame, return_inverse=True)
+    P = np.full((len(uf), 17, 3), np.nan)
+    P[row, joint] = points
+    return np.linalg.norm(P[:, BONES[:, 1]] - P[:, BONES[:, 2]], axis=2)
+
+
+def pair_size_spread(keys: np.ndarray, points: np.ndarray, bones: np.ndarray) -> float:
+    """How much one pair's person changes size from frame to frame: the robust std (1.4826
+    MAD) of each frame's median bone length relative to ``bones`` (the pair's medians,
+    ``pair_bones``); NaN without a measured bone. One person keeps its size: in the
+    simulated corridors and the lab, pairs that saw one person spread 0.03-0.09 (a few
+    noisy ones to 0.16); a pair whose two cameras saw two different people that moved
+    alike (a phantom that survived the essential matrix) spread 0.15-0.25. Keys and points
+    as ``pair_bones``."""
+    if not len(keys) or not np.isfinite(bones).any():
+        return float("nan")
+    L = _frame_bones(keys, points)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = L / bones[BONES[:, 0]]
+    fin = np.isfinite(r).any(axis=1)
+    if not fin.any():
+        return float("nan")
+    per_frame = np.nanmedian(r[fin], axis=1)
+    return float(1.4826 * np.median(np.abs(per_frame - 1.0)))
 
 
 def pair_bones(keys: np.ndarray, points: np.ndarray, *, min_frames: int = 10) -> np.ndarray:
@@ -317,11 +349,7 @@ def pair_bones(keys: np.ndarray, points: np.ndarray, *, min_frames: int = 10) ->
     out = np.full(len(BONE_NAMES), np.nan)
     if not len(keys):
         return out
-    frame, joint = np.divmod(keys, 17)
-    uf, row = np.unique(frame, return_inverse=True)
-    P = np.full((len(uf), 17, 3), np.nan)
-    P[row, joint] = points
-    L = np.linalg.norm(P[:, BONES[:, 1]] - P[:, BONES[:, 2]], axis=2)  # (F, bones)
+    L = _frame_bones(keys, points)
     for k in range(len(BONE_NAMES)):
         v = L[:, BONES[:, 0] == k].ravel()
         v = v[np.isfinite(v)]
@@ -603,6 +631,27 @@ def bridges(cameras: int, edges: Sequence[tuple[int, int]]) -> np.ndarray:
         out[k] = lab[ab[k, 0]] != lab[ab[k, 1]]
         every[k] = True
     return out
+
+
+_MIN_PHANTOM_SPREAD = 0.10  # a person's size varying by less is noise of a tight network, not two people
+
+
+def _without_phantom_bridges(cameras: int, pairs: list[PairPose], ratio: float
+                             ) -> tuple[list[PairPose], list[PairPose]]:
+    """(kept, dropped): bridge pairs (``bridges``) whose ``size_spread`` exceeds ``ratio``
+    times the median over ``pairs`` and ``_MIN_PHANTOM_SPREAD`` are dropped. A bridge has
+    no cycle to check it, and in a corridor with several walkers two cameras that share no
+    floor each see one of two people who move alike often enough for an essential matrix;
+    measured, such a pair spread 0.16 (2.8x the median) and chained the corridor 1.7 m
+    off, the right bridges 0.6-1.2x (docs/bones.md, Session 33). 0: off."""
+    if ratio <= 0 or len(pairs) < 3:
+        return pairs, []
+    spread = np.array([p.size_spread for p in pairs])
+    if not np.isfinite(spread).any():
+        return pairs, []
+    limit = max(ratio * float(np.nanmedian(spread)), _MIN_PHANTOM_SPREAD)
+    drop = bridges(cameras, [(p.a, p.b) for p in pairs]) & (np.nan_to_num(spread) > limit)
+    return [p for p, d in zip(pairs, drop) if not d], [p for p, d in zip(pairs, drop) if d]
 
 
 def core_cameras(cameras: int, edges: Sequence[tuple[int, int]]) -> np.ndarray:
@@ -965,6 +1014,10 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     R, connected, rres = average_rotations(C, pairs, sigma_deg=cfg.rotation_outlier / 2)
     inl = rres <= cfg.rotation_outlier
     good = [p for p, ok in zip(pairs, inl) if ok]
+    good, phantoms = _without_phantom_bridges(C, good, cfg.bridge_spread)
+    if phantoms:
+        say("bridge pairs whose person changed size as two people would, dropped: "
+            + ", ".join(f"{names[p.a]}-{names[p.b]} (spread {p.size_spread:.2f})" for p in phantoms))
     R, connected, _ = average_rotations(C, good, sigma_deg=cfg.rotation_outlier / 2)
     logs, scaled, bone_links = pair_scales(good, cfg)
     t, located = place_cameras(C, R, good, logs, scaled)
