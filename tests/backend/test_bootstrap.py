@@ -156,6 +156,41 @@ def test_bones_relate_the_scales_of_a_chain_without_shared_joints():
     assert not known[2] and known.sum() == 2 and used == 1
 
 
+def test_a_pair_that_saw_two_people_changes_their_size_and_as_a_bridge_is_dropped():
+    """docs/bones.md, Session 33: in a corridor with three walkers, cameras 0 and 3 (no
+    floor in common) each saw one of two people often enough for an essential matrix, and
+    that pair bridged two halves of the chain 1.7 m off. One person keeps its size from
+    frame to frame; the joints of two people, one triangulated at the other's depth, do not."""
+    from backend.bootstrap import _without_phantom_bridges, pair_size_spread
+
+    rng = RNG(7)
+    walker = _walker(rng, 60)  # (F, 17, 3)
+    keys = (np.arange(60)[:, None] * 17 + np.arange(17)).ravel()
+    one = (walker + rng.normal(0, 0.01, walker.shape)).reshape(-1, 3)
+    # a phantom: each frame the second person's rays meet the first's at another depth
+    two = (walker * rng.uniform(0.6, 1.5, (60, 1, 1)) + rng.normal(0, 0.01, walker.shape)).reshape(-1, 3)
+    s_one, s_two = pair_size_spread(keys, one, pair_bones(keys, one)), pair_size_spread(keys, two, pair_bones(keys, two))
+    assert s_one < 0.05 < 0.15 < s_two
+    assert np.isnan(pair_size_spread(keys[:0], one[:0], pair_bones(keys[:0], one[:0])))
+
+    def pair(a, b, spread):
+        return PairPose(a, b, np.eye(3), np.array([1.0, 0, 0]), np.arange(40), 40, 600, 1.0, 30.0,
+                        np.zeros(0, np.int64), {a: np.zeros(0), b: np.zeros(0)}, size_spread=spread)
+
+    # the chain 0-1-2 and 3-4-5, joined by the phantom 0-3; a triangle 5-6-7 on the side
+    chain = [pair(0, 1, s_one), pair(1, 2, 0.05), pair(0, 3, s_two), pair(3, 4, 0.06), pair(4, 5, 0.04),
+             pair(5, 6, 0.05), pair(6, 7, 0.05), pair(5, 7, 0.05)]
+    kept, dropped = _without_phantom_bridges(8, chain, 2.0)
+    assert [(p.a, p.b) for p in dropped] == [(0, 3)] and len(kept) == len(chain) - 1
+    # in a cycle of pairs the same spread is left to the cycle's checks; off: nothing dropped
+    cycled = chain + [pair(2, 4, 0.05)]
+    assert not _without_phantom_bridges(8, cycled, 2.0)[1]
+    assert not _without_phantom_bridges(8, chain, 0.0)[1]
+    # a tight network (median 0.03) keeps a bridge at 0.08: under 10 % is noise, not two people
+    tight = [pair(0, 1, 0.03), pair(1, 2, 0.03), pair(2, 3, 0.08), pair(3, 4, 0.03)]
+    assert not _without_phantom_bridges(5, tight, 2.0)[1]
+
+
 def test_scale_from_a_known_height_and_from_the_prior():
     unit = 0.25  # metres per pose unit: the poses are 4x too large
     H = 1.85
