@@ -1070,7 +1070,8 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
         R, t = sol.R.copy(), sol.t.copy()
         located &= sol.active  # a camera the adjustment could not constrain is not placed
         say(f"bundle adjustment {r}/{rounds}: {sol.hypotheses} hypotheses, {int(sol.active.sum())} cameras, "
-            f"median reprojection {np.median(sol.residual_px) if len(sol.residual_px) else float('nan'):.2f} px")
+            f"median reprojection {np.median(sol.residual_px) if len(sol.residual_px) else float('nan'):.2f} px"
+            + (f", {sol.phantoms} far larger than anyone dropped" if sol.phantoms else ""))
         if last and sol.ok:
             residual_px, observations = sol.residual_cam_px.copy(), sol.obs_per_camera.copy()
             for c in np.flatnonzero(sol.active):

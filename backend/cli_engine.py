@@ -220,6 +220,9 @@ def calibrate(
                     + ", ".join(f"{n} {k}" for n, k in p.retimed.items()))
     if only_bootstrap:
         comment += f"\nnot calibrated online (kept the bootstrap's pose): {', '.join(only_bootstrap)}"
+    if p.last_report is not None and p.last_report.phantoms:
+        comment += (f"\nfinal batch adjustment: {p.last_report.phantoms} hypotheses dropped as far larger than "
+                    "anyone seen (two people's views, optimize.max_size_ratio)")
     if p.split_check is not None:
         comment += f"\n{p.split_check.summary()}"
     if rec is not None:

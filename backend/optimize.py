@@ -137,6 +137,7 @@ class Solution:
     seconds: float
     bone_lengths: np.ndarray | None = None  # (K, len(BONE_NAMES)) bone lengths per person after the solve, NaN = unseen
     residual_cam_px: np.ndarray | None = None  # (C,) median of each camera's residual_px, NaN = no observation
+    phantoms: int = 0  # hypotheses dropped as far larger than anyone seen (optimize.max_size_ratio)
 
 
 # COCO-17 bones; left and right share one length: (length index, joint a, joint b)
@@ -228,6 +229,13 @@ def hypotheses_and_persons(p: Problem) -> tuple[list[Hypothesis], np.ndarray]:
     """The problem's hypotheses and (H,) int the person of each (-1 = none; all -1 when
     ``bones_wanted`` is not). Persons are told apart on every hypothesis before the
     thinning to ``max_hypotheses``: tracking needs the neighbours in time."""
+    hyps, person, _ = _hypotheses_persons_phantoms(p)
+    return hyps, person
+
+
+def _hypotheses_persons_phantoms(p: Problem) -> tuple[list[Hypothesis], np.ndarray, int]:
+    """``hypotheses_and_persons`` and how many hypotheses it dropped as phantoms
+    (``people.oversized``)."""
     if p.frames:
         assoc = Associator(p.associate)
         hyps: list[Hypothesis] = []
@@ -236,17 +244,19 @@ def hypotheses_and_persons(p: Problem) -> tuple[list[Hypothesis], np.ndarray]:
     else:
         hyps = list(p.hypotheses)
     person = np.full(len(hyps), -1, np.int64)
+    phantoms = 0
     if bones_wanted(p) and hyps:
         seg = segments(hyps, p.R, p.t)
         person = label_persons(seg, links=_links(hyps))
         keep = ~oversized(seg, person, p.config.max_size_ratio)
         hyps, person = [h for h, k in zip(hyps, keep) if k], person[keep]
+        phantoms = int((~keep).sum())
     if p.frames and (p.max_hypotheses and len(hyps) > p.max_hypotheses or p.spacing > 0):
         index = {id(h): i for i, h in enumerate(hyps)}
         hyps = select_spaced(hyps, p.max_hypotheses or len(hyps), p.spacing, np.random.default_rng(p.seed),
                              fill=p.fill)
         person = person[[index[id(h)] for h in hyps]]
-    return hyps, person
+    return hyps, person, phantoms
 
 
 def _without_view(h: Hypothesis, k: int) -> Hypothesis:
@@ -319,7 +329,7 @@ def solve(p: Problem) -> Solution:
         return _relocalize(p)
     t0 = time.perf_counter()
     C = len(p.R)
-    hyps, person = hypotheses_and_persons(p)
+    hyps, person, phantoms = _hypotheses_persons_phantoms(p)
     if p.kind == "batch" and p.pose_px is not None and p.config.batch_view_check:
         hyps, person = _drop_inconsistent_views(hyps, person, p)
     person = person if (person >= 0).any() else None
@@ -374,7 +384,8 @@ def solve(p: Problem) -> Solution:
         per_cam[c] = np.median(res[g.obs_cam == c])
     return Solution(reason == "", reason, R, t, cov, cov_shape, g.active, np.bincount(g.obs_cam, minlength=C),
                     int(len(np.unique(g.lm_hyp))), res, float(first_error), float(final_error),
-                    iterations + its, time.perf_counter() - t0, bone_lengths=lengths, residual_cam_px=per_cam)
+                    iterations + its, time.perf_counter() - t0, bone_lengths=lengths, residual_cam_px=per_cam,
+                    phantoms=phantoms)
 
 
 def _relocalize(p: Problem) -> Solution:

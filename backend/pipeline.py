@@ -684,6 +684,7 @@ class Pipeline:
             recalibrated=recalibrated,
             restarted=tuple(dict.fromkeys(self._restarted_new)),
             starved=not accepted and solution.reason == NOTHING_TO_SOLVE,
+            phantoms=solution.phantoms,
         )
         self._restarted_new.clear()
         self.last_report = report

@@ -101,6 +101,9 @@ class CycleReport:
     # rejected with nothing to solve (no landmark placed: garbled data, or none that fits the
     # estimate); not the optimizer failing, so a session is not failed for such cycles
     starved: bool = False
+    # hypotheses dropped as far larger than anyone seen: two walkers' views in cameras that
+    # share no floor (optimize.max_size_ratio; adjustments with bones only)
+    phantoms: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

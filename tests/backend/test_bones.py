@@ -116,6 +116,9 @@ def test_phantoms_far_larger_than_anyone_are_dropped_before_the_bones(chain):
         real) + len(giants)
     seg = segments(real + giants, prob.R, prob.t)
     assert not oversized(seg, np.full(len(real) + len(giants), -1), 1.3).any()  # no person to compare with
+    # the solve counts them (the final batch's report and `extrcal calibrate`'s header say it)
+    sol = solve(given)
+    assert sol.ok and sol.phantoms == len(real) + len(giants) - len(kept)
 
 
 def test_oversized_judges_missing_bones_by_those_measured():
