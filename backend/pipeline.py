@@ -937,6 +937,15 @@ class Pipeline:
     def batch_adjust(self) -> CycleReport:
         p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2, final=True)
         sol = solve(p)
+        if sol.ok and sol.phantoms:
+            # Phantoms are judged by their size in the start's scale, and a link of a chain
+            # that the online cycles drew 1.3x too long loses its right hypotheses with them.
+            # Its bones put the link right in this solve: associated and judged again from
+            # there, those come back and the phantoms stay out.
+            q = replace(p, R=sol.R.copy(), t=sol.t.copy())
+            again = solve(q)
+            if again.ok:
+                p, sol = q, again
         if self.cfg.refine.final_batch_from_start:
             p, sol = self._batch_from_start(p, sol)
         self._inflight = p
