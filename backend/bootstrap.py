@@ -325,10 +325,10 @@ def pair_size_spread(keys: np.ndarray, points: np.ndarray, bones: np.ndarray) ->
     """How much one pair's person changes size from frame to frame: the robust std (1.4826
     MAD) of each frame's median bone length relative to ``bones`` (the pair's medians,
     ``pair_bones``); NaN without a measured bone. One person keeps its size: in the
-    simulated corridors and the lab, pairs that saw one person spread 0.03-0.09 (a few
-    noisy ones to 0.16); a pair whose two cameras saw two different people that moved
-    alike (a phantom that survived the essential matrix) spread 0.15-0.25. Keys and points
-    as ``pair_bones``."""
+    simulated corridors and the lab, pairs that saw one person spread 0.01-0.09 (a few
+    noisy ones to 0.16); pairs whose two cameras saw two different people that moved alike
+    (phantoms that survived the essential matrix) 0.15 and far more (docs/bones.md,
+    Session 33). Keys and points as ``pair_bones``."""
     if not len(keys) or not np.isfinite(bones).any():
         return float("nan")
     L = _frame_bones(keys, points)
