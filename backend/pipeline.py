@@ -941,11 +941,11 @@ class Pipeline:
             # Phantoms are judged by their size in the start's scale, and a link of a chain
             # that the online cycles drew 1.3x too long loses its right hypotheses with them.
             # Its bones put the link right in this solve: associated and judged again from
-            # there, those come back and the phantoms stay out.
-            q = replace(p, R=sol.R.copy(), t=sol.t.copy())
-            again = solve(q)
+            # there, those come back and the phantoms stay out. The problem kept for the
+            # report is the first: what moved is measured from the online estimate.
+            again = solve(replace(p, R=sol.R.copy(), t=sol.t.copy()))
             if again.ok:
-                p, sol = q, again
+                sol = again
         if self.cfg.refine.final_batch_from_start:
             p, sol = self._batch_from_start(p, sol)
         self._inflight = p
