@@ -32,12 +32,13 @@ import numpy as np
 
 from proto import KeypointMessage
 
-from .associate import Associator
+from .associate import Associator, Hypothesis
 from .cameras import CameraSet
 from .clock_offsets import ClockJob, ClockOffsetEstimator, ClockResult, SensorClock
 from .config import EngineConfig
 from .geometry import pose_local, pose_std
 from .monitor import Alarm, Monitor
+from .people import segments
 from .optimize import NOTHING_TO_SOLVE, Problem, Solution, solve
 from .preprocess import Detection, Preprocessor
 from .refine import Refiner
@@ -146,6 +147,8 @@ class Pipeline:
         self.detected_total = np.zeros(C, dtype=np.int64)
         self.associated_total = np.zeros(C, dtype=np.int64)
         self.associated_multi = np.zeros(C, dtype=np.int64)  # ... in hypotheses of >= min_views_unsettled views
+        # shank, thigh, torso lengths of recent hypotheses of a chain (_without_giants), NaN = not measured
+        self.sizes: deque[tuple[float, float, float]] = deque(maxlen=2000)
         self.last_lost_check: float | None = None
         self.first_passes = 0  # passes of the first adjustment done (select.first_scope)
         self.first_gated: list[str] = []  # cameras a first pass put implausibly far, kept at their start
@@ -259,6 +262,8 @@ class Pipeline:
         """One preprocessed frameset (>= 2 views): archive, associate, queue, count."""
         self.frames.append((time, views))
         hyps = self.associate(time, views, R, t, gate, pose_px)
+        if hyps and self.cfg.optimize.max_size_ratio > 0 and self._pairwise_only().any():
+            hyps = self._without_giants(hyps, R, t)
         self.queue.extend(hyps)
         self.monitor.add(hyps)
         if self.estimating:
@@ -573,6 +578,33 @@ class Pipeline:
         self.detected = det // 2
         self.associated = assoc // 2
         return [int(c) for c in np.flatnonzero(lost | self._never_associated())]
+
+    def _without_giants(self, hyps: list[Hypothesis], R: np.ndarray, t: np.ndarray) -> list[Hypothesis]:
+        """In a chain, the cycles' hypotheses without phantoms: two cameras that share no
+        floor, each with one walker in front of it, triangulate a body far larger than
+        anyone (``people.oversized``, which the final batch uses with the persons told
+        apart). The cycles have none; per bone, a high quantile (0.9) of the recent
+        hypotheses' lengths stands in for the largest person's, and a hypothesis whose
+        measured bones are on average more than ``optimize.max_size_ratio`` times as long
+        is dropped (counted as the association's "phantom"). A few phantoms in one cycle
+        dragged a camera of a two-walker corridor 0.7 m (docs/bones.md, Session 33)."""
+        seg = segments(hyps, R, t)
+        parts = np.stack([seg.shank, seg.thigh, seg.torso], axis=1)
+        ref = None
+        if len(self.sizes) >= 200:
+            with np.errstate(all="ignore"):
+                ref = np.nanquantile(np.array(self.sizes), 0.9, axis=0)
+        self.sizes.extend(map(tuple, parts.tolist()))
+        if ref is None or not np.all(np.isfinite(ref)):
+            return hyps
+        some = np.isfinite(parts).any(axis=1)
+        with np.errstate(all="ignore"):
+            size = np.nanmean(parts / ref, axis=1)
+        giant = some & (size > self.cfg.optimize.max_size_ratio)
+        if not giant.any():
+            return hyps
+        self.associate.rejected["phantom"] += int(giant.sum())
+        return [h for h, g in zip(hyps, giant) if not g]
 
     def _pairwise_only(self) -> np.ndarray:
         """(C,) cameras that see people with one other camera but (almost) never with two
