@@ -147,7 +147,7 @@ class Pipeline:
         self.detected_total = np.zeros(C, dtype=np.int64)
         self.associated_total = np.zeros(C, dtype=np.int64)
         self.associated_multi = np.zeros(C, dtype=np.int64)  # ... in hypotheses of >= min_views_unsettled views
-        # shank, thigh, torso lengths of recent hypotheses of a chain (_without_giants), NaN = not measured
+        # shank, thigh, torso lengths of recent hypotheses (_without_giants), NaN = not measured
         self.sizes: deque[tuple[float, float, float]] = deque(maxlen=2000)
         self.last_lost_check: float | None = None
         self.first_passes = 0  # passes of the first adjustment done (select.first_scope)
@@ -262,7 +262,7 @@ class Pipeline:
         """One preprocessed frameset (>= 2 views): archive, associate, queue, count."""
         self.frames.append((time, views))
         hyps = self.associate(time, views, R, t, gate, pose_px)
-        if hyps and self.cfg.optimize.max_size_ratio > 0 and self._pairwise_only().any():
+        if hyps and self.cfg.optimize.max_size_ratio > 0:
             hyps = self._without_giants(hyps, R, t)
         self.queue.extend(hyps)
         self.monitor.add(hyps)
@@ -580,14 +580,15 @@ class Pipeline:
         return [int(c) for c in np.flatnonzero(lost | self._never_associated())]
 
     def _without_giants(self, hyps: list[Hypothesis], R: np.ndarray, t: np.ndarray) -> list[Hypothesis]:
-        """In a chain, the cycles' hypotheses without phantoms: two cameras that share no
-        floor, each with one walker in front of it, triangulate a body far larger than
-        anyone (``people.oversized``, which the final batch uses with the persons told
-        apart). The cycles have none; per bone, a high quantile (0.9) of the recent
-        hypotheses' lengths stands in for the largest person's, and a hypothesis whose
-        measured bones are on average more than ``optimize.max_size_ratio`` times as long
-        is dropped (counted as the association's "phantom"). A few phantoms in one cycle
-        dragged a camera of a two-walker corridor 0.7 m (docs/bones.md, Session 33)."""
+        """The cycles' hypotheses without phantoms: views of two walkers whose rays meet
+        where their joints form a body far larger than anyone (``people.oversized``, which
+        the final batch uses with the persons told apart; two cameras that share no floor,
+        each with one walker in front of it). The cycles have no persons told apart; per
+        bone, a high quantile (0.9) of the recent hypotheses' lengths stands in for the
+        largest person's, and a hypothesis whose measured bones are on average more than
+        ``optimize.max_size_ratio`` times as long is dropped (counted as the association's
+        "phantom"). A few phantoms in one cycle dragged a camera of a two-walker corridor
+        0.7 m, and cam_5 of the lab with six walkers 1.2 m (docs/bones.md, Session 33)."""
         seg = segments(hyps, R, t)
         parts = np.stack([seg.shank, seg.thigh, seg.torso], axis=1)
         ref = None

@@ -413,9 +413,12 @@ def lab20_crowd(lab_dir):
 def test_cycles_do_not_drag_a_camera_faster_than_its_uncertainty_allows(lab20_crowd, gate):
     """Without the gate (0), cycles 3 and 4 take cam_5 from 0.5 to 1.1 m off (χ² 160-220
     against their prior, all from hypotheses that join its view of one walker to the
-    others' views of another); with it those moves are not taken."""
+    others' views of another); with it those moves are not taken. The phantoms' filter
+    (optimize.max_size_ratio) is off here: it drops most of those hypotheses first (the
+    next test)."""
     cams, truth, msgs = lab20_crowd
-    p = run_offline(cams, EngineConfig().merged({"select": {"cycle_gate": gate}}), msgs, seed=0, finish=False)
+    cfg = EngineConfig().merged({"select": {"cycle_gate": gate}, "optimize": {"max_size_ratio": 0.0}})
+    p = run_offline(cams, cfg, msgs, seed=0, finish=False)
     assert p.cycle > 20
     off = float(np.linalg.norm(p.refiner.t[cams.names.index("cam_5")] - truth["cam_5"].t))
     if gate:
@@ -423,6 +426,19 @@ def test_cycles_do_not_drag_a_camera_faster_than_its_uncertainty_allows(lab20_cr
         assert off < 0.6
     else:
         assert not p.cycle_gated and off > 1.0
+
+
+def test_hypotheses_far_larger_than_anyone_do_not_reach_the_cycles(lab20_crowd):
+    """The same crowd without the cycle gate: the hypotheses that dragged cam_5 1.2 m off
+    join two walkers into a body far larger than anyone, and the association's size check
+    drops them (docs/bones.md, Session 33): cam_5 stays within 0.3 m, no camera goes
+    further than 0.4 m, and the drops are counted."""
+    cams, truth, msgs = lab20_crowd
+    p = run_offline(cams, EngineConfig().merged({"select": {"cycle_gate": 0.0}}), msgs, seed=0, finish=False)
+    off = {n: float(np.linalg.norm(p.refiner.t[c] - truth[n].t)) for c, n in enumerate(cams.names)}
+    assert off["cam_5"] < 0.3 and max(off.values()) < 0.4, off
+    assert p.associate.rejected["phantom"] > 0
+    assert p.counters().views_rejected["phantom"] == p.associate.rejected["phantom"]
 
 
 def test_the_first_gate_trusts_the_data_when_most_cameras_go_that_far(lab):
