@@ -285,21 +285,27 @@ def oversized(seg: Segments, person: np.ndarray, ratio: float) -> np.ndarray:
     taller walker, the right ones at most 1.15x with the true poses."""
     N = len(seg.time)
     assert person.shape == (N,)
-    out = np.zeros(N, bool)
     labelled = np.unique(person[person >= 0])
     if ratio <= 0 or len(labelled) == 0:
-        return out
+        return np.zeros(N, bool)
     parts = np.stack([seg.shank, seg.thigh, seg.torso], axis=1)
     ref = np.array([np.median(parts[person == k], axis=0) for k in labelled])  # labelled: all three finite
-    big = ref[np.argmax(ref.sum(axis=1))]
+    size = relative_size(seg, ref[np.argmax(ref.sum(axis=1))])
+    return np.nan_to_num(size) > ratio
+
+
+def relative_size(seg: Segments, ref: np.ndarray) -> np.ndarray:
+    """(N,) each hypothesis' size against ``ref`` (3,) shank, thigh, torso lengths: its
+    chain over ref's, or where a bone is missing the mean of the measured bones' ratios;
+    NaN where none is measured."""
+    assert ref.shape == (3,)
+    parts = np.stack([seg.shank, seg.thigh, seg.torso], axis=1)
     full = np.isfinite(parts).all(axis=1)
-    some = np.isfinite(parts).any(axis=1)
-    size = np.full(N, np.nan)
-    size[full] = parts[full].sum(axis=1) / big.sum()
-    part = some & ~full
-    size[part] = np.nanmean(parts[part] / big, axis=1)
-    out[some] = size[some] > ratio
-    return out
+    part = np.isfinite(parts).any(axis=1) & ~full
+    size = np.full(len(parts), np.nan)
+    size[full] = parts[full].sum(axis=1) / ref.sum()
+    size[part] = np.nanmean(parts[part] / ref, axis=1)
+    return size
 
 
 def persons(seg: Segments, *, count: int | None = None, min_hypotheses: int = 10) -> list[Person]:

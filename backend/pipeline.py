@@ -38,8 +38,8 @@ from .clock_offsets import ClockJob, ClockOffsetEstimator, ClockResult, SensorCl
 from .config import EngineConfig
 from .geometry import pose_local, pose_std
 from .monitor import Alarm, Monitor
-from .people import segments
 from .optimize import NOTHING_TO_SOLVE, Problem, Solution, solve
+from .people import relative_size, segments
 from .preprocess import Detection, Preprocessor
 from .refine import Refiner
 from .retime import RawArchive
@@ -585,27 +585,22 @@ class Pipeline:
     def _without_giants(self, hyps: list[Hypothesis], R: np.ndarray, t: np.ndarray) -> list[Hypothesis]:
         """The hypotheses without phantoms, while some camera sees people only in pairs
         (``_pairwise_only``): views of two walkers whose rays meet where their joints form
-        a body far larger than anyone (``people.oversized``, which
-        the final batch uses with the persons told apart; two cameras that share no floor,
-        each with one walker in front of it). The cycles have no persons told apart; per
-        bone, a high quantile (0.9) of the recent hypotheses' lengths stands in for the
-        largest person's, and a hypothesis whose measured bones are on average more than
-        ``optimize.max_size_ratio`` times as long is dropped (counted as the association's
-        "phantom"). A few phantoms in one cycle dragged a camera of a two-walker corridor
+        a body far larger than anyone (``people.oversized``, which the final batch uses with
+        the persons told apart; two cameras that share no floor, each with one walker in
+        front of it). The cycles have no persons told apart; per bone, a high quantile
+        (0.9) of the recent hypotheses' lengths stands in for the largest person's, and a
+        hypothesis more than ``optimize.max_size_ratio`` times its size
+        (``people.relative_size``) is dropped (counted as the association's "phantom"). A few phantoms in one cycle dragged a camera of a two-walker corridor
         0.7 m, and cam_5 of the lab with six walkers 1.2 m (docs/bones.md, Session 33)."""
         seg = segments(hyps, R, t)
-        parts = np.stack([seg.shank, seg.thigh, seg.torso], axis=1)
         ref = None
         if len(self.sizes) >= 200:
             with np.errstate(all="ignore"):
                 ref = np.nanquantile(np.array(self.sizes), 0.9, axis=0)
-        self.sizes.extend(map(tuple, parts.tolist()))
+        self.sizes.extend(zip(seg.shank.tolist(), seg.thigh.tolist(), seg.torso.tolist()))
         if ref is None or not np.all(np.isfinite(ref)):
             return hyps
-        some = np.isfinite(parts).any(axis=1)
-        with np.errstate(all="ignore"):
-            size = np.nanmean(parts / ref, axis=1)
-        giant = some & (size > self.cfg.optimize.max_size_ratio)
+        giant = np.nan_to_num(relative_size(seg, ref)) > self.cfg.optimize.max_size_ratio
         if not giant.any():
             return hyps
         self.associate.rejected["phantom"] += int(giant.sum())
