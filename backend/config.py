@@ -293,7 +293,7 @@ class BootstrapConfig(_Section):
     rotation_outlier: float = Field(5.0, gt=0, description="deg: a pair disagreeing more with the averaged rotations is dropped")
     bridge_spread: float = Field(2.0, ge=0, description="a bridge pair (one no cycle of pairs checks) whose person changes "
                                  "size from frame to frame by more than this many times the pairs' median spread (and "
-                                 "by more than 10 %) saw two people, not one: it is dropped (docs/bones.md, Session 33). "
+                                 "by more than 13 %) saw two people, not one: it is dropped (docs/bones.md, Session 33). "
                                  "0: off")
     check_min_frames: int = Field(10, ge=3, description="a camera reached only over bridge pairs is checked against "
                                   "the persons the other cameras triangulate when this many of them (outside its pairs' "
