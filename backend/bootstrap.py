@@ -652,8 +652,10 @@ def _without_phantom_bridges(cameras: int, pairs: list[PairPose], ratio: float
     spread = np.array([p.size_spread for p in pairs])
     if not np.isfinite(spread).any():
         return pairs, []
-    limit = max(ratio * float(np.nanmedian(spread)), _MIN_PHANTOM_SPREAD)
-    drop = bridges(cameras, [(p.a, p.b) for p in pairs]) & (np.nan_to_num(spread) > limit)
+    high = np.nan_to_num(spread) > max(ratio * float(np.nanmedian(spread)), _MIN_PHANTOM_SPREAD)
+    if not high.any():  # the bridges (a graph search per pair) only when some pair could go
+        return pairs, []
+    drop = bridges(cameras, [(p.a, p.b) for p in pairs]) & high
     return [p for p, d in zip(pairs, drop) if not d], [p for p, d in zip(pairs, drop) if d]
 
 

@@ -590,8 +590,9 @@ class Pipeline:
         front of it). The cycles have no persons told apart; per bone, a high quantile
         (0.9) of the recent hypotheses' lengths stands in for the largest person's, and a
         hypothesis more than ``optimize.max_size_ratio`` times its size
-        (``people.relative_size``) is dropped (counted as the association's "phantom"). A few phantoms in one cycle dragged a camera of a two-walker corridor
-        0.7 m, and cam_5 of the lab with six walkers 1.2 m (docs/bones.md, Session 33)."""
+        (``people.relative_size``) is dropped (counted as the association's "phantom"). A
+        few phantoms in one cycle dragged a camera of a two-walker corridor 0.7 m, and
+        cam_5 of the lab with six walkers 1.2 m (docs/bones.md, Session 33)."""
         seg = segments(hyps, R, t)
         ref = None
         if len(self.sizes) >= 200:
