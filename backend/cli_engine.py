@@ -223,6 +223,9 @@ def calibrate(
     if p.last_report is not None and p.last_report.phantoms:
         comment += (f"\nfinal batch adjustment: {p.last_report.phantoms} hypotheses dropped as far larger than "
                     "anyone seen (two people's views, optimize.max_size_ratio)")
+    if p.last_report is not None and p.last_report.floor_points:
+        comment += (f"\nfinal batch adjustment: {p.last_report.floor_points} lower ankles held to the floor's plane "
+                    f"(their spread about it {p.last_report.floor_spread:.3f} m; optimize.floor)")
     if p.split_check is not None:
         comment += f"\n{p.split_check.summary()}"
     if rec is not None:

@@ -28,6 +28,7 @@ import numpy as np
 
 from .associate import Associator, Hypothesis, triangulate_hypotheses
 from .config import AssociateConfig, OptimizeConfig
+from .floor import Floor, fit_floor, held_ankles
 from .geometry import centres_fix_rotation, rotation_angle_deg, triangulate_batch
 from .people import label_persons, oversized, segments
 from .preprocess import Detection
@@ -138,6 +139,8 @@ class Solution:
     bone_lengths: np.ndarray | None = None  # (K, len(BONE_NAMES)) bone lengths per person after the solve, NaN = unseen
     residual_cam_px: np.ndarray | None = None  # (C,) median of each camera's residual_px, NaN = no observation
     phantoms: int = 0  # hypotheses dropped as far larger than anyone seen (optimize.max_size_ratio)
+    floor: Floor | None = None  # the plane the lower ankles were held to in the last solve (optimize.floor)
+    floor_points: int = 0  # lower ankles held to it
 
 
 # COCO-17 bones; left and right share one length: (length index, joint a, joint b)
@@ -337,6 +340,7 @@ def solve(p: Problem) -> Solution:
     R, t = p.R, p.t
     first_error = None
     iterations = 0
+    floor = None
     for round_ in range(p.config.outlier_rounds + 1):
         last = round_ == p.config.outlier_rounds
         # The first round without bones: the lengths are measured on its solution (from a
@@ -344,13 +348,15 @@ def solve(p: Problem) -> Solution:
         who = person if round_ > 0 else None
         # outlier rounds only need to find the bad views: a loose tolerance will do
         out = _solve_graph(p, g, R, t, marginals=False, tolerance=max(p.config.relative_tolerance, 1e-3),
-                           person=who)
+                           person=who, floor=floor)
         if isinstance(out, str):
             return _failed(p, g, out, first_error, t0)
-        R, t, lms, e0, e1, its, _ = out
+        R, t, lms, e0, e1, its, _, _ = out
         # the error at the start of the first solve with the final solve's kinds of factors
         first_error = e0 if first_error is None or (round_ == 1 and who is not None) else first_error
         iterations += its
+        if person is not None and p.config.floor:  # held in the next solve: see backend/floor.py
+            floor = fit_floor(lms, g.lm_hyp, g.lm_joint, p.config.floor_sigma)
         if person is not None:  # the next solve measures the people's bones on this solution
             g = replace(g, landmarks=_retriangulate(g, R, t))
         if last:
@@ -369,15 +375,15 @@ def solve(p: Problem) -> Solution:
         # landmarks move with the solution: start the next round from it
         g = Graph(g.active, g.obs_cam, g.obs_lm, g.obs_xy, g.obs_sigma,
                   _retriangulate(g, R, t), g.lm_hyp, g.lm_joint)
-    out = _solve_graph(p, g, R, t, marginals=p.marginals, person=person)
+    out = _solve_graph(p, g, R, t, marginals=p.marginals, person=person, floor=floor)
     if isinstance(out, str):
         return _failed(p, g, out, first_error, t0)
     if person is not None and p.config.outlier_rounds == 0:  # the first solve with bones
         first_error = out[3]
-    if len(out) == 7:  # marginals not asked for
+    if len(out) == 8:  # marginals not asked for
         nan = np.full((C, 6, 6), np.nan)
         out = out + (nan, nan.copy(), "")
-    R, t, lms, _, final_error, its, lengths, cov, cov_shape, reason = out
+    R, t, lms, _, final_error, its, lengths, held, cov, cov_shape, reason = out
     res = residuals_px(R, t, lms, g.obs_cam, g.obs_lm, g.obs_xy, p.focal)
     per_cam = np.full(C, np.nan)
     for c in np.unique(g.obs_cam):
@@ -385,7 +391,7 @@ def solve(p: Problem) -> Solution:
     return Solution(reason == "", reason, R, t, cov, cov_shape, g.active, np.bincount(g.obs_cam, minlength=C),
                     int(len(np.unique(g.lm_hyp))), res, float(first_error), float(final_error),
                     iterations + its, time.perf_counter() - t0, bone_lengths=lengths, residual_cam_px=per_cam,
-                    phantoms=phantoms)
+                    phantoms=phantoms, floor=floor if held else None, floor_points=held)
 
 
 def _relocalize(p: Problem) -> Solution:
@@ -459,11 +465,12 @@ def _retriangulate(g: Graph, R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, marginals: bool,
-                 tolerance: float | None = None, person: np.ndarray | None = None):
+                 tolerance: float | None = None, person: np.ndarray | None = None, floor: Floor | None = None):
     """One GTSAM solve of graph g from poses R0, t0; ``person`` (H,) int labels of the
-    hypotheses for bone-length factors (None: none). Returns a failure reason (str), or
-    (R, t, landmarks, initial error, final error, iterations, bone lengths[, cov, cov_shape,
-    reason])."""
+    hypotheses for bone-length factors (None: none), and with them the lower ankles held
+    to ``floor`` (None: not). Returns a failure reason (str), or
+    (R, t, landmarks, initial error, final error, iterations, bone lengths, lower ankles
+    held to ``floor``[, cov, cov_shape, reason])."""
     import gtsam
 
     C, L = len(p.R), len(g.landmarks)
@@ -500,6 +507,8 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
             noise = Robust(robust, noise)
         graph.add(Factor(xy, noise, xkey[c], lkey[l], K))
     lengths = _add_bones(graph, g, person, cfg, robust, Lk, gtsam) if person is not None else None
+    on_floor = _add_floor(graph, values, g, floor, cfg, robust, Lk, gtsam) if person is not None and floor is not None \
+        else []
 
     initial_error = graph.error(values)
     # Landmarks first, cameras last: the Schur complement of bundle adjustment; with
@@ -507,8 +516,12 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
     ordering = gtsam.Ordering()
     for l in range(L):
         ordering.push_back(lkey[l])
+    for k in on_floor:
+        ordering.push_back(k)
     for c in cams:
         ordering.push_back(X(c))
+    if on_floor:
+        ordering.push_back(FLOOR_KEY)
     if cfg.solver == "lm":
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(cfg.max_iterations)
@@ -536,9 +549,13 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         R[c] = pose.rotation().matrix()
         t[c] = pose.translation()
     lms = np.array([result.atPoint3(k) for k in lkey]).reshape(-1, 3)
+    if on_floor:
+        T = result.atPose3(FLOOR_KEY)  # floor_T_world: its third row is the plane
+        floor = replace(floor, n=T.rotation().matrix()[2].copy(), d=-float(T.translation()[2]))
+    held = len(on_floor)
     if lengths is not None:
         lengths = bone_lengths(g, person, lms)
-    out = (R, t, lms, float(initial_error), float(final_error), int(optimizer.iterations()), lengths)
+    out = (R, t, lms, float(initial_error), float(final_error), int(optimizer.iterations()), lengths, held)
     if not marginals:
         return out
     cov = np.full((C, 6, 6), np.nan)
@@ -620,6 +637,44 @@ def _add_bones(graph, g: Graph, person: np.ndarray, cfg: OptimizeConfig, robust,
     for k, j, a, b in zip(person[h], kind, la, lb):
         graph.add(gtsam.RangeFactor3(Lk(a), Lk(b), float(lengths[k, j]), noise))
     return lengths
+
+
+FLOOR_KEY = ord("f") << 56  # gtsam.symbol("f", 0), without importing gtsam here
+
+
+def _add_floor(graph, values, g: Graph, floor: Floor, cfg: OptimizeConfig, robust, Lk, gtsam) -> list[int]:
+    """The floor as a variable of the solve, started at ``floor``: a pose floor_T_world
+    (``FLOOR_KEY``), and per hypothesis' lower ankle (``floor.held_ankles``) a point in the
+    floor's frame tied to its landmark, whose height is 0 with ``floor_sigma`` (robust) and
+    free along the floor. A variable, not a plane held fixed: the plane turns with the
+    network at no cost, so holding the ankles to it cannot turn the network. Returns the
+    keys of the floor-frame points, for the ordering (the floor's own key goes last)."""
+    held = held_ankles(g.landmarks, g.lm_hyp, g.lm_joint, floor)
+    if not len(held):
+        return []
+    n = floor.n
+    a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    Rf = np.stack([a, np.cross(n, a), n])  # rows: the floor's axes in the world
+    T = gtsam.Pose3(gtsam.Rot3(Rf), -Rf @ (floor.d * n))
+    values.insert(FLOOR_KEY, T)
+    # barely held anywhere: it is the ankles' plane (in-plane shifts and turns are free)
+    graph.add(gtsam.PriorFactorPose3(FLOOR_KEY, T, gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([1.0, 1.0, 1.0, 10.0, 10.0, 10.0]))))
+    tie = gtsam.noiseModel.Isotropic.Sigma(3, 0.01)
+    # height 0 with floor_sigma; free along the floor: 100 m there keeps the matrix definite
+    level = gtsam.noiseModel.Diagonal.Sigmas(np.array([100.0, 100.0, cfg.floor_sigma]))
+    if robust is not None:
+        level = gtsam.noiseModel.Robust.Create(robust, level)
+    keys = []
+    for i, l in enumerate(held.tolist()):
+        k = gtsam.symbol("a", i)
+        x = T.transformFrom(g.landmarks[l])
+        values.insert(k, x)
+        graph.add(gtsam.ReferenceFrameFactorPoint3Pose3(Lk(l), FLOOR_KEY, k, tie))
+        graph.add(gtsam.PriorFactorPoint3(k, np.array([x[0], x[1], 0.0]), level))
+        keys.append(k)
+    return keys
 
 
 def _named_key(message: str) -> int | None:

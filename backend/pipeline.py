@@ -718,6 +718,8 @@ class Pipeline:
             restarted=tuple(dict.fromkeys(self._restarted_new)),
             starved=not accepted and solution.reason == NOTHING_TO_SOLVE,
             phantoms=solution.phantoms,
+            floor_points=solution.floor_points,
+            floor_spread=solution.floor.spread if solution.floor is not None else 0.0,
         )
         self._restarted_new.clear()
         self.last_report = report

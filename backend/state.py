@@ -104,6 +104,10 @@ class CycleReport:
     # hypotheses dropped as far larger than anyone seen: two walkers' views in cameras that
     # share no floor (optimize.max_size_ratio; adjustments with bones only)
     phantoms: int = 0
+    # lower ankles held to the floor's plane, and their robust std about it in m (0 and 0:
+    # no floor; optimize.floor, adjustments with bones only)
+    floor_points: int = 0
+    floor_spread: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

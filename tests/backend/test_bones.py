@@ -137,6 +137,8 @@ def test_two_walkers_in_a_corridor_the_final_batch_drops_and_counts_their_phanto
                    {n: e.pose for n, e in ref.items()})
     assert p.last_report.accepted and p.last_report.phantoms > 0
     assert p.last_report.to_dict()["phantoms"] == p.last_report.phantoms
+    # the walkers' lower ankles were held to the floor (backend/floor.py), and it says so
+    assert p.last_report.floor_points >= 30 and 0.0 < p.last_report.to_dict()["floor_spread"] < 0.2
     assert got.shape_position.mean < 0.06, got.summary()
 
 
