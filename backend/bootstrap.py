@@ -52,6 +52,7 @@ from proto import KeypointMessage
 from .associate import Hypothesis, torso_centre
 from .cameras import CameraSet, Extrinsics, Intrinsics, Pose, natural_key
 from .config import BootstrapConfig, EngineConfig
+from .floor import plane_of_ankles
 from .geometry import hat, pose_std, project_so3, rotation_angle_deg, so3_exp, triangulate_batch
 from .optimize import BONE_NAMES, BONES
 from .people import ANKLE_HEIGHT, ScaleEstimate, Segments, measure_scale, segments
@@ -939,26 +940,34 @@ def _rough_scale(seg: Segments, cfg: BootstrapConfig, torso_ratio: float, height
 
 
 def floor_frame(seg: Segments, t: np.ndarray, located: np.ndarray, height: float,
-                names: Sequence[str]) -> tuple[np.ndarray, np.ndarray, str]:
+                names: Sequence[str], sigma: float = 0.05) -> tuple[np.ndarray, np.ndarray, str]:
     """The world frame of the floor the people walk on: (F (3, 3), o (3,), note) with new
-    coordinates X' = F (X - o). The floor is the plane of the ankles (least squares over
-    every triangulated ankle: people walk across the room, so the plane's normal is the
-    direction of least spread), lowered by the ankles' stance height above it (the 10 %
-    quantile of their height, minus 0.039 x the persons' height); z up (towards the hips),
-    origin under the first located camera, x towards the next one's floor point."""
+    coordinates X' = F (X - o). The floor is the plane of each hypothesis' lower ankle
+    (``floor.plane_of_ankles``: robust, its turn about a line of ankles from the bodies' up;
+    where no plane is found, level to the bodies' median up), lowered by the ankle's height
+    above the floor in a stance (0.039 x the persons' height); z up (towards the hips),
+    origin under the first located camera, x towards the next one's floor point;
+    ``sigma``: m, a lower ankle's height about the plane (``optimize.floor_sigma``).
+
+    Not every ankle's least-squares plane: along a corridor two or three walkers' wrong
+    pairs put ankles metres off, and their plane stood 60-78° from level (session 34)."""
     P = seg.ankles.reshape(-1, 3)
     P = P[np.all(np.isfinite(P), axis=1)]
     if len(P) < 50:
         raise BootstrapError("too few ankles triangulated to find the floor")
-    mu = P.mean(0)
-    _, _, Vt = np.linalg.svd(P - mu, full_matrices=False)
-    n = Vt[2]
-    up = seg.up[np.all(np.isfinite(seg.up), axis=1)]
-    if len(up) and float(np.median(up @ n)) < 0:
-        n = -n
-    d = (P - mu) @ n
-    level = float(np.percentile(d, 10)) - ANKLE_HEIGHT * height
-    p0 = mu + level * n
+    plane = plane_of_ankles(seg.ankles, seg.up, sigma)
+    if plane is not None:
+        n, stance, how = plane.n, plane.d, f"the plane of the people's lower ankles (fit over {plane.points})"
+    else:
+        up = seg.up[np.all(np.isfinite(seg.up), axis=1)]
+        if not len(up):
+            raise BootstrapError("no person triangulated upright: no floor to define the frame by")
+        n = np.median(up / np.linalg.norm(up, axis=1, keepdims=True), axis=0)
+        n /= np.linalg.norm(n)
+        stance = float(np.percentile(P @ n, 10))
+        how = f"the people's median up ({len(up)} bodies; their ankles fit no one plane)"
+    level = stance - ANKLE_HEIGHT * height
+    p0 = level * n
     idx = np.flatnonzero(located)
     proj = t[idx] - np.outer((t[idx] - p0) @ n, n)
     o = proj[0]
@@ -974,9 +983,8 @@ def floor_frame(seg: Segments, t: np.ndarray, located: np.ndarray, height: float
     y = np.cross(n, x)
     F = np.stack([x, y, n])
     first = names[idx[0]]
-    note = (f"floor frame: z up, normal to the plane of the people's ankles (fit over {len(P)} ankle "
-            f"positions), the floor {ANKLE_HEIGHT * height:.3f} m below the ankles' stance level; origin "
-            f"on the floor under {first}, x towards the floor point under {second}")
+    note = (f"floor frame: z up, normal to {how}, the floor {ANKLE_HEIGHT * height:.3f} m below the ankles' "
+            f"stance level; origin on the floor under {first}, x towards the floor point under {second}")
     return F, o, note
 
 
@@ -1128,7 +1136,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     else:
         say("no person measured well enough for the scale: the rough scale is kept")
     mean_h = float(np.mean(scale.heights)) if scale else cfg.height_mean
-    F, o, note = floor_frame(seg, t, located, mean_h, names)
+    F, o, note = floor_frame(seg, t, located, mean_h, names, config.optimize.floor_sigma)
     R = np.einsum("ij,cjk->cik", F, R)
     t = (t - o) @ F.T
     R[~located], t[~located] = np.eye(3), 0.0

@@ -71,25 +71,33 @@ def lower_ankles(landmarks: np.ndarray, lm_hyp: np.ndarray, lm_joint: np.ndarray
     return ank, up / np.where(norm > 0, norm, 1.0), hyp
 
 
-def fit_floor(landmarks: np.ndarray, lm_hyp: np.ndarray, lm_joint: np.ndarray, sigma: float,
-              rounds: int = 10) -> Floor | None:
-    """The plane of the hypotheses' lower ankles (the ankle lower along the bodies' median
-    up), fitted with Cauchy weights of width max(sigma, the robust spread); None when fewer
-    than MIN_POINTS ankles or the plane leans more than MAX_TILT_DEG from the bodies' up
-    (no one floor: a ramp, stairs, or too few people upright). Where the ankles lie along
-    one line, the plane's turn about it is taken from the bodies' up."""
+def fit_floor(landmarks: np.ndarray, lm_hyp: np.ndarray, lm_joint: np.ndarray, sigma: float) -> Floor | None:
+    """``plane_of_ankles`` of a graph's landmarks (L, 3) with their hypotheses and joints
+    (L,) int."""
     ank, up, _ = lower_ankles(landmarks, lm_hyp, lm_joint)
-    if len(ank) < MIN_POINTS:
+    return plane_of_ankles(landmarks[ank], up, sigma)
+
+
+def plane_of_ankles(ankles: np.ndarray, up: np.ndarray, sigma: float, rounds: int = 10) -> Floor | None:
+    """The plane of the hypotheses' lower ankles; ankles (N, 2, 3), up (N, 3) each body's
+    up (from the ankles to the hips or shoulders), NaN = missing. The lower ankle is the
+    one lower along the bodies' median up; the plane is fitted with Cauchy weights of width
+    max(sigma, the robust spread). None when fewer than MIN_POINTS bodies have both ankles
+    and an up, or the plane leans more than MAX_TILT_DEG from the bodies' up (no one floor:
+    a ramp, stairs, or too few people upright). Where the ankles lie along one line, the
+    plane's turn about it is taken from the bodies' up."""
+    assert ankles.ndim == 3 and ankles.shape[1:] == (2, 3) and up.shape == (len(ankles), 3)
+    ok = np.isfinite(ankles).all(axis=(1, 2)) & np.isfinite(up).all(axis=1)
+    ankles, up = ankles[ok], up[ok]
+    if len(ankles) < MIN_POINTS:
         return None
-    u = np.median(up, axis=0)
+    norm = np.linalg.norm(up, axis=1, keepdims=True)
+    u = np.median(up / np.where(norm > 0, norm, 1.0), axis=0)
     if not np.linalg.norm(u) > 0:
         return None
     u /= np.linalg.norm(u)
-    h = landmarks[ank] @ u  # (H', 2)
-    low = ank[np.arange(len(ank)), np.argmin(h, axis=1)]
-    P = landmarks[low]
+    P = ankles[np.arange(len(ankles)), np.argmin(ankles @ u, axis=1)]
     n, d = u, float(np.median(P @ u))
-    w = np.ones(len(P))
     spread = sigma
     for _ in range(rounds):
         r = P @ n - d

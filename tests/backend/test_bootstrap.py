@@ -482,3 +482,36 @@ def test_cameras_with_nine_times_the_pixels_bootstrap_as_well(lab_dir):
     as_given = EngineConfig().merged({"preprocess": {"pixel_reference": None}})
     with pytest.raises(BootstrapError, match="no camera pair"):
         bootstrap(collect_frames(WEST, intr, as_given, msgs), WEST, focal, as_given, seed=SEED)
+
+
+def test_the_floor_frame_is_level_though_wrong_pairs_put_ankles_metres_off():
+    """A corridor's walkers along x, ankles 0.07-0.2 m above the floor z = 0, bodies
+    upright; a fifth of the hypotheses are two walkers' wrong pairs whose ankles lie
+    metres off in height. Every ankle's least-squares plane stood on its side there (the
+    corridor with three walkers, session 34: 60-78° from level); the lower ankles' robust
+    plane is level."""
+    from backend.bootstrap import floor_frame
+    from backend.people import Segments
+
+    rng = np.random.default_rng(4)
+    N = 400
+    x = rng.uniform(0, 17.5, N)
+    y = rng.uniform(-0.8, 0.8, N)
+    ankles = np.stack([np.stack([x + 0.1, y + 0.1, np.full(N, 0.07)], 1),
+                       np.stack([x - 0.1, y - 0.1, 0.07 + rng.uniform(0, 0.15, N)], 1)], 1)
+    ankles += rng.normal(0, 0.03, ankles.shape)
+    wrong = rng.random(N) < 0.2
+    ankles[wrong, :, 2] += rng.uniform(-3.0, 3.0, (wrong.sum(), 1))
+    up = np.tile([0.0, 0.0, 0.9], (N, 1)) + rng.normal(0, 0.05, (N, 3))
+    seg = Segments(np.arange(N, dtype=float), ankles.mean(1) + [0, 0, 1.0], np.full(N, 0.44), np.full(N, 0.44),
+                   np.full(N, 0.52), ankles, up)
+    t = np.array([[0.0, 0.5, 2.6], [3.5, -0.5, 2.6], [7.0, 0.5, 2.6]])
+    F, o, note = floor_frame(seg, t, np.ones(3, bool), 1.80, ["cam_0", "cam_1", "cam_2"])
+    assert np.degrees(np.arccos(F[2] @ [0, 0, 1])) < 1.0, F
+    # the floor 0.039 x 1.80 m below the ankles' stance level: the cameras 2.6 m above it
+    assert ((t - o) @ F.T)[:, 2] == pytest.approx(2.6, abs=0.03)
+    assert "lower ankles" in note
+    # least squares over every ankle would not be level
+    P = ankles.reshape(-1, 3)
+    n = np.linalg.svd(P - P.mean(0))[2][2]
+    assert np.degrees(np.arccos(abs(n[2]))) > 30.0
