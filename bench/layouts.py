@@ -144,7 +144,29 @@ def run(recording: Path, start: str, seed: int, persons: int, work: Path, overri
     if initial is not None:
         b = evaluate({n: e.pose for n, e in initial.items()}, truth)
         res["initial_position"] = b.position.mean
+    else:  # the result's frame is the floor's (z up): how far from the truth's up
+        res["tilt"] = floor_tilt(got, ref, d / "room.yaml")
     return res
+
+
+def floor_tilt(got: dict, ref: dict, room: Path) -> float:
+    """deg: the result's z axis against the truth's up (room.yaml's floor normal), through
+    the similarity that aligns the result's poses onto the truth's (orientations too: a
+    corridor's centres leave the turn about it loose)."""
+    import yaml
+
+    from backend.geometry import align_poses
+
+    names = [n for n in got if n in ref]
+    if len(names) < 3:
+        return float("nan")
+    up = np.asarray(yaml.safe_load(room.read_text())["floor"]["normal_up"], dtype=np.float64)
+    a = align_poses(np.array([got[n].pose.R for n in names]), np.array([got[n].pose.t for n in names]),
+                    np.array([ref[n].pose.R for n in names]), np.array([ref[n].pose.t for n in names]),
+                    orientations=True)
+    if a is None:
+        return float("nan")
+    return float(np.degrees(np.arccos(np.clip(a.Rw @ [0.0, 0.0, 1.0] @ up / np.linalg.norm(up), -1.0, 1.0))))
 
 
 def table(runs: list[dict], layouts: list[str], starts: list[str], args) -> str:
@@ -154,15 +176,15 @@ def table(runs: list[dict], layouts: list[str], starts: list[str], args) -> str:
              f"uncalibrated, named above){' --set ' + ' '.join(args.overrides) if args.overrides else ''}",
              "",
              "| layout | start | ok | rigid pos (m) | worst camera (m) | shape pos (m) | orient (°) | worst (°) | scale "
-             "| stated std (m) | shape error > 3 std | initial rigid (m) | wall (s) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| stated std (m) | shape error > 3 std | initial rigid (m) | floor frame's z tilt (°) | wall (s) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for lay in layouts:
         for st in starts:
             rs = [r for r in runs if r["layout"] == lay and r["start"] == st]
             ok = [r for r in rs if r["ok"]]
             short = sum(1 for r in ok if r["not_calibrated"])
             if not ok:
-                lines.append(f"| {lay} | {st} | 0/{len(rs)} | - | - | - | - | - | - | - | - | - | - |")
+                lines.append(f"| {lay} | {st} | 0/{len(rs)} | - | - | - | - | - | - | - | - | - | - | - |")
                 continue
             m = (lambda k, d=4: f"{np.mean([r[k] for r in ok]):.{d}f}")  # noqa: E731
             mx = (lambda k, d: f"{max(r[k] for r in ok):.{d}f}")  # noqa: E731
@@ -170,7 +192,8 @@ def table(runs: list[dict], layouts: list[str], starts: list[str], args) -> str:
                          + f" | {m('position')} | {mx('position_max', 3)} | "
                          f"{m('shape')} | {m('orientation', 3)} | {mx('orientation_max', 2)} | {m('scale')} | "
                          f"{m('std_mean')} | {sum(r['beyond_3std'] for r in ok)}/{sum(r['cameras'] for r in ok)} | "
-                         f"{m('initial_position', 3) if 'initial_position' in ok[0] else '-'} | {m('wall', 0)} |")
+                         f"{m('initial_position', 3) if 'initial_position' in ok[0] else '-'} | "
+                         f"{mx('tilt', 2) + ' max' if 'tilt' in ok[0] else '-'} | {m('wall', 0)} |")
     return "\n".join(lines)
 
 
