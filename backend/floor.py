@@ -4,14 +4,13 @@ A walker has a foot on the floor at nearly every instant, so each hypothesis' lo
 lies a few centimetres above one plane. Projections alone leave a chain of cameras that
 see people only in pairs free to bend and twist a little at every link (pitch and roll
 add up along it); the plane does not bend. The adjustments that hold the people's bones
-(``optimize.bones``) also hold the lower ankles to the plane fitted to them: the plane is
-measured on each of ``solve``'s rounds' own landmarks and held in the next (block
-coordinate descent of one least squares), and a robust kernel lets a foot on a step, a
-jump or a wrong ankle go. The adjustment's landmarks, not points triangulated again: a
-two-view DLT spreads an ankle along its rays, which along a chain of cameras pitched
-down tilts the plane of the noisy points by degrees, and a plane fitted there and held
-in the next round turned the whole network by 4° a round (a 3-camera corridor with twice
-the simulator's noise: 13° after three rounds).
+(``optimize.bones``) also hold the lower ankles to one plane, a variable of the solve
+(backend/optimize.py's ``_add_floor``) under a robust kernel that lets a foot on a step, a
+jump or a wrong ankle go. This module finds where that plane starts and which ankles it
+holds: fitted to the previous round's own landmarks, not to points triangulated again (a
+two-view DLT spreads an ankle along its rays, which along a chain of cameras pitched down
+tilts the noisy points' plane by degrees), and the same fit gives the bootstrap's world
+frame its floor (``plane_of_ankles``).
 
 Pure numpy: the factors themselves are built in backend/optimize.py.
 """

@@ -15,7 +15,8 @@ into persons (``people.label_persons``: tracks grouped by their size) and each p
 one length per bone, measured anew before each of ``solve``'s rounds; a range factor per
 bone of each hypothesis ties its joints' distance to it. Keypoints alone leave the scale
 of each part of a camera network that shares no person with a third camera free; these
-factors carry it along.
+factors carry it along. With them the floor (``optimize.floor``, backend/floor.py): each
+hypothesis' lower ankle on one plane, a variable of the solve, so a chain cannot bend.
 """
 
 from __future__ import annotations
@@ -139,7 +140,7 @@ class Solution:
     bone_lengths: np.ndarray | None = None  # (K, len(BONE_NAMES)) bone lengths per person after the solve, NaN = unseen
     residual_cam_px: np.ndarray | None = None  # (C,) median of each camera's residual_px, NaN = no observation
     phantoms: int = 0  # hypotheses dropped as far larger than anyone seen (optimize.max_size_ratio)
-    floor: Floor | None = None  # the plane the lower ankles were held to in the last solve (optimize.floor)
+    floor: Floor | None = None  # the floor's plane as the last solve left it (optimize.floor; None: no floor)
     floor_points: int = 0  # lower ankles held to it
 
 
