@@ -165,9 +165,9 @@ class OptimizeConfig(_Section):
         "only together with one other camera (a chain), else off; 'all': in every cycle too")
     bone_sigma: float = Field(0.02, gt=0, description="m: std of one measured bone length about the person's own "
                                                        "(keypoints are not joint centres; shoulders shrug)")
-    floor: bool = Field(True, description="with bones: each hypothesis' lower ankle held to the plane of all of them "
-                        "(backend/floor.py): a chain of cameras seen in pairs bends at every link, the floor people walk "
-                        "on does not")
+    floor: bool = Field(True, description="with bones (not in the bootstrap): each hypothesis' lower ankle held to the "
+                        "plane of all of them (backend/floor.py): a chain of cameras seen in pairs bends at every link, "
+                        "the floor people walk on does not")
     floor_sigma: float = Field(0.05, gt=0, description="m: std of a lower ankle's height about the plane (heel rise, "
                                "where a detector puts the ankle)")
     max_size_ratio: float = Field(1.3, ge=0, description="with bones: a hypothesis whose triangulated body is more "

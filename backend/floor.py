@@ -4,7 +4,7 @@ A walker has a foot on the floor at nearly every instant, so each hypothesis' lo
 lies a few centimetres above one plane. Projections alone leave a chain of cameras that
 see people only in pairs free to bend and twist a little at every link (pitch and roll
 add up along it); the plane does not bend. The adjustments that hold the people's bones
-(``optimize.bones``) also hold the lower ankles to one plane, a variable of the solve
+(``optimize.bones``; not the bootstrap's) also hold the lower ankles to one plane, a variable of the solve
 (backend/optimize.py's ``_add_floor``) under a robust kernel that lets a foot on a step, a
 jump or a wrong ankle go. This module finds where that plane starts and which ankles it
 holds: fitted to the previous round's own landmarks, not to points triangulated again (a
