@@ -101,7 +101,7 @@ def test_lower_ankles_needs_both_ankles_and_something_above_them():
 @pytest.fixture(scope="module")
 def corridor_batch():
     """A 3-camera corridor, 1 walker for 60 s, twice the simulator's pixel noise, from
-    0.25 m / 10°: the final batch's problem over the archived frames, and the truth."""
+    0.25 m / 10°: the final batch's problem over the archived frames."""
     from backend.cameras import CameraSet, Extrinsics
     from backend.config import EngineConfig
     from backend.perturb import perturb_extrinsics
@@ -136,7 +136,7 @@ def test_an_adjustment_with_bones_holds_the_lower_ankles_to_one_plane(corridor_b
     # the initial estimate keeps cam_0's pose, so its world is the truth's: z up, within the start's 10°
     assert np.degrees(np.arccos(on.floor.n[2])) < 10.0
     # the floor turns with the network: holding the ankles to it does not turn the network
-    # (a plane held fixed in each round did, by 4° a round, backend/floor.py)
+    # (a plane held fixed in each round did, by 4° a round: docs/bones.md, "Session 34")
     turn = [np.degrees(np.linalg.norm(so3_log(a.T @ b))) for a, b in zip(on.R, off.R)]
     assert max(turn) < 1.0, turn
     # without bones (a network with three-way views) no floor either: it goes with them
