@@ -52,7 +52,7 @@ from proto import KeypointMessage
 from .associate import Hypothesis, torso_centre
 from .cameras import CameraSet, Extrinsics, Intrinsics, Pose, natural_key
 from .config import BootstrapConfig, EngineConfig
-from .floor import plane_of_ankles
+from .floor import median_up, plane_of_ankles
 from .geometry import hat, pose_std, project_so3, rotation_angle_deg, so3_exp, triangulate_batch
 from .optimize import BONE_NAMES, BONES
 from .people import ANKLE_HEIGHT, ScaleEstimate, Segments, measure_scale, segments
@@ -959,13 +959,11 @@ def floor_frame(seg: Segments, t: np.ndarray, located: np.ndarray, height: float
     if plane is not None:
         n, stance, how = plane.n, plane.d, f"the plane of the people's lower ankles (fit over {plane.points})"
     else:
-        up = seg.up[np.all(np.isfinite(seg.up), axis=1)]
-        if not len(up):
+        n = median_up(seg.up)
+        if n is None:
             raise BootstrapError("no person triangulated upright: no floor to define the frame by")
-        n = np.median(up / np.linalg.norm(up, axis=1, keepdims=True), axis=0)
-        n /= np.linalg.norm(n)
         stance = float(np.percentile(P @ n, 10))
-        how = f"the people's median up ({len(up)} bodies; their ankles fit no one plane)"
+        how = "the people's median up (their ankles fit no one plane)"
     level = stance - ANKLE_HEIGHT * height
     p0 = level * n
     idx = np.flatnonzero(located)

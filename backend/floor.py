@@ -70,6 +70,15 @@ def lower_ankles(landmarks: np.ndarray, lm_hyp: np.ndarray, lm_joint: np.ndarray
     return ank, up / np.where(norm > 0, norm, 1.0), hyp
 
 
+def median_up(up: np.ndarray) -> np.ndarray | None:
+    """(3,) the unit median of bodies' up vectors (N, 3) (finite rows, any length), or None
+    when there is none."""
+    up = up[np.isfinite(up).all(axis=1)]
+    norm = np.linalg.norm(up, axis=1, keepdims=True)
+    u = np.median(up / np.where(norm > 0, norm, 1.0), axis=0) if len(up) else np.zeros(3)
+    return u / np.linalg.norm(u) if np.linalg.norm(u) > 0 else None
+
+
 def fit_floor(landmarks: np.ndarray, lm_hyp: np.ndarray, lm_joint: np.ndarray, sigma: float) -> Floor | None:
     """``plane_of_ankles`` of a graph's landmarks (L, 3) with their hypotheses and joints
     (L,) int."""
@@ -90,11 +99,9 @@ def plane_of_ankles(ankles: np.ndarray, up: np.ndarray, sigma: float, rounds: in
     ankles, up = ankles[ok], up[ok]
     if len(ankles) < MIN_POINTS:
         return None
-    norm = np.linalg.norm(up, axis=1, keepdims=True)
-    u = np.median(up / np.where(norm > 0, norm, 1.0), axis=0)
-    if not np.linalg.norm(u) > 0:
+    u = median_up(up)
+    if u is None:
         return None
-    u /= np.linalg.norm(u)
     P = ankles[np.arange(len(ankles)), np.argmin(ankles @ u, axis=1)]
     n, d = u, float(np.median(P @ u))
     spread = sigma
