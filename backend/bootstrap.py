@@ -264,8 +264,9 @@ def relative_pose(xa: np.ndarray, xb: np.ndarray, fid: np.ndarray, focal: float,
 
 
 def pair_poses(frames: Sequence[Frame], cameras: int, focal: np.ndarray, cfg: BootstrapConfig, *,
-               seed: int = 0, progress: Progress | None = None) -> tuple[list[PairPose], int]:
-    """Every camera pair's relative pose from frames where both see one person.
+               seed: int = 0, progress: Progress | None = None, only: int | None = None) -> tuple[list[PairPose], int]:
+    """Every camera pair's relative pose from frames where both see one person (``only``:
+    the pairs of that camera).
 
     Returns the accepted pairs and the number of pairs tried."""
     single = single_views(frames)
@@ -274,7 +275,8 @@ def pair_poses(frames: Sequence[Frame], cameras: int, focal: np.ndarray, cfg: Bo
         cs = sorted(s)
         for i in range(len(cs)):
             for j in range(i + 1, len(cs)):
-                by_pair[(cs[i], cs[j])].append(fi)
+                if only is None or only in (cs[i], cs[j]):
+                    by_pair[(cs[i], cs[j])].append(fi)
     tried = [(k, v) for k, v in sorted(by_pair.items()) if len(v) >= cfg.min_pair_frames]
     out = []
     last = _time.perf_counter()
@@ -1074,7 +1076,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                     prior_cov=np.repeat(prior[None], C, axis=0), focal=focal, config=opt, frames=tuple(fr),
                     associate=config.associate, gate_px=None, max_hypotheses=cfg.batch_hypotheses,
                     spacing=config.select.min_spacing / 2, seed=int(rng.integers(2**31)), marginals=last,
-                    kind="batch")
+                    kind="batch", bones_from_start=True)
         sol = solve(p)
         if not sol.ok and not last:
             say(f"bundle adjustment {r}: {sol.reason}")
@@ -1109,7 +1111,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                                                                 config.associate, cfg, seed=seed)
                 found = int(now_located.sum() - located.sum())
                 located = now_located
-                resect_notes = tuple(r.summary(names[r.cam]) for r in resections)
+                resect_notes = tuple(r.summary(names[r.cam], names) for r in resections)
                 if resections:
                     say("cameras no pair placed, resected against the placed cameras' persons: " + "; ".join(resect_notes))
             else:

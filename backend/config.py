@@ -323,6 +323,10 @@ class BootstrapConfig(_Section):
     late_join_interval: float = Field(30.0, ge=0, description="... and while it runs, every this many s of data (after the "
                                       "first adjustment, when they have new framesets): a camera placed joins the "
                                       "running pipeline, whose cycles then calibrate it (0: only when the run ends)")
+    late_pairs: bool = Field(True, description="a camera those resections do not place may be placed by its pair with a "
+                             "placed camera (the bootstrap's pair guards; the baseline's length from the floor both "
+                             "sides' people stand on, else their bones): the end of a camera chain, which only its "
+                             "neighbour sees with it")
     batch_rounds: int = Field(3, ge=1, description="bundle adjustments, each re-associating all frames with the previous result")
     batch_hypotheses: int = Field(800, ge=10, description="most hypotheses per bundle adjustment")
     prior_std_translation: float = Field(1.0, gt=0, description="m: the weak prior of the bundle adjustment (a gauge, not information)")

@@ -40,7 +40,7 @@ from .geometry import R_to_quat
 from .live_bootstrap import remap
 from .pipeline import Pipeline
 from .preprocess import Preprocessor
-from .resect import Resection, resect_unplaced
+from .resect import SCALED_BY, Resection, resect_unplaced
 from .sync import Synchronizer
 
 # The resection's own std (reprojections, one correlated block per detection) was 3-5x
@@ -63,6 +63,7 @@ class Joined:
     std_rotation: float
     adjusted: bool = False  # the final batch took it (else its resected pose is its result)
     live: bool = False  # it joined while the run went on (its cycles calibrated it), not when it ended
+    paired_with: str = ""  # placed by its pair with this camera (``resect.place_by_pair``), not resected
 
     def summary(self) -> str:
         return later_summary(self.to_dict())
@@ -70,8 +71,9 @@ class Joined:
     def to_dict(self) -> dict[str, Any]:
         r = self.resection
         return {"name": self.name, "data_seconds": round(self.data_seconds, 1), "frames": r.frames, "seen": r.seen,
-                "spread": round(r.spread, 3), "residual_px": round(r.residual_px, 2),
-                "std_translation": self.std_translation, "std_rotation": self.std_rotation,
+                "spread": round(r.spread, 3) if np.isfinite(r.spread) else None, "residual_px": round(r.residual_px, 2),
+                "std_translation": self.std_translation, "std_rotation": self.std_rotation, "paired_with": self.paired_with,
+                "scaled_by": r.scaled_by,
                 # the resected pose (translation, rotation quaternion x, y, z, w, as in the extrinsics YAML)
                 "translation": r.t.tolist(), "rotation": R_to_quat(r.R).tolist(), "adjusted": self.adjusted,
                 "live": self.live}
@@ -265,7 +267,7 @@ class JoiningPipeline(Pipeline):
     def _accept(self, job: "LateJob", found: "LateResult", live: bool = False) -> list[Joined]:
         """The cameras a resection placed (``late``, ``late_notes``); returns the new ones."""
         names = self.all_names
-        self.late_notes = [r.summary(names[r.cam]) for r in found.resections]
+        self.late_notes = [r.summary(names[r.cam], names) for r in found.resections]
         ok = [r for r in found.resections if r.accepted and found.located[r.cam] and names[r.cam] in self.unplaced]
         if not ok:
             return []
@@ -278,7 +280,8 @@ class JoiningPipeline(Pipeline):
             cov = r.cov if r.cov is not None and np.all(np.isfinite(r.cov)) else None
             st = max(st0, STD_FACTOR * float(np.sqrt(np.trace(cov[3:, 3:]) / 3))) if cov is not None else st0
             sr = max(sr0, STD_FACTOR * float(np.degrees(np.sqrt(np.trace(cov[:3, :3]) / 3)))) if cov is not None else sr0
-            new.append(Joined(names[r.cam], r, float(seconds), st, sr, live=live))
+            new.append(Joined(names[r.cam], r, float(seconds), st, sr, live=live,
+                              paired_with=names[r.paired] if r.paired >= 0 else ""))
         self.late += new
         return new
 
@@ -452,7 +455,8 @@ class LateJob:
         frames = list(self.frames)
         C = len(self.located)
         _, _, located, found = resect_unplaced(frames, self.R, self.t, self.located, self.focal, view_box(frames, C),
-                                               self.associate, self.bootstrap, seed=self.seed)
+                                               self.associate, self.bootstrap, seed=self.seed,
+                                               pairs=self.bootstrap.late_pairs)
         return LateResult(tuple(found), located)
 
 
@@ -464,9 +468,12 @@ def run_late_job(job: LateJob) -> LateResult:
 def later_summary(j: Mapping[str, Any]) -> str:
     """One line for a camera placed after the bootstrap, from ``Joined.to_dict`` (the
     result's header, offline and live)."""
-    return (f"{j['name']} placed after the bootstrap: resected against the online estimate over "
-            f"{j['data_seconds']:.0f} s of data (agrees in {j['frames']}/{j['seen']} framesets, spread "
-            f"{j['spread']:.2f} m, {j['residual_px']:.1f} px), "
+    how = (f" by its pair with {j['paired_with']} over {j['data_seconds']:.0f} s of data (agrees in "
+           f"{j['frames']}/{j['seen']} frames in which each sees one person, {j['residual_px']:.1f} px; "
+           f"{SCALED_BY.get(j.get('scaled_by', ''), 'its baseline scaled by the people')}), " if j.get("paired_with") else
+           f": resected against the online estimate over {j['data_seconds']:.0f} s of data (agrees in "
+           f"{j['frames']}/{j['seen']} framesets, spread {j['spread']:.2f} m, {j['residual_px']:.1f} px), ")
+    return (f"{j['name']} placed after the bootstrap" + how
             + ("joined the running calibration (its cycles and the final batch adjusted it) from a prior std of "
                f"{j['std_translation']:.3f} m / {j['std_rotation']:.2f}°" if j.get("live") else
                "then adjusted by the final batch adjustment with the others from a prior std of "

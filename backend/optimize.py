@@ -72,6 +72,9 @@ class Problem:
     kind: str = "cycle"  # cycle | first | batch | relocalize | recalibrate | dispute
     lost: tuple[int, ...] = ()  # relocalize: the cameras to find again
     moved: tuple[int, ...] = ()  # recalibrate: the cameras calibrated again (the others held by tight priors); dispute: the camera in question
+    # bones in the first solve too: the start's links already share one scale (the
+    # bootstrap's, related by bones), and only weak priors hold them (see ``solve``)
+    bones_from_start: bool = False
 
     def __post_init__(self) -> None:
         C = len(self.R)
@@ -346,7 +349,9 @@ def solve(p: Problem) -> Solution:
         last = round_ == p.config.outlier_rounds
         # The first round without bones: the lengths are measured on its solution (from a
         # rough start, links at different scales make the first steps of LM with them stall).
-        who = person if round_ > 0 else None
+        # Not where the priors are weak (the bootstrap's gauge): there nothing else holds
+        # a chain's links, and a corridor's first solve without bones shrank them to 0.4x.
+        who = person if round_ > 0 or p.bones_from_start else None
         # outlier rounds only need to find the bad views: a loose tolerance will do
         out = _solve_graph(p, g, R, t, marginals=False, tolerance=max(p.config.relative_tolerance, 1e-3),
                            person=who, floor=floor)
@@ -369,7 +374,7 @@ def solve(p: Problem) -> Solution:
         limit = max(p.config.outlier_px, 4.0 * float(np.median(med)))
         bad_views = med > limit
         if not bad_views.any():
-            if person is None or round_ >= 1:
+            if person is None or who is not None:
                 break
             continue  # with bones: at least one round with them before the final solve
         g = g.without(bad_views[inv], p.config)

@@ -37,7 +37,7 @@ from typing import Sequence
 import numpy as np
 
 from .associate import Associator
-from .config import AssociateConfig, BootstrapConfig
+from .config import AssociateConfig, BootstrapConfig, OptimizeConfig
 from .geometry import rotation_angle_deg, triangulate_views
 from .preprocess import Detection
 
@@ -95,7 +95,8 @@ class Resection:
     joints; cov: (6, 6) covariance of (rotation rad, centre m) in the world frame from
     the refinement (per-frame residual blocks, so correlated joints of one detection do
     not count as independent), None without a pose; accepted and reason: the guards'
-    verdict.
+    verdict. paired: the placed camera whose pair placed it (``place_by_pair``; -1: resected),
+    scaled_by: what gave that pair's baseline its length ("floor" or "bones").
     """
 
     cam: int
@@ -110,10 +111,16 @@ class Resection:
     cov: np.ndarray | None
     accepted: bool
     reason: str
+    paired: int = -1
+    scaled_by: str = ""
 
-    def summary(self, name: str) -> str:
+    def summary(self, name: str, names: Sequence[str] = ()) -> str:
         if self.R is None:
             return f"{name} not resected ({self.reason})"
+        if self.paired >= 0:
+            other = names[self.paired] if len(names) > self.paired else f"camera {self.paired}"
+            return (f"{name} placed by its pair with {other}: agrees in {self.frames}/{self.seen} frames in which "
+                    f"each sees one person, {self.residual_px:.1f} px, {SCALED_BY[self.scaled_by]}")
         return (f"{name} {'resected' if self.accepted else 'not resected'}: agrees in {self.frames}/{self.seen} frames "
                 f"({self.candidates} with candidates), spread {self.spread:.2f} m, rival pose {self.rival} frames, "
                 f"{self.residual_px:.1f} px" + ("" if self.accepted else f" ({self.reason})"))
@@ -318,13 +325,14 @@ def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, bo
 
 
 def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located: np.ndarray, focal: np.ndarray,
-                    boxes: np.ndarray, assoc: AssociateConfig, cfg: BootstrapConfig, *, seed: int = 0
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[Resection]]:
+                    boxes: np.ndarray, assoc: AssociateConfig, cfg: BootstrapConfig, *, seed: int = 0,
+                    pairs: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[Resection]]:
     """Resect the cameras not ``located`` (C,) bool, one at a time, best evidence first:
     a camera placed joins the network the next ones are resected against (a room that
     two placed cameras see rarely is reached through the first camera placed in it).
-    Returns copies of (R (C, 3, 3), t (C, 3), located (C,)) and each camera's last
-    Resection."""
+    ``pairs``: a camera the resection does not place may be placed by its pair with a
+    placed camera (``place_by_pair``). Returns copies of (R (C, 3, 3), t (C, 3), located
+    (C,)) and each camera's last Resection."""
     R, t, located = R.copy(), t.copy(), located.copy()
     last: dict[int, Resection] = {}
     while True:
@@ -333,6 +341,9 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
             break
         persons = triangulate_persons(frames, R, t, located, assoc)
         found = [resect(frames, persons, c, float(focal[c]), boxes[c], cfg, seed=seed + c) for c in todo]
+        if pairs:
+            found = [r if r.accepted else (place_by_pair(frames, persons, r.cam, R, t, located, focal, cfg, seed=seed)
+                                           or r) for r in found]
         for r in found:
             last[r.cam] = r
         ok = [r for r in found if r.accepted]
@@ -341,3 +352,96 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
         best = max(ok, key=lambda r: r.frames)
         R[best.cam], t[best.cam], located[best.cam] = best.R, best.t, True
     return R, t, located, [last[c] for c in sorted(last)]
+
+
+SCALED_BY = {"floor": "its baseline's length from the floor both sides' people stand on",
+             "bones": "its baseline's length from the people's bones"}
+PAIR_SCALES_AGREE = 0.2  # the floor's and the bones' scale of a pair: further apart, its geometry is wrong
+
+
+def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.ndarray, t: np.ndarray,
+                  located: np.ndarray, focal: np.ndarray, cfg: BootstrapConfig, *, seed: int = 0) -> Resection | None:
+    """Camera ``cam`` placed by its relative pose to a placed camera, or None.
+
+    A resection needs persons that two placed cameras triangulate in the camera's view. At
+    the end of a camera chain (a corridor) only its one neighbour sees where it sees, so
+    only a pair can place it: found as the bootstrap finds its pairs (``pair_poses``, with
+    its guards, on every frame given; the bootstrap's pairs had only its first
+    ``max_seconds``), and as a bridge of the view graph it must keep one person's size
+    (``bridge_spread``). The pair fixes the camera's turn and the direction of its
+    baseline; the baseline's length is where the pair's people stand on the floor the
+    placed network's people stand on (the lower ankles of both on one plane: camera
+    heights, not people's sizes). Without a floor on both sides, the people's bones give
+    it (the same people walk past the pair and the network; walkers of different sizes
+    make that a few per cent off). With both, they must agree within PAIR_SCALES_AGREE,
+    and the bones must agree among themselves as the bootstrap's bone relations must.
+    The best-supported pair that passes wins."""
+    from .bootstrap import BONES, pair_poses, single_views
+    from .floor import ANKLES, _TOP, plane_of_ankles
+
+    C = len(located)
+    keep = located.copy()
+    keep[cam] = True
+    sub = [(time_, tuple(v for v in views if keep[v[0].cam])) for time_, views in frames]
+    found, _ = pair_poses(sub, C, focal, cfg, seed=seed + 104729 * cam, only=cam)
+    found = [p for p in found if located[p.b if p.a == cam else p.a] and p.size_spread <= cfg.bridge_spread]
+    if not found or not len(persons.frame):
+        return None
+    X = persons.X
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a bone or joint nobody showed: NaN
+        lengths = np.linalg.norm(X[:, BONES[:, 1]] - X[:, BONES[:, 2]], axis=2)
+        ref = np.array([np.nanmedian(lengths[:, BONES[:, 0] == k]) for k in range(len(found[0].bones))])
+        floor = plane_of_ankles(X[:, ANKLES], np.nanmean(X[:, _TOP], axis=1) - np.nanmean(X[:, ANKLES], axis=1),
+                                OptimizeConfig.model_fields["floor_sigma"].default)
+    single = single_views(sub)
+    for p in sorted(found, key=lambda p: -len(p.frames)):
+        v = np.log(ref / p.bones)
+        v = v[np.isfinite(v)]
+        if len(v) < 3 or np.median(np.abs(v - np.median(v))) > 0.1:
+            continue  # the bones disagree on the scale: the pair's geometry is wrong
+        s, by = float(np.exp(np.median(v))), "bones"
+        if cam == p.b:  # x_b = R x_a + t: b in a's frame is turned by R.T, its centre at -R.T t
+            o = p.a
+            Rc = R[o] @ p.R.T
+            step = -R[o] @ p.R.T @ p.t  # the camera's centre from o's for a unit baseline
+        else:
+            o = p.b
+            Rc = R[o] @ p.R
+            step = R[o] @ p.t
+        if floor is not None:
+            s_floor = _floor_scale(single, p.frames, cam, o, R, t, Rc, step, floor)
+            if s_floor is not None:
+                if abs(np.log(s_floor / s)) > PAIR_SCALES_AGREE:
+                    continue
+                s, by = s_floor, "floor"
+        return Resection(cam, Rc, t[o] + s * step, len(p.frames), p.candidates, p.candidates, float("nan"), 0,
+                         p.residual_px, None, True, "", paired=o, scaled_by=by)
+    return None
+
+
+def _floor_scale(single, agreeing: np.ndarray, cam: int, o: int, R: np.ndarray, t: np.ndarray, Rc: np.ndarray,
+                 step: np.ndarray, floor) -> float | None:
+    """The baseline length that puts the pair's lower ankles on ``floor``: triangulated
+    with a unit baseline, the pair's points scale about camera o's centre, so each lower
+    ankle P gives s = (d - n.C_o) / n.(P - C_o). Their median; None from fewer than 10."""
+    from .floor import ANKLES, MIN_POINTS
+
+    Rs = np.stack([R[o], Rc])
+    ts = np.stack([t[o], t[o] + step])
+    low = []
+    for fi in agreeing:
+        xy = np.stack([single[fi][o].xy, single[fi][cam].xy])
+        P, _ = triangulate_views(Rs, ts, np.array([0, 1]), xy)
+        a = P[list(ANKLES)]
+        a = a[np.all(np.isfinite(a), axis=1)]
+        if len(a):
+            low.append(a[np.argmin(a @ floor.n)])
+    if len(low) < MIN_POINTS // 3:
+        return None
+    den = (np.array(low) - t[o]) @ floor.n
+    num = floor.d - float(t[o] @ floor.n)
+    ok = np.abs(den) > 1e-9
+    s = num / den[ok]
+    s = s[s > 0]
+    return float(np.median(s)) if len(s) >= MIN_POINTS // 3 else None

@@ -60,3 +60,21 @@ def test_rough_estimates_of_a_corridor_are_reconciled_in_their_own_frame(chain):
         got = {n: Pose(rec.R[c], rec.t[c]) for c, n in enumerate(scene.names)}
         assert evaluate(got, scene.poses).shape_position.max < 0.15
         assert max(rotation_angle_deg(got[n].R, scene.poses[n].R) for n in scene.names) < 20.0, seed
+
+
+def test_two_walkers_down_a_corridor_keep_the_chain_at_one_scale():
+    """The bootstrap's adjustments hold the walkers' bones from their first solve. Their
+    priors are a gauge (1 m), so in a chain nothing else holds a link's scale: solved first
+    without bones, the 180 s of two walkers below shrank cam_2-cam_5 to 0.39x (the world
+    2.6x too small after the people's scale, shape 1.9 m)."""
+    scene = corridor()
+    sim = Simulator(scene, SimConfig(persons=2, duration=180.0, seed=0, heights=(1.80, 1.65)))
+    cfg = EngineConfig().for_images(i.resolution for i in scene.intrinsics.values())
+    frames = collect_frames(scene.names, scene.intrinsics, cfg, (m for _, m in sim.messages(scene.names)))
+    focal = np.array([0.5 * (scene.intrinsics[n].fx + scene.intrinsics[n].fy) for n in scene.names])
+    boot = bootstrap(frames, scene.names, focal, cfg)
+    assert boot.located.sum() >= 4
+    placed = {n: p for n, p in boot.poses().items() if boot.located[scene.names.index(n)]}
+    acc = evaluate(placed, {n: scene.poses[n] for n in placed})
+    assert acc.shape_position.max < 0.15
+    assert 0.9 < acc.scale < 1.12  # the population prior's 1.72 m against walkers of 1.80 and 1.65 m

@@ -108,8 +108,8 @@ def test_a_run_in_which_no_camera_joins_is_unchanged(west):
     placed = [n for n in WEST if n != LATE]
     cams = CameraSet.combine({n: intr[n] for n in placed},
                              {n: Extrinsics(truth[n], intr[n].resolution) for n in placed})
-    cfg = EngineConfig.load(None, ["bootstrap.resect_min_frames=100000", "refine.final_batch_from_start=true",
-                                   *SMALL_FINAL])
+    cfg = EngineConfig.load(None, ["bootstrap.resect_min_frames=100000", "bootstrap.late_pairs=false",
+                                   "refine.final_batch_from_start=true", *SMALL_FINAL])
     plain = _run(cams, cfg, msgs).state()
     joining = JoiningPipeline(cams, cfg, intrinsics=intr, names=WEST, seed=3)
     state = _run(cams, cfg, msgs, joining).state()
@@ -132,3 +132,16 @@ def test_a_run_with_every_camera_placed_is_unchanged(west, tmp_path):
         outs.append(out.read_text())
     assert set(load_extrinsics(tmp_path / "out_true.yaml")) == set(WEST)
     assert "placed after the bootstrap" not in outs[0] and outs[0] == outs[1]
+
+
+def test_a_camera_placed_by_its_pair_says_so_and_what_scaled_it():
+    from backend.late_join import later_summary
+
+    j = {"name": "cam_5", "data_seconds": 142.0, "frames": 54, "seen": 56, "spread": None, "residual_px": 1.5,
+         "std_translation": 0.1, "std_rotation": 2.0, "adjusted": True, "live": False, "paired_with": "cam_4",
+         "scaled_by": "floor"}
+    line = later_summary(j)
+    assert line.startswith("cam_5 placed after the bootstrap by its pair with cam_4 over 142 s of data")
+    assert "floor" in line and "spread" not in line
+    j.update(paired_with="", spread=0.8)
+    assert later_summary(j).startswith("cam_5 placed after the bootstrap: resected against the online estimate")

@@ -3,7 +3,8 @@ cameras triangulate: a short seeded simulation of the lab's west room with two w
 The network's poses are the true ones, so each case is exact: the camera is found near its
 true pose though it never sees one person alone (which pairs need), a single spot or
 detections from other instants are refused, and the bootstrap places a camera with it
-that it leaves out without it.
+that it leaves out without it. The end of a corridor (no resection: only its neighbour sees
+where it sees) is placed by its pair with that neighbour (``place_by_pair``).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from backend.config import EngineConfig
 from backend.evaluate import evaluate
 from backend.geometry import rotation_angle_deg
 from backend.preprocess import Detection
-from backend.resect import resect, resect_unplaced, triangulate_persons
+from backend.resect import place_by_pair, resect, resect_unplaced, triangulate_persons
 
 WEST = ("cam_11", "cam_12", "cam_13", "cam_14", "cam_15", "cam_16", "cam_17")
 LOST = 6  # cam_17
@@ -119,3 +120,64 @@ def test_the_bootstrap_places_with_resection_a_camera_no_pair_places(west2, lab_
     _, _, pos, ori = ev.per_camera["cam_17"]
     assert pos < 0.05 and ori < 0.5, ev.per_camera
     assert np.isfinite(res.std_translation[LOST]) and res.std_translation[LOST] > 0
+
+
+@pytest.fixture(scope="module")
+def corridor2():
+    """The corridor (6 cameras, each overlapping its neighbours only), two walkers of
+    different heights for 90 s, and the true poses."""
+    from edge_clients.sim import SimConfig, Simulator
+    from edge_clients.sim.scenes import corridor
+
+    scene = corridor()
+    sim = Simulator(scene, SimConfig(persons=2, duration=90.0, seed=1, heights=(1.85, 1.65)))
+    cfg = EngineConfig().for_images(i.resolution for i in scene.intrinsics.values())
+    frames = collect_frames(scene.names, scene.intrinsics, cfg, [m for _, m in sim.messages(scene.names)])
+    R = np.array([scene.poses[n].R for n in scene.names])
+    t = np.array([scene.poses[n].t for n in scene.names])
+    focal = np.array([0.5 * (scene.intrinsics[n].fx + scene.intrinsics[n].fy) for n in scene.names])
+    return frames, R, t, focal, cfg
+
+
+def test_the_end_of_a_corridor_is_placed_by_its_pair_with_its_neighbour(corridor2):
+    frames, R, t, focal, cfg = corridor2
+    end = 0
+    located = np.ones(6, bool)
+    located[end] = False
+    R0, t0 = R.copy(), t.copy()
+    R0[end], t0[end] = np.eye(3), 0.0
+    boxes = view_box(frames, 6)
+    # the resection alone cannot: nobody two placed cameras triangulate is in its view
+    _, _, loc, out = resect_unplaced(frames, R0, t0, located, focal, boxes, cfg.associate, cfg.bootstrap)
+    assert not loc[end] and not out[0].accepted
+    R1, t1, loc, out = resect_unplaced(frames, R0, t0, located, focal, boxes, cfg.associate, cfg.bootstrap,
+                                       pairs=True)
+    r = out[0]
+    assert loc[end] and r.accepted and r.paired == 1, r.summary("cam_0")
+    assert "cam_0 placed by its pair with cam_1" in r.summary("cam_0", [f"cam_{k}" for k in range(6)])
+    assert r.scaled_by == "floor"
+    # the turn and the baseline's direction from the pair, its length from the floor: the
+    # walkers' bones alone (1.85 and 1.65 m) made it 8 % short
+    base = np.linalg.norm(t[end] - t[1])
+    assert np.linalg.norm(t1[end] - t[end]) < 0.04 * base, (t1[end], t[end])
+    assert abs(np.linalg.norm(t1[end] - t[1]) / base - 1) < 0.03
+    assert rotation_angle_deg(R1[end], R[end]) < 2.0
+    assert np.array_equal(np.delete(t1, end, 0), np.delete(t, end, 0))  # the network is not touched
+
+
+def test_a_pair_whose_partner_is_not_placed_or_whose_person_is_another_places_nothing(corridor2):
+    frames, R, t, focal, cfg = corridor2
+    # cam_0's only neighbour, cam_1, is not placed
+    located = np.array([0, 0, 1, 1, 1, 1], bool)
+    persons = triangulate_persons(frames, R, t, located, cfg.associate)
+    assert place_by_pair(frames, persons, 0, R, t, located, focal, cfg.bootstrap) is None
+    # cam_0's detections moved to other instants (5 s later): no pose of the pair explains them
+    located = np.array([0, 1, 1, 1, 1, 1], bool)
+    mine = {k: tuple(v for v in vs if v[0].cam == 0) for k, (_, vs) in enumerate(frames)}
+    times = np.array([f[0] for f in frames])
+    moved = []
+    for k, (time_, vs) in enumerate(frames):
+        j = int(np.searchsorted(times, time_ + 5.0)) % len(frames)
+        moved.append((time_, tuple(v for v in vs if v[0].cam != 0) + mine[j]))
+    persons = triangulate_persons(moved, R, t, located, cfg.associate)
+    assert place_by_pair(moved, persons, 0, R, t, located, focal, cfg.bootstrap) is None
