@@ -296,6 +296,9 @@ class BootstrapConfig(_Section):
                               "pair sees, and the bootstrap's adjustments then hold the people's bones (with "
                               "optimize.bones 'auto'); off: such a chain places only its best-related pairs")
     rotation_outlier: float = Field(5.0, gt=0, description="deg: a pair disagreeing more with the averaged rotations is dropped")
+    split_ratio: float = Field(0.5, ge=0, description="a camera whose pairs that disagree with the averaged rotations agree "
+                               "in at least this share of the frames its other pairs agree in is split between two "
+                               "poses (two walkers who moved alike): no pair places it; the resection may (0: off)")
     bridge_spread: float = Field(2.0, ge=0, description="a bridge pair (one no cycle of pairs checks) whose person changes "
                                  "size from frame to frame by more than this many times the pairs' median spread (and "
                                  "by more than 13 %) saw two people, not one: it is dropped (docs/bones.md, Session 33). "

@@ -21,7 +21,7 @@ import pytest
 
 from backend.bootstrap import (
     BootstrapError, PairPose, average_rotations, bootstrap, camera_set, collect_frames, handover, pair_bones,
-    pair_scales, relative_pose, triangle_check,
+    pair_scales, relative_pose, split_cameras, triangle_check,
 )
 from backend.cameras import CameraSet, Extrinsics
 from backend.config import BootstrapConfig, EngineConfig
@@ -120,6 +120,38 @@ def test_rotation_averaging_and_the_triangle_check_find_a_wrong_pair():
     for a in range(C):
         for b in range(C):
             assert rotation_angle_deg(R[b].T @ R[a], Rw[b].T @ Rw[a]) < 0.5
+
+
+def test_a_camera_whose_pairs_split_between_two_turns_is_left_to_the_resection():
+    """Camera 5 has right pairs with cameras 0 and 1, and wrong ones, all consistent with
+    one pose turned 100 degrees, with 2, 3 and 4 (it saw the other walker while they saw
+    this one): whichever side the averaging takes, the camera is split. Camera 1's one
+    small wrong pair (40 degrees off) does not split it."""
+    rng = RNG(4)
+    C = 6
+    Rw = np.array([so3_exp(rng.normal(0, 1.0, 3)) for _ in range(C)])
+    turned = so3_exp([0.0, np.radians(100), 0.0]) @ Rw[5]
+
+    def pair(a, b, Rb_w, frames):
+        Rab = Rb_w.T @ Rw[a] @ so3_exp(rng.normal(0, np.radians(0.3), 3))
+        return PairPose(a, b, Rab, np.array([1.0, 0, 0]), np.arange(frames), frames, 17 * frames, 1.0, 30.0,
+                        np.zeros(0, np.int64), {a: np.zeros(0), b: np.zeros(0)})
+
+    pairs = [pair(a, b, Rw[b], 80) for a in range(5) for b in range(a + 1, 5) if (a, b) != (1, 4)]
+    pairs.append(pair(1, 4, so3_exp([0.0, 0.0, np.radians(40)]) @ Rw[4], 30))
+    pairs += [pair(0, 5, Rw[5], 50), pair(1, 5, Rw[5], 45)]
+    pairs += [pair(a, 5, turned, 40) for a in (2, 3, 4)]
+    _, _, res = average_rotations(C, pairs, sigma_deg=2.5)
+    kept = res <= 5.0
+    assert kept[-5:-3].all() != kept[-3:].all()  # one side of camera 5 kept, the other dropped
+    assert not kept[-6]  # camera 1's wrong pair
+    split = split_cameras(C, pairs, kept, 0.5)
+    assert split.tolist() == [False, False, False, False, False, True]
+    assert not split_cameras(C, pairs, kept, 0.0).any()  # off
+    # with its right side far stronger the wrong pairs are dropped, and it is not split either
+    pairs[-5:-3] = [pair(0, 5, Rw[5], 200), pair(1, 5, Rw[5], 200)]
+    _, _, res = average_rotations(C, pairs, sigma_deg=2.5)
+    assert (res[-3:] > 5.0).all() and not split_cameras(C, pairs, res <= 5.0, 0.5).any()
 
 
 def test_bones_relate_the_scales_of_a_chain_without_shared_joints():
