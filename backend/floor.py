@@ -17,6 +17,7 @@ Pure numpy: the factors themselves are built in backend/optimize.py.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -84,6 +85,16 @@ def fit_floor(landmarks: np.ndarray, lm_hyp: np.ndarray, lm_joint: np.ndarray, s
     (L,) int."""
     ank, up, _ = lower_ankles(landmarks, lm_hyp, lm_joint)
     return plane_of_ankles(landmarks[ank], up, sigma)
+
+
+def floor_of_persons(X: np.ndarray, sigma: float) -> Floor | None:
+    """``plane_of_ankles`` of whole triangulated persons X (N, 17, 3), NaN = missing (a
+    person without an ankle or anything above them is not counted)."""
+    assert X.ndim == 3 and X.shape[1:] == (17, 3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # nobody's shoulders or hips: NaN
+        up = np.nanmean(X[:, _TOP], axis=1) - X[:, ANKLES].mean(axis=1)
+    return plane_of_ankles(X[:, ANKLES], up, sigma)
 
 
 def plane_of_ankles(ankles: np.ndarray, up: np.ndarray, sigma: float, rounds: int = 10) -> Floor | None:

@@ -38,6 +38,7 @@ import numpy as np
 
 from .associate import Associator
 from .config import AssociateConfig, BootstrapConfig, OptimizeConfig
+from .floor import ANKLES, MIN_POINTS, Floor, floor_of_persons
 from .geometry import rotation_angle_deg, triangulate_views
 from .preprocess import Detection
 
@@ -376,8 +377,7 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
     make that a few per cent off). With both, they must agree within PAIR_SCALES_AGREE,
     and the bones must agree among themselves as the bootstrap's bone relations must.
     The best-supported pair that passes wins."""
-    from .bootstrap import BONES, pair_poses, single_views
-    from .floor import ANKLES, _TOP, plane_of_ankles
+    from .bootstrap import BONES, pair_poses, single_views  # it imports this module
 
     C = len(located)
     keep = located.copy()
@@ -392,8 +392,7 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
         warnings.simplefilter("ignore", RuntimeWarning)  # a bone or joint nobody showed: NaN
         lengths = np.linalg.norm(X[:, BONES[:, 1]] - X[:, BONES[:, 2]], axis=2)
         ref = np.array([np.nanmedian(lengths[:, BONES[:, 0] == k]) for k in range(len(found[0].bones))])
-        floor = plane_of_ankles(X[:, ANKLES], np.nanmean(X[:, _TOP], axis=1) - np.nanmean(X[:, ANKLES], axis=1),
-                                OptimizeConfig.model_fields["floor_sigma"].default)
+    floor = floor_of_persons(X, OptimizeConfig.model_fields["floor_sigma"].default)
     single = single_views(sub)
     for p in sorted(found, key=lambda p: -len(p.frames)):
         v = np.log(ref / p.bones)
@@ -420,13 +419,12 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
     return None
 
 
-def _floor_scale(single, agreeing: np.ndarray, cam: int, o: int, R: np.ndarray, t: np.ndarray, Rc: np.ndarray,
-                 step: np.ndarray, floor) -> float | None:
+def _floor_scale(single: Sequence[dict[int, Detection]], agreeing: np.ndarray, cam: int, o: int, R: np.ndarray,
+                 t: np.ndarray, Rc: np.ndarray, step: np.ndarray, floor: Floor) -> float | None:
     """The baseline length that puts the pair's lower ankles on ``floor``: triangulated
     with a unit baseline, the pair's points scale about camera o's centre, so each lower
-    ankle P gives s = (d - n.C_o) / n.(P - C_o). Their median; None from fewer than 10."""
-    from .floor import ANKLES, MIN_POINTS
-
+    ankle P gives s = (d - n.C_o) / n.(P - C_o). Their median; None from fewer than
+    MIN_POINTS // 3."""
     Rs = np.stack([R[o], Rc])
     ts = np.stack([t[o], t[o] + step])
     low = []
