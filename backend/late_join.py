@@ -278,8 +278,9 @@ class JoiningPipeline(Pipeline):
         new = []
         for r in ok:
             cov = r.cov if r.cov is not None and np.all(np.isfinite(r.cov)) else None
-            st = max(st0, STD_FACTOR * float(np.sqrt(np.trace(cov[3:, 3:]) / 3))) if cov is not None else st0
-            sr = max(sr0, STD_FACTOR * float(np.degrees(np.sqrt(np.trace(cov[:3, :3]) / 3)))) if cov is not None else sr0
+            k = 1.0 if r.paired >= 0 else STD_FACTOR  # a pair's cov is stated, not a fit's (resect.place_by_pair)
+            st = max(st0, k * float(np.sqrt(np.trace(cov[3:, 3:]) / 3))) if cov is not None else st0
+            sr = max(sr0, k * float(np.degrees(np.sqrt(np.trace(cov[:3, :3]) / 3)))) if cov is not None else sr0
             new.append(Joined(names[r.cam], r, float(seconds), st, sr, live=live,
                               paired_with=names[r.paired] if r.paired >= 0 else ""))
         self.late += new

@@ -97,7 +97,8 @@ class Resection:
     the refinement (per-frame residual blocks, so correlated joints of one detection do
     not count as independent), None without a pose; accepted and reason: the guards'
     verdict. paired: the placed camera whose pair placed it (``place_by_pair``; -1: resected),
-    scaled_by: what gave that pair's baseline its length ("floor" or "bones").
+    scaled_by: what gave that pair's baseline its length ("floor" or "bones"); its cov is
+    then the pair's stated std (``PAIR_TURN_STD_DEG``, ``PAIR_LENGTH_STD``), not a fit's.
     """
 
     cam: int
@@ -358,6 +359,13 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
 SCALED_BY = {"floor": "its baseline's length from the floor both sides' people stand on",
              "bones": "its baseline's length from the people's bones"}
 PAIR_SCALES_AGREE = 0.2  # the floor's and the bones' scale of a pair: further apart, its geometry is wrong
+# A pair-placed camera's std: its turn and its baseline's direction from a pair are good to
+# 0.1-1.5 degrees (docs/bootstrap.md, Method 1; 1.1-1.3 in tests/backend/test_resect.py);
+# its baseline's length to a few per cent from the floor (ankles are not all at one height
+# above it), to some ten from the bones (people differ in size)
+PAIR_TURN_STD_DEG = 1.5
+PAIR_SPLIT_DEG = 10.0  # two pairs that turn the camera further apart disagree (2x the bootstrap's rotation_outlier)
+PAIR_LENGTH_STD = {"floor": 0.03, "bones": 0.10}
 
 
 def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.ndarray, t: np.ndarray,
@@ -376,7 +384,8 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
     it (the same people walk past the pair and the network; walkers of different sizes
     make that a few per cent off). With both, they must agree within PAIR_SCALES_AGREE,
     and the bones must agree among themselves as the bootstrap's bone relations must.
-    The best-supported pair that passes wins."""
+    The best-supported pair that passes wins, unless another with ``split_ratio`` of its
+    frames turns the camera elsewhere (a split camera: none wins)."""
     from .bootstrap import BONES, pair_poses, single_views  # it imports this module
 
     C = len(located)
@@ -394,6 +403,7 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
         ref = np.array([np.nanmedian(lengths[:, BONES[:, 0] == k]) for k in range(len(found[0].bones))])
     floor = floor_of_persons(X, OptimizeConfig.model_fields["floor_sigma"].default)
     single = single_views(sub)
+    placed: list[Resection] = []
     for p in sorted(found, key=lambda p: -len(p.frames)):
         v = np.log(ref / p.bones)
         v = v[np.isfinite(v)]
@@ -414,9 +424,26 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
                 if abs(np.log(s_floor / s)) > PAIR_SCALES_AGREE:
                     continue
                 s, by = s_floor, "floor"
-        return Resection(cam, Rc, t[o] + s * step, len(p.frames), p.candidates, p.candidates, float("nan"), 0,
-                         p.residual_px, None, True, "", paired=o, scaled_by=by)
-    return None
+        turn = np.radians(PAIR_TURN_STD_DEG)
+        length = s * float(np.linalg.norm(step))
+        cov = np.diag([turn**2] * 3 + [length**2 * (PAIR_LENGTH_STD[by] ** 2 + turn**2)] * 3)
+        placed.append(Resection(cam, Rc, t[o] + s * step, len(p.frames), p.candidates, p.candidates, float("nan"), 0,
+                                p.residual_px, cov, True, "", paired=o, scaled_by=by))
+    return one_pose(placed, cfg.split_ratio)
+
+
+def one_pose(placed: Sequence[Resection], ratio: float) -> Resection | None:
+    """The first of a camera's pair placements (best supported first), or None when
+    another with at least ``ratio`` of its frames turns the camera more than
+    PAIR_SPLIT_DEG elsewhere: two walkers who moved alike (as the bootstrap's split
+    cameras, ``split_ratio``), not a pose to pick by the count of frames."""
+    if not placed:
+        return None
+    best = placed[0]
+    for r in placed[1:]:
+        if rotation_angle_deg(r.R, best.R) > PAIR_SPLIT_DEG and r.frames >= ratio * best.frames:
+            return None
+    return best
 
 
 def _floor_scale(single: Sequence[dict[int, Detection]], agreeing: np.ndarray, cam: int, o: int, R: np.ndarray,

@@ -17,7 +17,7 @@ from backend.config import EngineConfig
 from backend.evaluate import evaluate
 from backend.geometry import rotation_angle_deg
 from backend.preprocess import Detection
-from backend.resect import place_by_pair, resect, resect_unplaced, triangulate_persons
+from backend.resect import Resection, one_pose, place_by_pair, resect, resect_unplaced, triangulate_persons
 
 WEST = ("cam_11", "cam_12", "cam_13", "cam_14", "cam_15", "cam_16", "cam_17")
 LOST = 6  # cam_17
@@ -162,6 +162,10 @@ def test_the_end_of_a_corridor_is_placed_by_its_pair_with_its_neighbour(corridor
     assert np.linalg.norm(t1[end] - t[end]) < 0.04 * base, (t1[end], t[end])
     assert abs(np.linalg.norm(t1[end] - t[1]) / base - 1) < 0.03
     assert rotation_angle_deg(R1[end], R[end]) < 2.0
+    # its stated std covers the error
+    std_t = np.sqrt(np.diag(r.cov)[3:])
+    assert np.all(np.abs(t1[end] - t[end]) < 3 * std_t), (t1[end] - t[end], std_t)
+    assert rotation_angle_deg(R1[end], R[end]) < 3 * np.degrees(np.sqrt(r.cov[0, 0]))
     assert np.array_equal(np.delete(t1, end, 0), np.delete(t, end, 0))  # the network is not touched
 
 
@@ -181,3 +185,17 @@ def test_a_pair_whose_partner_is_not_placed_or_whose_person_is_another_places_no
         moved.append((time_, tuple(v for v in vs if v[0].cam != 0) + mine[j]))
     persons = triangulate_persons(moved, R, t, located, cfg.associate)
     assert place_by_pair(moved, persons, 0, R, t, located, focal, cfg.bootstrap) is None
+
+
+def test_pairs_that_turn_a_camera_apart_place_it_nowhere():
+    from backend.geometry import so3_exp
+
+    def placed(turn_deg, frames, partner):
+        return Resection(0, so3_exp([0.0, 0.0, np.radians(turn_deg)]), np.zeros(3), frames, frames, frames,
+                         float("nan"), 0, 1.0, None, True, "", paired=partner, scaled_by="floor")
+
+    assert one_pose([], 0.5) is None
+    assert one_pose([placed(0, 80, 1)], 0.5).paired == 1
+    assert one_pose([placed(0, 80, 1), placed(3, 60, 2)], 0.5).paired == 1  # they agree
+    assert one_pose([placed(0, 80, 1), placed(100, 30, 2)], 0.5).paired == 1  # a weak other turn
+    assert one_pose([placed(0, 80, 1), placed(100, 50, 2)], 0.5) is None  # split
