@@ -98,7 +98,8 @@ class Resection:
     not count as independent), None without a pose; accepted and reason: the guards'
     verdict. paired: the placed camera whose pair placed it (``place_by_pair``; -1: resected),
     scaled_by: what gave that pair's baseline its length ("floor" or "bones"); its cov is
-    then the pair's stated std (``PAIR_TURN_STD_DEG``, ``PAIR_LENGTH_STD``), not a fit's.
+    then the pair's stated std (``PAIR_TURN_STD_DEG``, ``PAIR_LENGTH_STD``), not a fit's,
+    seen and candidates the frames in which each sees one person, spread NaN.
     """
 
     cam: int
