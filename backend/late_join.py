@@ -48,6 +48,7 @@ from .sync import Synchronizer
 # the joined camera's prior in the final batch is this many times it, at least the
 # hand-over's std of the placed cameras.
 STD_FACTOR = 5.0
+FLOOR_FRAMES = 400  # of the pipeline's framesets, evenly spread, for the network's floor in a late job
 
 
 @dataclass(frozen=True)
@@ -262,7 +263,13 @@ class JoiningPipeline(Pipeline):
                 R[c], t[c], located[c] = rf.R[idx[n]], rf.t[idx[n]], True
         focal = np.array([0.5 * (self.all_intrinsics[n].fx + self.all_intrinsics[n].fy) for n in names])
         frames = tuple(self.late_frames)
-        return LateJob(frames, R, t, located, focal, self.cfg.associate, self.cfg.bootstrap, self.cycle)
+        # the network's floor for a pair's baseline (``resect.place_by_pair``): where an
+        # unplaced camera sees somebody the placed ones may see few people, so a spread of
+        # the pipeline's own framesets too
+        own = list(self.frames)[:: max(1, len(self.frames) // FLOOR_FRAMES)]
+        floor_frames = tuple(remap(own, {c: names.index(n) for c, n in enumerate(self.names)}))
+        return LateJob(frames, R, t, located, focal, self.cfg.associate, self.cfg.bootstrap, self.cycle,
+                       floor_frames)
 
     def _accept(self, job: "LateJob", found: "LateResult", live: bool = False) -> list[Joined]:
         """The cameras a resection placed (``late``, ``late_notes``); returns the new ones."""
@@ -441,7 +448,8 @@ class LateResult:
 class LateJob:
     """A resection of the unplaced cameras (``resect_unplaced``) with what it reads: the
     late framesets (camera indices of all cameras), every camera's pose (C, 3, 3), (C, 3)
-    where ``located`` (C,) bool, focal lengths (C,) px, the configs and a seed."""
+    where ``located`` (C,) bool, focal lengths (C,) px, the configs, a seed, and some of
+    the pipeline's own framesets for the placed cameras' floor."""
 
     frames: tuple[Frame, ...]
     R: np.ndarray
@@ -451,13 +459,14 @@ class LateJob:
     associate: Any
     bootstrap: Any
     seed: int
+    floor_frames: tuple[Frame, ...] = ()  # the placed cameras' framesets (all cameras' indices) for their floor
 
     def run(self) -> LateResult:
         frames = list(self.frames)
         C = len(self.located)
         _, _, located, found = resect_unplaced(frames, self.R, self.t, self.located, self.focal, view_box(frames, C),
                                                self.associate, self.bootstrap, seed=self.seed,
-                                               pairs=self.bootstrap.late_pairs)
+                                               pairs=self.bootstrap.late_pairs, floor_frames=self.floor_frames)
         return LateResult(tuple(found), located)
 
 

@@ -329,15 +329,24 @@ def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, bo
 
 def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located: np.ndarray, focal: np.ndarray,
                     boxes: np.ndarray, assoc: AssociateConfig, cfg: BootstrapConfig, *, seed: int = 0,
-                    pairs: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[Resection]]:
+                    pairs: bool = False, floor_frames: Sequence[Frame] = ()
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[Resection]]:
     """Resect the cameras not ``located`` (C,) bool, one at a time, best evidence first:
     a camera placed joins the network the next ones are resected against (a room that
     two placed cameras see rarely is reached through the first camera placed in it).
     ``pairs``: a camera the resection does not place may be placed by its pair with a
-    placed camera (``place_by_pair``). Returns copies of (R (C, 3, 3), t (C, 3), located
-    (C,)) and each camera's last Resection."""
+    placed camera (``place_by_pair``), its baseline's length from the floor of the persons
+    the located cameras triangulate in ``frames`` and ``floor_frames`` (more of the
+    network's framesets: ``frames`` may hold only those in which the camera sees
+    somebody). Returns copies of (R (C, 3, 3), t (C, 3), located (C,)) and each camera's
+    last Resection."""
     R, t, located = R.copy(), t.copy(), located.copy()
     last: dict[int, Resection] = {}
+    floor: Floor | None = None
+    if pairs and (~located).any() and located.sum() >= 2:
+        seen = [triangulate_persons(f, R, t, located, assoc).X for f in (frames, floor_frames) if len(f)]
+        floor = floor_of_persons(np.concatenate(seen), OptimizeConfig.model_fields["floor_sigma"].default) if seen \
+            else None
     while True:
         todo = [int(c) for c in np.flatnonzero(~located)]
         if not todo or located.sum() < 2:
@@ -345,8 +354,8 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
         persons = triangulate_persons(frames, R, t, located, assoc)
         found = [resect(frames, persons, c, float(focal[c]), boxes[c], cfg, seed=seed + c) for c in todo]
         if pairs:
-            found = [r if r.accepted else (place_by_pair(frames, persons, r.cam, R, t, located, focal, cfg, seed=seed)
-                                           or r) for r in found]
+            found = [r if r.accepted else (place_by_pair(frames, persons, r.cam, R, t, located, focal, cfg, seed=seed,
+                                                         floor=floor) or r) for r in found]
         for r in found:
             last[r.cam] = r
         ok = [r for r in found if r.accepted]
@@ -370,8 +379,10 @@ PAIR_LENGTH_STD = {"floor": 0.03, "bones": 0.10}
 
 
 def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.ndarray, t: np.ndarray,
-                  located: np.ndarray, focal: np.ndarray, cfg: BootstrapConfig, *, seed: int = 0) -> Resection | None:
-    """Camera ``cam`` placed by its relative pose to a placed camera, or None.
+                  located: np.ndarray, focal: np.ndarray, cfg: BootstrapConfig, *, seed: int = 0,
+                  floor: Floor | None = None) -> Resection | None:
+    """Camera ``cam`` placed by its relative pose to a placed camera, or None. ``floor``:
+    the network's (else fitted to ``persons``, the placed cameras' in ``frames``).
 
     A resection needs persons that two placed cameras triangulate in the camera's view. At
     the end of a camera chain (a corridor) only its one neighbour sees where it sees, so
@@ -402,7 +413,8 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
         warnings.simplefilter("ignore", RuntimeWarning)  # a bone or joint nobody showed: NaN
         lengths = np.linalg.norm(X[:, BONES[:, 1]] - X[:, BONES[:, 2]], axis=2)
         ref = np.array([np.nanmedian(lengths[:, BONES[:, 0] == k]) for k in range(len(found[0].bones))])
-    floor = floor_of_persons(X, OptimizeConfig.model_fields["floor_sigma"].default)
+    if floor is None:
+        floor = floor_of_persons(X, OptimizeConfig.model_fields["floor_sigma"].default)
     single = single_views(sub)
     placed: list[Resection] = []
     for p in sorted(found, key=lambda p: -len(p.frames)):

@@ -145,3 +145,31 @@ def test_a_camera_placed_by_its_pair_says_so_and_what_scaled_it():
     assert "floor" in line and "spread" not in line
     j.update(paired_with="", spread=0.8)
     assert later_summary(j).startswith("cam_5 placed after the bootstrap: resected against the online estimate")
+
+
+def test_the_end_of_a_corridor_joins_by_its_pair(tmp_path):
+    """Two walkers down the corridor (6 cameras, each overlapping its neighbours only),
+    180 s, no initial estimate: the bootstrap's 120 s leave cam_5 out (it sees people with
+    cam_4 alone, too rarely then), no resection can place it, and its pair with cam_4 does
+    while the run goes on. Before the pairs it was left out of the result."""
+    import json
+
+    from edge_clients.sim import SimConfig, Simulator
+    from edge_clients.sim.scenes import corridor
+    from proto import write_recording
+
+    scene = corridor()
+    sim = Simulator(scene, SimConfig(persons=2, duration=180.0, seed=0, heights=(1.80, 1.65)))
+    write_recording(tmp_path / "rec.msgpack", [m for _, m in sim.messages(scene.names)])
+    save_intrinsics(tmp_path / "intrinsics.yaml", scene.intrinsics)
+    out = tmp_path / "out.yaml"
+    _calibrate(tmp_path, out, [])
+    meta = json.loads((tmp_path / "out.yaml.bootstrap.json").read_text())
+    assert "cam_5" in meta["not_located"]
+    later = {j["name"]: j for j in meta["placed_later"]}
+    assert later["cam_5"]["paired_with"] == "cam_4" and later["cam_5"]["scaled_by"] == "floor"
+    assert "# cam_5 placed after the bootstrap by its pair with cam_4" in out.read_text()
+    res = load_extrinsics(out)
+    assert set(res) == set(scene.names)
+    ev = evaluate({n: e.pose for n, e in res.items()}, scene.poses)
+    assert ev.shape_position.max < 0.15 and ev.orientation.max < 2.0, ev.per_camera
