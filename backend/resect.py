@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -342,11 +342,16 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
     last Resection."""
     R, t, located = R.copy(), t.copy(), located.copy()
     last: dict[int, Resection] = {}
-    floor: Floor | None = None
-    if pairs and (~located).any() and located.sum() >= 2:
-        seen = [triangulate_persons(f, R, t, located, assoc).X for f in (frames, floor_frames) if len(f)]
-        floor = floor_of_persons(np.concatenate(seen), OptimizeConfig.model_fields["floor_sigma"].default) if seen \
-            else None
+    network: list[Floor | None] = []  # the located cameras' floor, fitted once when a pair needs it
+
+    def floor() -> Floor | None:
+        if not network:
+            seen = [triangulate_persons(f, R0, t0, placed0, assoc).X for f in (frames, floor_frames) if len(f)]
+            network.append(floor_of_persons(np.concatenate(seen), OptimizeConfig.model_fields["floor_sigma"].default)
+                           if seen else None)
+        return network[0]
+
+    R0, t0, placed0 = R.copy(), t.copy(), located.copy()
     while True:
         todo = [int(c) for c in np.flatnonzero(~located)]
         if not todo or located.sum() < 2:
@@ -355,7 +360,7 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
         found = [resect(frames, persons, c, float(focal[c]), boxes[c], cfg, seed=seed + c) for c in todo]
         if pairs:
             found = [r if r.accepted else (place_by_pair(frames, persons, r.cam, R, t, located, focal, cfg, seed=seed,
-                                                         floor=floor) or r) for r in found]
+                                                         network_floor=floor) or r) for r in found]
         for r in found:
             last[r.cam] = r
         ok = [r for r in found if r.accepted]
@@ -380,9 +385,10 @@ PAIR_LENGTH_STD = {"floor": 0.03, "bones": 0.10}
 
 def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.ndarray, t: np.ndarray,
                   located: np.ndarray, focal: np.ndarray, cfg: BootstrapConfig, *, seed: int = 0,
-                  floor: Floor | None = None) -> Resection | None:
-    """Camera ``cam`` placed by its relative pose to a placed camera, or None. ``floor``:
-    the network's (else fitted to ``persons``, the placed cameras' in ``frames``).
+                  network_floor: Callable[[], Floor | None] | None = None) -> Resection | None:
+    """Camera ``cam`` placed by its relative pose to a placed camera, or None.
+    ``network_floor``: gives the network's floor when a pair is found (else it is fitted
+    to ``persons``, the placed cameras' in ``frames``).
 
     A resection needs persons that two placed cameras triangulate in the camera's view. At
     the end of a camera chain (a corridor) only its one neighbour sees where it sees, so
@@ -413,8 +419,8 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
         warnings.simplefilter("ignore", RuntimeWarning)  # a bone or joint nobody showed: NaN
         lengths = np.linalg.norm(X[:, BONES[:, 1]] - X[:, BONES[:, 2]], axis=2)
         ref = np.array([np.nanmedian(lengths[:, BONES[:, 0] == k]) for k in range(len(found[0].bones))])
-    if floor is None:
-        floor = floor_of_persons(X, OptimizeConfig.model_fields["floor_sigma"].default)
+    floor = network_floor() if network_floor is not None else \
+        floor_of_persons(X, OptimizeConfig.model_fields["floor_sigma"].default)
     single = single_views(sub)
     placed: list[Resection] = []
     for p in sorted(found, key=lambda p: -len(p.frames)):
