@@ -343,12 +343,14 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
     R, t, located = R.copy(), t.copy(), located.copy()
     last: dict[int, Resection] = {}
     network: list[Floor | None] = []  # the located cameras' floor, fitted once when a pair needs it
+    first: list[Persons] = []  # the persons of the cameras located from the start
 
     def floor() -> Floor | None:
         if not network:
-            seen = [triangulate_persons(f, R0, t0, placed0, assoc).X for f in (frames, floor_frames) if len(f)]
-            network.append(floor_of_persons(np.concatenate(seen), OptimizeConfig.model_fields["floor_sigma"].default)
-                           if seen else None)
+            more = (triangulate_persons(floor_frames, R0, t0, placed0, assoc).X if len(floor_frames)
+                    else np.zeros((0, 17, 3)))
+            network.append(floor_of_persons(np.concatenate([first[0].X, more]),
+                                            OptimizeConfig.model_fields["floor_sigma"].default))
         return network[0]
 
     R0, t0, placed0 = R.copy(), t.copy(), located.copy()
@@ -357,6 +359,8 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
         if not todo or located.sum() < 2:
             break
         persons = triangulate_persons(frames, R, t, located, assoc)
+        if not first:
+            first.append(persons)
         found = [resect(frames, persons, c, float(focal[c]), boxes[c], cfg, seed=seed + c) for c in todo]
         if pairs:
             found = [r if r.accepted else (place_by_pair(frames, persons, r.cam, R, t, located, focal, cfg, seed=seed,
@@ -404,7 +408,7 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
     and the bones must agree among themselves as the bootstrap's bone relations must.
     The best-supported pair that passes wins, unless another with ``split_ratio`` of its
     frames turns the camera elsewhere (a split camera: none wins)."""
-    from .bootstrap import BONES, pair_poses, single_views  # it imports this module
+    from .bootstrap import pair_bones, pair_poses, single_views  # it imports this module
 
     C = len(located)
     keep = located.copy()
@@ -414,13 +418,11 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
     found = [p for p in found if located[p.b if p.a == cam else p.a] and p.size_spread <= cfg.bridge_spread]
     if not found or not len(persons.frame):
         return None
-    X = persons.X
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # a bone or joint nobody showed: NaN
-        lengths = np.linalg.norm(X[:, BONES[:, 1]] - X[:, BONES[:, 2]], axis=2)
-        ref = np.array([np.nanmedian(lengths[:, BONES[:, 0] == k]) for k in range(len(found[0].bones))])
+    # the network's bones in metres, measured as the pair's are (each person a "frame")
+    rows, joints = np.nonzero(np.isfinite(persons.X).all(axis=2))
+    ref = pair_bones(rows * 17 + joints, persons.X[rows, joints])
     floor = network_floor() if network_floor is not None else \
-        floor_of_persons(X, OptimizeConfig.model_fields["floor_sigma"].default)
+        floor_of_persons(persons.X, OptimizeConfig.model_fields["floor_sigma"].default)
     single = single_views(sub)
     placed: list[Resection] = []
     for p in sorted(found, key=lambda p: -len(p.frames)):
