@@ -51,8 +51,8 @@ from proto import KeypointMessage
 
 from .associate import Hypothesis, torso_centre
 from .cameras import CameraSet, Extrinsics, Intrinsics, Pose, natural_key
-from .config import BootstrapConfig, EngineConfig
-from .floor import median_up, plane_of_ankles
+from .config import BootstrapConfig, EngineConfig, FloorFrame
+from .floor import median_up, plane_of_ankles, world_frame
 from .geometry import hat, pose_std, project_so3, rotation_angle_deg, so3_exp, triangulate_batch
 from .optimize import BONE_NAMES, BONES
 from .people import ANKLE_HEIGHT, ScaleEstimate, Segments, measure_scale, segments
@@ -851,6 +851,7 @@ class BootstrapResult:
     resections: tuple[str, ...] = ()  # the cameras no pair placed and their resection (backend/resect.py)
     residual_px: np.ndarray | None = None
     observations: np.ndarray | None = None
+    floor: FloorFrame | None = None  # how ``frame`` was made: the final batch levels it again on its floor
 
     def __post_init__(self) -> None:
         C = len(self.names)
@@ -893,7 +894,8 @@ def handover(cfg: EngineConfig, result: BootstrapResult) -> EngineConfig:
     """The engine config for the online pipeline that starts from ``result``: its initial
     std is honest and large, 3x the worst bootstrap std or the ``handover_*`` floor; the
     final batch runs from the result as well and is kept from there when it explains the
-    data better (``Pipeline._batch_from_start``)."""
+    data better (``Pipeline._batch_from_start``), and its floor levels the world frame
+    again (``bootstrap.level_final``: the bootstrap's floor may be one pair's people's)."""
     b = cfg.bootstrap
     st = result.std_translation[result.located]
     sr = result.std_rotation[result.located]
@@ -904,6 +906,7 @@ def handover(cfg: EngineConfig, result: BootstrapResult) -> EngineConfig:
         "initial_std_rotation": max(b.handover_std_rotation, 3 * worst_r),
         # the bootstrap saw all its data at once: a final batch from it too, kept when better
         "final_batch_from_start": True,
+        "floor_frame": result.floor if b.level_final else None,
     })
     return cfg.model_copy(update={"refine": refine})
 
@@ -961,9 +964,10 @@ def _rough_scale(seg: Segments, cfg: BootstrapConfig, torso_ratio: float, height
 
 
 def floor_frame(seg: Segments, t: np.ndarray, located: np.ndarray, height: float,
-                names: Sequence[str], sigma: float = 0.05) -> tuple[np.ndarray, np.ndarray, str]:
-    """The world frame of the floor the people walk on: (F (3, 3), o (3,), note) with new
-    coordinates X' = F (X - o). The floor is the plane of each hypothesis' lower ankle
+                names: Sequence[str], sigma: float = 0.05) -> tuple[np.ndarray, np.ndarray, str, FloorFrame]:
+    """The world frame of the floor the people walk on: (F (3, 3), o (3,), note, its
+    definition for levelling it again on the final floor) with new coordinates
+    X' = F (X - o). The floor is the plane of each hypothesis' lower ankle
     (``floor.plane_of_ankles``: robust, its turn about a line of ankles from the bodies' up;
     where no plane is found, level to the bodies' median up), lowered by the ankle's height
     above the floor in a stance (0.039 x the persons' height); z up (towards the hips),
@@ -985,26 +989,15 @@ def floor_frame(seg: Segments, t: np.ndarray, located: np.ndarray, height: float
             raise BootstrapError("no person triangulated upright: no floor to define the frame by")
         stance = float(np.percentile(P @ n, 10))
         how = "the people's median up (their ankles fit no one plane)"
-    level = stance - ANKLE_HEIGHT * height
-    p0 = level * n
     idx = np.flatnonzero(located)
-    proj = t[idx] - np.outer((t[idx] - p0) @ n, n)
-    o = proj[0]
-    x = None
-    for k in range(1, len(idx)):
-        v = proj[k] - o
-        if np.linalg.norm(v) > 0.1:
-            x = v / np.linalg.norm(v)
-            second = names[idx[k]]
-            break
-    if x is None:
+    found = world_frame(n, stance - ANKLE_HEIGHT * height, t[idx])
+    if found is None:
         raise BootstrapError("the cameras' floor points coincide: no x axis")
-    y = np.cross(n, x)
-    F = np.stack([x, y, n])
-    first = names[idx[0]]
+    F, o, k = found
+    first, second = names[idx[0]], names[idx[k]]
     note = (f"floor frame: z up, normal to {how}, the floor {ANKLE_HEIGHT * height:.3f} m below the ankles' "
             f"stance level; origin on the floor under {first}, x towards the floor point under {second}")
-    return F, o, note
+    return F, o, note, FloorFrame(first=first, second=second, ankle_height=ANKLE_HEIGHT * height)
 
 
 def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, config: EngineConfig, *,
@@ -1164,7 +1157,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     else:
         say("no person measured well enough for the scale: the rough scale is kept")
     mean_h = float(np.mean(scale.heights)) if scale else cfg.height_mean
-    F, o, note = floor_frame(seg, t, located, mean_h, names, config.optimize.floor_sigma)
+    F, o, note, spec = floor_frame(seg, t, located, mean_h, names, config.optimize.floor_sigma)
     R = np.einsum("ij,cjk->cik", F, R)
     t = (t - o) @ F.T
     R[~located], t[~located] = np.eye(3), 0.0
@@ -1174,7 +1167,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     stages["people"] = _time.perf_counter() - t0
     return BootstrapResult(tuple(names), R, t, located, std_t, std_r, scale, note, len(good), tried, len(frames),
                            float(data_seconds), _time.perf_counter() - t_start, stages, check_notes, resect_notes,
-                           residual_px, observations)
+                           residual_px, observations, spec)
 
 
 def bootstrap_messages(intrinsics: Mapping[str, Intrinsics], config: EngineConfig, messages: Iterable[KeypointMessage],

@@ -233,6 +233,8 @@ def calibrate(
     scale = boot.scale if boot is not None else (check.people if check is not None else None)
     if boot is not None:
         comment += f"\nno initial estimate: {boot.frame}"
+        if p.levelled is not None:
+            comment += f"\n{p.levelled.summary()}"
         comment += "".join(f"\n{ln}" for ln in late_lines)
         if p.final_batch_start is not None:
             comment += (f"\nfinal batch adjustment: kept the one started from the "
@@ -282,6 +284,8 @@ def calibrate(
     for name, rep in p.preprocess.confidence_report().items():
         if rep["warning"]:
             console.print(f"[yellow]{name}: {rep['warning']}[/]", highlight=False)
+    if p.levelled is not None:
+        console.print(p.levelled.summary(), highlight=False)
     if p.split_check is not None:
         color = "yellow" if p.split_check.widened else "default"
         console.print(f"[{color}]{p.split_check.summary()}[/]", highlight=False)

@@ -175,6 +175,16 @@ class OptimizeConfig(_Section):
                                   "floor (docs/bones.md, Session 33); it is dropped. 0: off")
 
 
+class FloorFrame(_Section):
+    """How a bootstrap defined the world frame by the floor (``bootstrap.floor_frame``):
+    origin on the floor under ``first``, x towards the floor point under ``second``, the
+    floor ``ankle_height`` m below the people's lower ankles' plane."""
+
+    first: str
+    second: str
+    ankle_height: float = Field(ge=0)
+
+
 class RefineConfig(_Section):
     initial_std_translation: float = Field(0.25, gt=0, description="m: how far the initial estimate may be off (its std; "
                                            "the paper uses 0.025, which makes the filter creep from worse starts)")
@@ -195,6 +205,9 @@ class RefineConfig(_Section):
                                           "uses all data at once, the std alone decides)")
     converged_cycles: int = Field(10, ge=1, description="cycles over which the net pose change is measured")
     final_batch: bool = Field(True, description="a batch adjustment over all frames, re-associated with the final estimate, when the run stops")
+    floor_frame: FloorFrame | None = Field(None, description="set by the bootstrap's hand-over (bootstrap.level_final): "
+                                           "the world frame is the floor's, made this way; the final batch adjustment's "
+                                           "floor (all the data's people) levels it again")
     batch_size: int = Field(1000, ge=10, description="most hypotheses in the final batch adjustment")
     batch_fill: bool = Field(True, description="the final batch takes the hypotheses select.min_spacing / 2 apart first, "
                              "then the others up to batch_size (false: the spaced ones only; a walker who passes the "
@@ -330,6 +343,10 @@ class BootstrapConfig(_Section):
                              "placed camera (the bootstrap's pair guards; the baseline's length from the floor both "
                              "sides' people stand on, else their bones): the end of a camera chain, which only its "
                              "neighbour sees with it")
+    level_final: bool = Field(True, description="the world frame is levelled again on the floor of the final batch "
+                              "adjustment's people (the bootstrap's floor is that of the cameras it placed: when it "
+                              "placed only one pair and the rest joined later, that pair's people's floor tilted the "
+                              "frame 12° along a corridor)")
     batch_rounds: int = Field(3, ge=1, description="bundle adjustments, each re-associating all frames with the previous result")
     batch_hypotheses: int = Field(800, ge=10, description="most hypotheses per bundle adjustment")
     prior_std_translation: float = Field(1.0, gt=0, description="m: the weak prior of the bundle adjustment (a gauge, not information)")

@@ -92,6 +92,24 @@ def _errors(result: Mapping[str, Pose], reference: Mapping[str, Pose], names, wi
     return s, pos, ori
 
 
+def up_tilt(result: Mapping[str, Pose], reference: Mapping[str, Pose], up: np.ndarray) -> float:
+    """deg: the result's z axis against ``up`` (3,), the floor's upward normal in the
+    reference's frame, through the similarity that maps the result's poses onto the
+    reference's (orientations too: a corridor's centres leave the turn about it loose).
+    How level a result whose world is the floor's frame stands; NaN with < 3 cameras."""
+    from .geometry import align_poses as align_cameras
+
+    names = sorted(set(result) & set(reference), key=natural_key)
+    if len(names) < 3:
+        return float("nan")
+    a = align_cameras(np.array([result[n].R for n in names]), np.array([result[n].t for n in names]),
+                      np.array([reference[n].R for n in names]), np.array([reference[n].t for n in names]),
+                      orientations=True)
+    if a is None:
+        return float("nan")
+    return float(np.degrees(np.arccos(np.clip(a.Rw[:, 2] @ up / np.linalg.norm(up), -1.0, 1.0))))
+
+
 def evaluate(result: Mapping[str, Pose], reference: Mapping[str, Pose],
              cameras: list[str] | None = None) -> Accuracy:
     """Compare camera poses; both map camera name → Pose. Needs >= 2 shared cameras

@@ -135,6 +135,22 @@ def plane_of_ankles(ankles: np.ndarray, up: np.ndarray, sigma: float, rounds: in
     return Floor(n, d, spread, len(P))
 
 
+def world_frame(n: np.ndarray, level: float, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """The floor's world frame: (F (3, 3), o (3,), k) with new coordinates X' = F (X - o):
+    z along n (3,) (unit, up), the floor the plane n·X = level, origin on it under
+    centres[0], x towards the floor point under centres[k], the first of centres (K, 3)
+    whose floor point is more than 0.1 m from the origin's. None when there is none."""
+    assert n.shape == (3,) and centres.ndim == 2 and centres.shape[1] == 3 and len(centres)
+    proj = centres - np.outer(centres @ n - level, n)
+    o = proj[0]
+    for k in range(1, len(proj)):
+        v = proj[k] - o
+        if np.linalg.norm(v) > 0.1:
+            x = v / np.linalg.norm(v)
+            return np.stack([x, np.cross(n, x), n]), o, k
+    return None
+
+
 def held_ankles(landmarks: np.ndarray, lm_hyp: np.ndarray, lm_joint: np.ndarray, floor: Floor) -> np.ndarray:
     """(K,) int the landmark of each hypothesis' lower ankle (lower along the floor's
     normal) within ``floor.gate()`` of it: the ankles an adjustment holds to it."""

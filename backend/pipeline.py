@@ -36,6 +36,7 @@ from .associate import Associator, Hypothesis
 from .cameras import CameraSet
 from .clock_offsets import ClockJob, ClockOffsetEstimator, ClockResult, SensorClock
 from .config import EngineConfig
+from .floor import Floor, world_frame
 from .geometry import pose_local, pose_std
 from .monitor import Alarm, Monitor
 from .optimize import NOTHING_TO_SOLVE, Problem, Solution, solve
@@ -47,7 +48,7 @@ from .scale_check import ScaleCheck, check_run
 from .selection import HypothesisQueue
 from .split_check import SplitCheck, compare_halves, interleaved_halves
 from .stamp_watch import StampWatch
-from .state import CalibrationState, CameraState, Counters, CycleReport
+from .state import CalibrationState, CameraState, Counters, CycleReport, Levelled
 from .sync import Synchronizer
 
 
@@ -166,6 +167,7 @@ class Pipeline:
         self.scale_heights = None if scale_heights is None else tuple(float(h) for h in scale_heights)
         self.scale_check: ScaleCheck | None = None
         self.split_check: SplitCheck | None = None  # the final batch on two halves of the data
+        self.levelled: Levelled | None = None  # a bootstrap's floor frame levelled on the final batch's floor
         self.clock: float | None = None
         self.cycle = 0
         self.cycles_rejected = 0
@@ -984,7 +986,32 @@ class Pipeline:
         if self.cfg.refine.final_batch_from_start:
             p, sol = self._batch_from_start(p, sol)
         self._inflight = p
-        return self.apply(p, sol)
+        report = self.apply(p, sol)
+        if self.cfg.refine.floor_frame is not None:
+            self.levelled = self._level(sol.level) if report.accepted else Levelled(False, "the final batch was rejected")
+        return report
+
+    def _level(self, floor: Floor | None) -> Levelled:
+        """The bootstrap's floor frame (``refine.floor_frame``) made again on ``floor``, the
+        final batch's: the bootstrap's was the floor of the people the cameras it placed
+        saw, one pair's when the others joined later (docs/bootstrap.md, Session 36)."""
+        spec, rf = self.cfg.refine.floor_frame, self.refiner
+        if floor is None:
+            return Levelled(False, "the final batch's lower ankles fit no one floor")
+        if spec.first not in self.names:
+            return Levelled(False, f"{spec.first}, the origin's camera, is not in the network")
+        first = self.names.index(spec.first)
+        rest = [c for c in np.flatnonzero(rf.cycles > 0) if c != first]
+        if spec.second in self.names:  # x towards the same camera where it can
+            rest.insert(0, self.names.index(spec.second))
+        order = [first] + list(dict.fromkeys(rest))
+        found = world_frame(floor.n, floor.d - spec.ankle_height, rf.t[order])
+        if found is None:
+            return Levelled(False, "the cameras' floor points coincide: no x axis")
+        F, o, k = found
+        rf.reframe(F, o)
+        return Levelled(True, "", float(np.degrees(np.arccos(np.clip(floor.n[2], -1.0, 1.0)))), float(np.linalg.norm(o)),
+                        floor.points, floor.spread, spec.first, self.names[order[k]])
 
     def _batch_from_start(self, p: Problem, sol: Solution) -> tuple[Problem, Solution]:
         """The same batch (same frames, selection seed, prior) started from the start

@@ -211,6 +211,19 @@ class Refiner:
         self.t[never] = apply(self.t[never])
         return self.keep_scale()
 
+    def reframe(self, F: np.ndarray, o: np.ndarray) -> None:
+        """Every pose (estimate, initial estimate, prior, history) in a new world frame,
+        X' = F (X - o), F (3, 3) a rotation. The covariances are in each camera's own
+        tangent space (right perturbations), which a new world frame leaves as it is."""
+        assert F.shape == (3, 3) and o.shape == (3,) and np.allclose(F @ F.T, np.eye(3), atol=1e-9)
+        for R, t in ((self.R, self.t), (self.R0, self.t0), (self.prior_R, self.prior_t)):
+            R[:] = np.einsum("ij,cjk->cik", F, R)
+            t[:] = (t - o) @ F.T
+        for h in self.history:
+            moved = [(F @ (t - o), F @ R) for t, R in h]
+            h.clear()
+            h.extend(moved)
+
     def widen(self, factor: np.ndarray) -> None:
         """Each camera's covariances scaled by ``factor`` (C,) squared (std by ``factor``):
         the spread the data show where it exceeds what the solve stated

@@ -1476,7 +1476,9 @@ class Service:
                                        "retimed": dict(s.pipeline.retimed),
                                        # the final batch on two halves of the data: stds widened where they disagree
                                        "split_check": None if s.pipeline.split_check is None else
-                                       {**s.pipeline.split_check.to_dict(), "summary": s.pipeline.split_check.summary()}}
+                                       {**s.pipeline.split_check.to_dict(), "summary": s.pipeline.split_check.summary()},
+                                       # a bootstrapped session's floor frame, levelled on the final batch's floor
+                                       "levelled": None if s.pipeline.levelled is None else s.pipeline.levelled.to_dict()}
                     check = s.pipeline.scale_check
                     if check is not None:  # the initial estimate's scale against the people's
                         rec.scale = {**(rec.scale or {}), "check": check.to_dict(), "summary": check.summary()}
@@ -1969,7 +1971,8 @@ def _result_comment(rec: SessionRecord, state: "CalibrationState") -> str:
     """A result's header: the session and cycle; for a bootstrapped session where its
     frame and scale come from (backend/live_bootstrap.py)."""
     head = f"extrcal session {rec.id}, cycle {state.cycle}, {rec.state.value}"
-    extra = result_comment(rec.bootstrap)
+    levelled = (rec.final_batch or {}).get("levelled")
+    extra = "\n".join(x for x in (result_comment(rec.bootstrap), levelled and levelled["summary"]) if x)
     return f"{head}\n{extra}" if extra else head
 
 

@@ -73,6 +73,31 @@ class CameraState:
 
 
 @dataclass(frozen=True)
+class Levelled:
+    """The world frame of a bootstrapped run levelled again on the final batch
+    adjustment's floor (``refine.floor_frame``), or why not (``reason``)."""
+
+    done: bool
+    reason: str = ""
+    turn_deg: float = 0.0  # between the bootstrap's z and the final floor's up
+    shift: float = 0.0  # m the origin moved
+    points: int = 0  # lower ankles of the final floor's plane
+    spread: float = 0.0  # m their robust std about it
+    first: str = ""  # origin on the floor under this camera ...
+    second: str = ""  # ... x towards the floor point under this one
+
+    def summary(self) -> str:
+        if not self.done:
+            return f"world frame not levelled again (the bootstrap's floor kept): {self.reason}"
+        return (f"world frame levelled again on the final batch adjustment's floor (the plane of {self.points} lower "
+                f"ankles, spread {self.spread:.3f} m): turned {self.turn_deg:.2f}° from the bootstrap's, origin "
+                f"moved {self.shift:.3f} m, still under {self.first}, x towards {self.second}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**asdict(self), "summary": self.summary()}
+
+
+@dataclass(frozen=True)
 class CycleReport:
     """What one optimisation cycle did."""
 

@@ -272,6 +272,7 @@ def bootstrap_cached(recording: str, intrinsics, cfg, seed: int, cache: Path):
     on the recording only, not on the start, and takes minutes. None when it fails."""
     from backend.bootstrap import BootstrapError, BootstrapResult, bootstrap_messages
     from backend.cameras import natural_key
+    from backend.config import FloorFrame
     from proto import read_recording
 
     h = hashlib.sha1()
@@ -286,9 +287,12 @@ def bootstrap_cached(recording: str, intrinsics, cfg, seed: int, cache: Path):
         z = np.load(path)
         if not bool(z["ok"]):
             return None
+        floor = FloorFrame(first=str(z["floor_first"]), second=str(z["floor_second"]),
+                           ankle_height=float(z["floor_ankle"])) if "floor_first" in z else None
         return BootstrapResult(names, z["R"], z["t"], z["located"], z["std_t"], z["std_r"], None, "cached",
                                int(z["pairs"]), int(z["pairs_tried"]), int(z["frames"]), float(z["data_seconds"]),
-                               float(z["seconds"]), residual_px=z["residual_px"], observations=z["observations"])
+                               float(z["seconds"]), residual_px=z["residual_px"], observations=z["observations"],
+                               floor=floor)
     try:
         b = bootstrap_messages(intrinsics, cfg, read_recording(recording), seed=seed)
     except BootstrapError:
@@ -300,7 +304,9 @@ def bootstrap_cached(recording: str, intrinsics, cfg, seed: int, cache: Path):
         else:
             np.savez(f, ok=True, R=b.R, t=b.t, located=b.located, std_t=b.std_translation, std_r=b.std_rotation,
                      pairs=b.pairs, pairs_tried=b.pairs_tried, frames=b.frames, data_seconds=b.data_seconds,
-                     seconds=b.seconds, residual_px=b.residual_px, observations=b.observations)
+                     seconds=b.seconds, residual_px=b.residual_px, observations=b.observations,
+                     **({} if b.floor is None else {"floor_first": b.floor.first, "floor_second": b.floor.second,
+                                                    "floor_ankle": b.floor.ankle_height}))
     os.replace(tmp, path)
     return b
 

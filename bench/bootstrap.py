@@ -179,11 +179,12 @@ def run_calibrate(seed: int, seconds: float, cache: Path, overrides: list[str], 
 
     import accuracy
     import typer
+    import yaml
 
     from backend.cameras import Pose, load_extrinsics, load_intrinsics, natural_key
     from backend.cli_engine import calibrate
     from backend.config import EngineConfig
-    from backend.evaluate import evaluate
+    from backend.evaluate import evaluate, up_tilt
     from backend.geometry import quat_to_R
 
     lab = accuracy.lab_dir()
@@ -218,6 +219,8 @@ def run_calibrate(seed: int, seconds: float, cache: Path, overrides: list[str], 
     out["late_resections"] = meta.get("late_resections", [])
     out["final_batch"] = next((ln for ln in res_comment if ln.startswith("final batch adjustment")), None)
     out["bootstrap"] = _shape(evaluate(boot, ref))
+    up = np.asarray(yaml.safe_load((lab / "room.yaml").read_text())["floor"]["normal_up"], dtype=np.float64)
+    out["tilt"] = {"bootstrap": up_tilt(boot, ref, up), "final": up_tilt(final, ref, up)}  # the floor frame's z
     if len(lines) >= 2:
         cams = json.loads(lines[-2])["cameras"]
         online = {c["name"]: Pose(quat_to_R(c["rotation"]), np.array(c["translation"])) for c in cams}
@@ -233,6 +236,11 @@ def run_calibrate(seed: int, seconds: float, cache: Path, overrides: list[str], 
     return out
 
 
+def _tilts(r: dict) -> str:
+    t = r.get("tilt")  # runs of --out files written before the column
+    return f"{t['bootstrap']:.2f} / {t['final']:.2f}" if t else "-"
+
+
 def _worst(s: dict) -> str:
     """The camera furthest outside the bars (or the worst within them)."""
     n, (p, o) = max(s["per_camera"].items(), key=lambda kv: max(kv[1][0] / BAR_POSITION, kv[1][1] / BAR_ORIENTATION))
@@ -244,11 +252,11 @@ def print_calibrate(runs: list[dict]) -> None:
     print("Similarity-aligned error per placed camera: bootstrap alone, online pipeline before the final "
           "batch, the result (after the final batch). Cameras within 0.05 m / 0.5°.\n")
     print("| seed | data s | placed | bootstrap within | online within | result within | result shape pos mean / max (m) "
-          "| orient mean / max (°) | worst camera (result) | wall s |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| orient mean / max (°) | worst camera (result) | z tilt bootstrap / result (°) | wall s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in runs:
         if "error" in r:
-            print(f"| {r['seed']} | {r['seconds']:g} | failed: {r['error']} | | | | | | | |")
+            print(f"| {r['seed']} | {r['seconds']:g} | failed: {r['error']} | | | | | | | | |")
             continue
         b, f = r["bootstrap"], r["final"]
         o = r.get("online")
@@ -256,7 +264,8 @@ def print_calibrate(runs: list[dict]) -> None:
         print(f"| {r['seed']} | {r['seconds']:g} | {f['cameras']}/20 | {b['within']}/{b['cameras']} | "
               f"{ow} | {f['within']}/{f['cameras']} | "
               f"{f['shape_position']:.4f} / {f['shape_position_max']:.4f} | "
-              f"{f['shape_orientation']:.3f} / {f['shape_orientation_max']:.3f} | {_worst(f)} | {r['wall']:.0f} |")
+              f"{f['shape_orientation']:.3f} / {f['shape_orientation_max']:.3f} | {_worst(f)} | "
+              f"{_tilts(r)} | {r['wall']:.0f} |")
     print("\nCameras the bootstrap did not place (detections in the data / framesets seen together with another camera):\n")
     for r in runs:
         if "error" in r:

@@ -87,8 +87,10 @@ def run(recording: Path, start: str, seed: int, persons: int, work: Path, overri
     """One `extrcal calibrate` of ``recording`` from ``start`` ('T/R' m/deg, 'none' or
     'height'; 'T/R+height': the initial estimate and the walkers' heights) with ``--set``
     ``overrides``; its errors against the truth."""
+    import yaml
+
     from backend.cameras import load_extrinsics, save_extrinsics
-    from backend.evaluate import evaluate
+    from backend.evaluate import evaluate, up_tilt
     from backend.perturb import perturb_extrinsics
 
     d = cameras_of(recording)
@@ -145,28 +147,9 @@ def run(recording: Path, start: str, seed: int, persons: int, work: Path, overri
         b = evaluate({n: e.pose for n, e in initial.items()}, truth)
         res["initial_position"] = b.position.mean
     else:  # the result's frame is the floor's (z up): how far from the truth's up
-        res["tilt"] = floor_tilt(got, ref, d / "room.yaml")
+        up = yaml.safe_load((d / "room.yaml").read_text())["floor"]["normal_up"]
+        res["tilt"] = up_tilt(poses, truth, np.asarray(up, dtype=np.float64))
     return res
-
-
-def floor_tilt(got: dict, ref: dict, room: Path) -> float:
-    """deg: the result's z axis against the truth's up (room.yaml's floor normal), through
-    the similarity that aligns the result's poses onto the truth's (orientations too: a
-    corridor's centres leave the turn about it loose)."""
-    import yaml
-
-    from backend.geometry import align_poses
-
-    names = [n for n in got if n in ref]
-    if len(names) < 3:
-        return float("nan")
-    up = np.asarray(yaml.safe_load(room.read_text())["floor"]["normal_up"], dtype=np.float64)
-    a = align_poses(np.array([got[n].pose.R for n in names]), np.array([got[n].pose.t for n in names]),
-                    np.array([ref[n].pose.R for n in names]), np.array([ref[n].pose.t for n in names]),
-                    orientations=True)
-    if a is None:
-        return float("nan")
-    return float(np.degrees(np.arccos(np.clip(a.Rw @ [0.0, 0.0, 1.0] @ up / np.linalg.norm(up), -1.0, 1.0))))
 
 
 def table(runs: list[dict], layouts: list[str], starts: list[str], args) -> str:

@@ -538,7 +538,7 @@ def test_the_floor_frame_is_level_though_wrong_pairs_put_ankles_metres_off():
     seg = Segments(np.arange(N, dtype=float), ankles.mean(1) + [0, 0, 1.0], np.full(N, 0.44), np.full(N, 0.44),
                    np.full(N, 0.52), ankles, up)
     t = np.array([[0.0, 0.5, 2.6], [3.5, -0.5, 2.6], [7.0, 0.5, 2.6]])
-    F, o, note = floor_frame(seg, t, np.ones(3, bool), 1.80, ["cam_0", "cam_1", "cam_2"])
+    F, o, note, _ = floor_frame(seg, t, np.ones(3, bool), 1.80, ["cam_0", "cam_1", "cam_2"])
     assert np.degrees(np.arccos(F[2] @ [0, 0, 1])) < 1.0, F
     # the floor 0.039 x 1.80 m below the ankles' stance level: the cameras 2.6 m above it
     assert ((t - o) @ F.T)[:, 2] == pytest.approx(2.6, abs=0.03)

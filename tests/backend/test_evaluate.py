@@ -137,3 +137,18 @@ def test_two_cameras_or_a_line_are_aligned_by_their_orientations_too(ref, names)
     # the mean orientation fixes the frame: the turned camera keeps (N-1)/N of its 1°
     assert acc.orientation.max == pytest.approx(1 - 1 / len(rig), abs=0.01)
     assert acc.position.max < 1e-9
+
+
+def test_the_tilt_of_a_result_s_up_is_measured_through_any_frame_and_scale(ref):
+    from backend.evaluate import up_tilt
+
+    up = np.array([-0.006, 0.830, -0.557])  # the lab's floor normal (room.yaml)
+    up /= np.linalg.norm(up)
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(up, z)  # the turn that takes the floor's up to z: a level result's frame
+    level = so3_exp(v / np.linalg.norm(v) * np.arccos(up @ z))
+    # and then 3° about the result's x: its z stands 3° from up
+    for tilt in (0.0, 3.0):
+        res = _transform(ref, 0.9, so3_exp([np.radians(tilt), 0.0, 0.0]) @ level, np.array([1.0, 2.0, 3.0]))
+        assert up_tilt(res, ref, up) == pytest.approx(tilt, abs=1e-6)
+    assert np.isnan(up_tilt({n: ref[n] for n in ("cam_0", "cam_1")}, ref, up))

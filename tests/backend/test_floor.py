@@ -142,3 +142,19 @@ def test_an_adjustment_with_bones_holds_the_lower_ankles_to_one_plane(corridor_b
     # without bones (a network with three-way views) no floor either: it goes with them
     plain = solve(replace(prob, config=prob.config.model_copy(update={"bones": "off", "floor": True})))
     assert plain.ok and plain.floor is None and plain.floor_points == 0
+
+
+def test_the_world_frame_of_a_floor_puts_the_first_camera_over_its_origin():
+    from backend.floor import world_frame
+
+    rng = np.random.default_rng(3)
+    n = _rot([1.0, 0.3, 0.0], 14.0) @ [0.0, 0.0, 1.0]
+    centres = rng.normal(size=(4, 3)) * 3.0 + 2.5 * n
+    centres[1] = centres[0] + 0.05 * rng.normal(size=3) + 2.0 * n  # over the first: no x axis from it
+    F, o, k = world_frame(n, 0.4, centres)
+    assert np.allclose(F @ F.T, np.eye(3)) and np.isclose(np.linalg.det(F), 1.0)
+    assert np.allclose(F @ n, [0.0, 0.0, 1.0]) and np.isclose(o @ n, 0.4)
+    new = (centres - o) @ F.T
+    assert k == 2 and np.allclose(new[0, :2], 0.0) and np.isclose(new[k, 1], 0.0) and new[k, 0] > 0.1
+    assert np.allclose(new[:, 2], centres @ n - 0.4)  # heights above the floor kept
+    assert world_frame(n, 0.4, centres[:2]) is None

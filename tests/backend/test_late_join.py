@@ -15,7 +15,7 @@ import pytest
 
 from backend.cameras import CameraSet, Extrinsics, load_extrinsics, save_intrinsics
 from backend.config import EngineConfig
-from backend.evaluate import evaluate
+from backend.evaluate import evaluate, up_tilt
 from backend.late_join import JoiningPipeline
 from backend.pipeline import run_offline
 
@@ -173,3 +173,6 @@ def test_the_end_of_a_corridor_joins_by_its_pair(tmp_path):
     assert set(res) == set(scene.names)
     ev = evaluate({n: e.pose for n, e in res.items()}, scene.poses)
     assert ev.shape_position.max < 0.15 and ev.orientation.max < 2.0, ev.per_camera
+    # the world's z is the floor's up: levelled on the final batch's floor, of every camera's people
+    assert "# world frame levelled again on the final batch adjustment's floor" in out.read_text()
+    assert up_tilt({n: e.pose for n, e in res.items()}, scene.poses, scene.floor.up) < 0.5

@@ -799,3 +799,50 @@ def test_the_split_half_check_widens_the_std_of_a_camera_the_halves_disagree_on(
     np.testing.assert_array_equal(np.delete(p.refiner.S, 1, axis=0), np.delete(S, 1, axis=0))
     np.testing.assert_array_equal(p.refiner.R, R)
     np.testing.assert_array_equal(p.refiner.t, t)
+
+
+def _floor_frame(scene: Scene, first: str, second: str, tilt_deg: float) -> tuple[dict, dict]:
+    """The truth in the floor's frame (origin under ``first``, x towards ``second``), and
+    the same turned by ``tilt_deg`` about x: a bootstrap's frame made on a tilted floor."""
+    from backend.cameras import Pose
+    from backend.floor import world_frame
+
+    fl = scene.floor
+    C = np.array([scene.poses[n].t for n in (first, second)])
+    F, o, _ = world_frame(fl.up, float(fl.up @ fl.origin), C)
+    a = np.radians(tilt_deg)
+    T = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]]) @ F
+    level = {n: Pose(F @ p.R, F @ (p.t - o)) for n, p in scene.poses.items()}
+    tilted = {n: Pose(T @ p.R, T @ (p.t - o)) for n, p in scene.poses.items()}
+    return level, tilted
+
+
+@pytest.mark.parametrize("level", [True, False])
+def test_a_bootstrapped_floor_frame_is_levelled_on_the_final_batch_s_floor(lab, lab_dir, level):
+    """A bootstrap defines the world by its floor; when it placed only one pair, that
+    floor was the pair's people's and could stand 12° off. The final batch's floor, of
+    all the data's people, makes the frame again: origin on the floor under the same
+    camera, x towards the same one, z up (``refine.floor_frame``)."""
+    from backend.config import FloorFrame
+
+    cams, truth, msgs = lab
+    scene = Scene.load(lab_dir).subset(WEST)
+    want, tilted = _floor_frame(scene, "cam_11", "cam_12", 8.0)
+    ref = {n: Extrinsics(tilted[n], scene.intrinsics[n].resolution) for n in WEST}
+    start = CameraSet.combine({n: scene.intrinsics[n] for n in WEST}, ref)
+    spec = FloorFrame(first="cam_11", second="cam_12", ankle_height=0.039 * np.mean([1.96, 1.70]))
+    cfg = EngineConfig().merged({"refine": {"floor_frame": spec.model_dump() if level else None}})
+    p = run_offline(start, cfg, [m for m in msgs if m.sensor in WEST], seed=0)
+    got = {c.name: c for c in p.state().cameras}
+    if not level:
+        assert p.levelled is None
+        assert rotation_angle_deg(got["cam_14"].R, want["cam_14"].R) > 7.0  # the tilted frame kept
+        return
+    assert p.levelled.done and abs(p.levelled.turn_deg - 8.0) < 0.5, p.levelled
+    assert (p.levelled.first, p.levelled.second) == ("cam_11", "cam_12")
+    assert "turned 8." in p.levelled.summary()
+    for n in WEST:  # the floor frame itself, not after an alignment
+        assert abs(got[n].t[2] - want[n].t[2]) < 0.05, (n, got[n].t, want[n].t)  # height above the floor
+        assert np.degrees(np.arccos(np.clip(got[n].R[2] @ want[n].R[2], -1, 1))) < 0.4, n  # the world's up
+        # along the floor, the x axis from two cameras' calibrated positions turns it a little
+        assert np.linalg.norm(got[n].t[:2] - want[n].t[:2]) < 0.15, (n, got[n].t, want[n].t)

@@ -198,3 +198,21 @@ def test_held_cameras_keep_their_pose_scale_and_covariance_through_cycles_but_no
     # a batch over all data is every camera's posterior, held or not
     rf.update(np.ones(C, bool), R1, t1, cov, posterior=True, final=True)
     assert np.allclose(rf.t, t1)
+
+
+def test_a_new_world_frame_moves_every_pose_and_keeps_the_covariances_and_the_drift():
+    R0, t0 = _initial()
+    rf = Refiner(RefineConfig(keep_scale=False), R0, t0)
+    xi = np.tile([0.01, -0.02, 0.005, 0.03, 0.0, -0.01], (C, 1))
+    cov = np.repeat(np.diag([1e-5] * 3 + [1e-4] * 3)[None], C, axis=0)
+    for k in range(3):
+        rf.update(np.ones(C, bool), *_moved(rf.R, rf.t, xi), cov)
+    before = (rf.R.copy(), rf.t.copy(), rf.P.copy(), rf.S.copy(), [rf.change(c) for c in range(C)])
+    F, o = so3_exp(np.array([0.1, -0.2, 0.3])), np.array([1.0, -2.0, 0.5])
+    rf.reframe(F, o)
+    assert np.allclose(rf.R, F @ before[0]) and np.allclose(rf.t, (before[1] - o) @ F.T)
+    assert np.allclose(rf.t0, (t0 - o) @ F.T) and np.allclose(rf.prior_R, F @ R0)
+    assert np.array_equal(rf.P, before[2]) and np.array_equal(rf.S, before[3])  # each camera's own tangent space
+    assert np.allclose([rf.change(c) for c in range(C)], before[4])  # its recent moves are no drift
+    with pytest.raises(AssertionError):
+        rf.reframe(2.0 * F, o)

@@ -109,6 +109,9 @@ def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, la
     assert stopped["final_batch"]["retimed"] == {}  # no clock offsets estimated: no view timed again
     # the final batch on two halves of the data ran in the solver and is reported
     assert stopped["final_batch"]["split_check"]["summary"].startswith("split-half check")
+    # the floor frame made again on the final batch's floor, and the result says so
+    assert stopped["final_batch"]["levelled"]["done"], stopped["final_batch"]["levelled"]
+    assert "# world frame levelled again on the final batch adjustment's floor" in result_text
 
     # the result: the placed cameras, the floor's frame and the people's scale in its header
     result = parse_extrinsics(result_text)
