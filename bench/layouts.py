@@ -15,6 +15,7 @@ result; a run that left cameras out or uncalibrated names them and counts as "sh
     python bench/layouts.py                                   # room4, room8; 3 seeds; ~10 min
     python bench/layouts.py --layouts room4 --starts none,height --seeds 5 --jobs 2
     python bench/layouts.py --starts 0.75/20,0.75/20+height --set bootstrap.initial_scale=combine
+    python bench/layouts.py --starts none --sim noise_scale=2 --sim swap_prob=0.03   # a harsher detector
 """
 
 from __future__ import annotations
@@ -156,7 +157,8 @@ def table(runs: list[dict], layouts: list[str], starts: list[str], args) -> str:
     """Markdown: per layout and start, the mean over seeds (errors over the cameras in the result)."""
     lines = [f"extrcal calibrate on generated layouts ({args.persons} persons, {args.duration:g} s, {args.seeds} seeds; "
              f"mean over seeds, errors over the cameras in the result; 'short': runs that left cameras out or "
-             f"uncalibrated, named above){' --set ' + ' '.join(args.overrides) if args.overrides else ''}",
+             f"uncalibrated, named above){' --set ' + ' '.join(args.overrides) if args.overrides else ''}"
+             f"{' --sim ' + ' '.join(args.sim_set) if args.sim_set else ''}",
              "",
              "| layout | start | ok | rigid pos (m) | worst camera (m) | shape pos (m) | orient (°) | worst (°) | scale "
              "| stated std (m) | shape error > 3 std | initial rigid (m) | floor frame's z tilt (°) | wall (s) |",
@@ -193,8 +195,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/extrcal-layouts-cache"))
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="engine parameter for every run (extrcal calibrate --set)")
+    ap.add_argument("--sim", dest="sim_set", action="append", default=[], metavar="KEY=VALUE",
+                    help="simulator setting for every recording (as `extrcal simulate --set`: detectors, lenses, clocks)")
     ap.add_argument("--out", type=Path, default=None, help="write every run as JSON")
     args = ap.parse_args(argv)
+    from accuracy import sim_settings
+
+    sim_set = sim_settings(args.sim_set)
     con = Console()
     layouts = [x for x in args.layouts.split(",") if x]
     for x in layouts:
@@ -205,7 +212,7 @@ def main(argv: list[str] | None = None) -> None:
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with ThreadPoolExecutor(max(1, args.jobs)) as ex:
-        recs = {(lay, s): ex.submit(simulate, lay, args.persons, args.duration, s, args.cache)
+        recs = {(lay, s): ex.submit(simulate, lay, args.persons, args.duration, s, args.cache, sim_set)
                 for lay in layouts for s in range(args.seeds)}
         recs = {k: f.result() for k, f in recs.items()}
         con.print(f"{len(recs)} recording(s) in {time.perf_counter() - t0:.0f} s (cached in {args.cache})")
