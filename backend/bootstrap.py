@@ -301,6 +301,8 @@ def pair_poses(frames: Sequence[Frame], cameras: int, focal: np.ndarray, cfg: Bo
         R, t, good, sel = r
         if len(good) < cfg.min_pair_frames or len(good) < cfg.min_consistent_ratio * len(fis):
             continue
+        if len(_moving(single, (a, b), good, cfg.pair_motion)) < cfg.pair_min_moving:
+            continue  # its agreeing frames are a few still spells: the same few points again and again
         za, zb, ang = _triangulate_pair(R, t, xa[sel], xb[sel])
         fine = (za > 0) & (zb > 0) & np.isfinite(za) & np.isfinite(zb)
         angle = float(np.median(ang[fine])) if fine.any() else 0.0
@@ -313,6 +315,36 @@ def pair_poses(frames: Sequence[Frame], cameras: int, focal: np.ndarray, cfg: Bo
         out.append(PairPose(a, b, R, t, good, len(fis), int(sel.sum()), res, angle, keys,
                             {a: za[fine], b: zb[fine]}, bones, pair_size_spread(keys, points, bones)))
     return out, len(tried)
+
+
+def _moving(single: Sequence[Mapping[int, Detection]], pair: tuple[int, int], fis: Sequence[int],
+            min_motion: float) -> list[int]:
+    """The frames ``fis`` (in time order) of a camera pair in which its person moved since
+    the last one taken, in either view, by at least ``min_motion`` times its size there:
+    the median of its joints' displacements over the median distance of its joints from
+    their centre. A person who stands still gives the same few points frame after frame:
+    no new correspondence, and where each of two cameras sees another person standing
+    still, an essential matrix fits both skeletons in every such frame (two slow walkers
+    who paused along a corridor: pairs of cameras that share no view, 59-171° off, agreed
+    in 48-58 frames, of which 7-11 moved; right pairs' agreeing frames moved in 27 and
+    more, docs/bootstrap.md, Session 36)."""
+    out: list[int] = []
+    last: list[np.ndarray] = []
+    for fi in fis:
+        cur = [single[fi][c].xy for c in pair]
+        if out:
+            for now, before in zip(cur, last):
+                ok = np.all(np.isfinite(now), 1) & np.all(np.isfinite(before), 1)
+                if ok.sum() < 3:  # other joints seen: not the same points
+                    break
+                size = np.median(np.linalg.norm(now[ok] - now[ok].mean(0), axis=1))
+                if np.median(np.linalg.norm(now[ok] - before[ok], axis=1)) >= min_motion * size:
+                    break
+            else:
+                continue
+        out.append(fi)
+        last = cur
+    return out
 
 
 def _frame_bones(keys: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -299,6 +299,12 @@ class BootstrapConfig(_Section):
 
     max_seconds: float = Field(120.0, ge=0, description="s of data the bootstrap of `extrcal calibrate` uses (0: the whole recording)")
     min_pair_frames: int = Field(30, ge=8, description="frames a camera pair needs in which each sees one person, the same one")
+    pair_min_moving: int = Field(15, ge=0, description="of a pair's agreeing frames, at least this many in which its "
+                                 "person moved since the last one that did (pair_motion): a person standing still gives "
+                                 "the same few points again, and two people each standing still in one of two cameras "
+                                 "that share no view agree with a wrong pose in every frame")
+    pair_motion: float = Field(0.15, gt=0, description="... moved in either view by this times the person's size there "
+                               "(the joints' median displacement over their median distance from their centre)")
     ransac_px: float = Field(3.0, gt=0, description="px: RANSAC threshold (Sampson error) of a pair's essential matrix")
     frame_px: float = Field(4.0, gt=0, description="px: a frame is a pair's correspondence when its joints' median Sampson error is below this")
     min_consistent_ratio: float = Field(0.3, ge=0, le=1, description="share of a pair's single-person frames that must agree with its geometry")

@@ -88,6 +88,37 @@ def test_relative_pose_recovers_the_pose_and_drops_frames_of_another_person():
     assert len(good) >= 0.9 * (F - F // 4)
 
 
+@pytest.mark.parametrize("still", [False, True])
+def test_a_person_standing_still_is_one_frame_to_a_pair(still):
+    """Two cameras see one person for 60 frames. Walking, the pair is found; standing
+    still, its 17 joints are the same few points in every frame: no pair, though every
+    frame agrees (two people each standing still in one of two cameras that share no
+    view agreed with a pose 161° off in a slow corridor; ``bootstrap.pair_min_moving``)."""
+    from backend.bootstrap import pair_poses
+
+    rng = RNG(4)
+    Ra, ta = _look_at(np.array([-4.0, -4.0, 2.6]), np.zeros(3)), np.array([-4.0, -4.0, 2.6])
+    Rb, tb = _look_at(np.array([4.0, -3.0, 2.5]), np.zeros(3)), np.array([4.0, -3.0, 2.5])
+    F, f = 60, 600.0
+    P = _walker(rng, F)
+    if still:  # the first frame's pose, breathing a little
+        P = P[:1] + rng.normal(0.0, 0.002, P.shape)
+    frames = []
+    for k in range(F):
+        dets = tuple((Detection(c, _project(R, t, P[k]) + rng.normal(0, 1.0 / f, (17, 2)), np.full(17, 2.0), f),)
+                     for c, (R, t) in enumerate(((Ra, ta), (Rb, tb))))
+        frames.append((0.1 * k, dets))
+    cfg = EngineConfig().bootstrap
+    found, tried = pair_poses(frames, 2, np.full(2, f), cfg)
+    assert tried == 1
+    if not still:
+        assert len(found) == 1 and rotation_angle_deg(found[0].R, Rb.T @ Ra) < 1.0
+        return
+    assert found == []
+    anyway, _ = pair_poses(frames, 2, np.full(2, f), cfg.model_copy(update={"pair_min_moving": 0}))
+    assert len(anyway) == 1 and len(anyway[0].frames) >= 50  # every frame agreed: only the guard refused it
+
+
 def _pair(a, b, R, inliers=500) -> PairPose:
     return PairPose(a, b, R, np.array([1.0, 0, 0]), np.arange(10), 10, inliers, 1.0, 30.0, np.zeros(0, np.int64),
                     {a: np.zeros(0), b: np.zeros(0)})
