@@ -326,8 +326,9 @@ def _moving(single: Sequence[Mapping[int, Detection]], pair: tuple[int, int], fi
     no new correspondence, and where each of two cameras sees another person standing
     still, an essential matrix fits both skeletons in every such frame (two slow walkers
     who paused along a corridor: pairs of cameras that share no view, 59-171° off, agreed
-    in 48-58 frames, of which 7-11 moved; right pairs' agreeing frames moved in 27 and
-    more, docs/bootstrap.md, Session 36)."""
+    in 48-58 frames, of which 7-9 moved; where people walk, right pairs' agreeing frames
+    moved in 27 and more, where they mostly stood in 12 and more; docs/bootstrap.md,
+    Session 36)."""
     out: list[int] = []
     last: list[np.ndarray] = []
     for fi in fis:

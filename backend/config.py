@@ -299,7 +299,7 @@ class BootstrapConfig(_Section):
 
     max_seconds: float = Field(120.0, ge=0, description="s of data the bootstrap of `extrcal calibrate` uses (0: the whole recording)")
     min_pair_frames: int = Field(30, ge=8, description="frames a camera pair needs in which each sees one person, the same one")
-    pair_min_moving: int = Field(15, ge=0, description="of a pair's agreeing frames, at least this many in which its "
+    pair_min_moving: int = Field(10, ge=0, description="of a pair's agreeing frames, at least this many in which its "
                                  "person moved since the last one that did (pair_motion): a person standing still gives "
                                  "the same few points again, and two people each standing still in one of two cameras "
                                  "that share no view agree with a wrong pose in every frame")

@@ -169,7 +169,7 @@ def visibility(rec: Path, names, intr, cfg) -> dict[str, dict]:
     return {n: {"detections": det[n], "with_another": int(together[c])} for c, n in enumerate(names)}
 
 
-def run_calibrate(seed: int, seconds: float, cache: Path, overrides: list[str], say) -> dict:
+def run_calibrate(seed: int, seconds: float, cache: Path, overrides: list[str], say, sim_set: dict | None = None) -> dict:
     """The whole `extrcal calibrate` path without an initial estimate (``cli_engine.calibrate``
     itself: bootstrap, online pipeline, final batch) on the first ``seconds`` of the
     recording. Errors after a similarity alignment to the truth of: the bootstrap alone
@@ -188,7 +188,7 @@ def run_calibrate(seed: int, seconds: float, cache: Path, overrides: list[str], 
     from backend.geometry import quat_to_R
 
     lab = accuracy.lab_dir()
-    rec = first_seconds(accuracy.simulate(2, 180.0, seed, cache), seconds)
+    rec = first_seconds(accuracy.simulate(2, 180.0, seed, cache, sim_set or {}), seconds)
     intr = load_intrinsics(lab / "intrinsics.yaml")
     ref = {n: e.pose for n, e in load_extrinsics(lab / "reference.yaml").items()}
     names = tuple(sorted(intr, key=natural_key))
@@ -366,6 +366,8 @@ def main(argv: list[str] | None = None) -> None:
                     "--data-seconds), e.g. bootstrap.min_pair_frames=20 (repeatable)")
     ap.add_argument("--cache", type=Path, default=Path(tempfile_dir()) / "extrcal-accuracy-cache")
     ap.add_argument("--out", type=Path, help="write the runs as JSON")
+    ap.add_argument("--sim", dest="sim_set", action="append", default=[], metavar="KEY=VALUE",
+                    help="with --data-seconds: simulator setting (as `extrcal simulate --set`: other motion, detectors)")
     ap.add_argument("--jobs", type=int, default=1, help="with --data-seconds: runs in parallel processes (wall "
                     "times then include each other's load)")
     ap.add_argument("--report", type=Path, help="print the tables of an earlier --out and stop")
@@ -380,22 +382,23 @@ def main(argv: list[str] | None = None) -> None:
     if a.data_seconds:
         from backend.cameras import write_atomic
 
+        sim_set = __import__("accuracy").sim_settings(a.sim_set)
         runs = []
         todo = [(seed, float(T)) for T in a.data_seconds.split(",") for seed in range(a.first_seed, a.first_seed + a.seeds)]
         if a.jobs > 1:
             from concurrent.futures import ProcessPoolExecutor
 
             for seed, T in todo:  # the cut recordings, once, before the workers read them
-                first_seconds(__import__("accuracy").simulate(2, 180.0, seed, a.cache), T)
+                first_seconds(__import__("accuracy").simulate(2, 180.0, seed, a.cache, sim_set), T)
             with ProcessPoolExecutor(a.jobs) as ex:
-                futs = [ex.submit(run_calibrate, seed, T, a.cache, a.set_, _say) for seed, T in todo]
+                futs = [ex.submit(run_calibrate, seed, T, a.cache, a.set_, _say, sim_set) for seed, T in todo]
                 for f in futs:
                     runs.append(f.result())
                     if a.out:
                         write_atomic(a.out, json.dumps({"mode": "calibrate", "runs": runs}, indent=1))
         else:
             for seed, T in todo:
-                runs.append(run_calibrate(seed, T, a.cache, a.set_, say))
+                runs.append(run_calibrate(seed, T, a.cache, a.set_, say, sim_set))
                 if a.out:
                     write_atomic(a.out, json.dumps({"mode": "calibrate", "runs": runs}, indent=1))
         print_calibrate(runs)
