@@ -8,7 +8,7 @@ from typing import Mapping
 import numpy as np
 
 from .cameras import Pose, natural_key
-from .geometry import centres_fix_rotation, project_so3, rotation_angle_deg, umeyama
+from .geometry import align_poses as align_cameras, centres_fix_rotation, project_so3, rotation_angle_deg, umeyama
 
 
 MIN_CAMERAS = 2  # an alignment needs two cameras' poses (or three centres)
@@ -97,8 +97,6 @@ def up_tilt(result: Mapping[str, Pose], reference: Mapping[str, Pose], up: np.nd
     reference's frame, through the similarity that maps the result's poses onto the
     reference's (orientations too: a corridor's centres leave the turn about it loose).
     How level a result whose world is the floor's frame stands; NaN with < 3 cameras."""
-    from .geometry import align_poses as align_cameras
-
     names = sorted(set(result) & set(reference), key=natural_key)
     if len(names) < 3:
         return float("nan")

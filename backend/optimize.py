@@ -146,7 +146,7 @@ class Solution:
     floor: Floor | None = None  # the floor's plane as the last solve left it (optimize.floor; None: no floor)
     floor_points: int = 0  # lower ankles held to it
     # a batch's: the plane of its solved lower ankles (floor.fit_floor), held or not: the
-    # floor the world frame is levelled on (``Pipeline.level``); None: not a batch, or no plane
+    # floor the world frame is levelled on (``Pipeline._level``); None: not a batch, or no plane
     level: Floor | None = None
 
 
