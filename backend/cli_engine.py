@@ -94,7 +94,9 @@ def calibrate(
         except RecordingError as e:
             raise fail(f"{e} (use --skip-bad to skip malformed records)")
         except BootstrapError as e:
-            raise fail(f"bootstrap failed: {e}")
+            more = (f" in the first {cfg.bootstrap.max_seconds:g} s of data (`--set bootstrap.max_seconds=0` "
+                    f"bootstraps on the whole recording)") if cfg.bootstrap.max_seconds else ""
+            raise fail(f"bootstrap failed: {e}{more}")
         cams = camera_set(intr, boot)
         cfg = handover(cfg, boot)
         lost = [n for c, n in enumerate(names) if not boot.located[c]]

@@ -209,6 +209,7 @@ def test_without_an_initial_estimate_too_little_data_is_a_clear_error(cli, files
     r = CliRunner().invoke(cli, [*args, "--set", "bootstrap.max_seconds=2"])
     assert r.exit_code == 2, r.output
     assert "bootstrap failed" in r.output and "too few" in r.output
+    assert "in the first 2 s of data" in r.output and "bootstrap.max_seconds=0" in r.output  # what to try next
     assert not out.exists()
     # --distrust-initial takes the same path
     r = CliRunner().invoke(cli, [*args, "--initial", str(d / "initial.yaml"), "--distrust-initial", "--quiet",
