@@ -75,6 +75,7 @@ class Problem:
     # bones in the first solve too: the start's links already share one scale (the
     # bootstrap's, related by bones), and only weak priors hold them (see ``solve``)
     bones_from_start: bool = False
+    level: bool = False  # also fit the plane of the solved lower ankles (``Solution.level``)
 
     def __post_init__(self) -> None:
         C = len(self.R)
@@ -145,8 +146,8 @@ class Solution:
     phantoms: int = 0  # hypotheses dropped as far larger than anyone seen (optimize.max_size_ratio)
     floor: Floor | None = None  # the floor's plane as the last solve left it (optimize.floor; None: no floor)
     floor_points: int = 0  # lower ankles held to it
-    # a batch's: the plane of its solved lower ankles (floor.fit_floor), held or not: the
-    # floor the world frame is levelled on (``Pipeline._level``); None: not a batch, or no plane
+    # with ``Problem.level``: the plane of its solved lower ankles (floor.fit_floor), held or
+    # not: the floor the world frame is levelled on (``Pipeline._level``); None: not asked, or no plane
     level: Floor | None = None
 
 
@@ -397,7 +398,7 @@ def solve(p: Problem) -> Solution:
     per_cam = np.full(C, np.nan)
     for c in np.unique(g.obs_cam):
         per_cam[c] = np.median(res[g.obs_cam == c])
-    level = fit_floor(lms, g.lm_hyp, g.lm_joint, p.config.floor_sigma) if p.kind == "batch" else None
+    level = fit_floor(lms, g.lm_hyp, g.lm_joint, p.config.floor_sigma) if p.level else None
     return Solution(reason == "", reason, R, t, cov, cov_shape, g.active, np.bincount(g.obs_cam, minlength=C),
                     int(len(np.unique(g.lm_hyp))), res, float(first_error), float(final_error),
                     iterations + its, time.perf_counter() - t0, bone_lengths=lengths, residual_cam_px=per_cam,

@@ -973,6 +973,7 @@ class Pipeline:
 
     def batch_adjust(self) -> CycleReport:
         p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2, final=True)
+        p = replace(p, level=self.cfg.refine.floor_frame is not None)  # the floor ``_level`` makes the frame on
         sol = solve(p)
         if sol.ok and sol.phantoms:
             # Phantoms are judged by their size in the start's scale, and a link of a chain

@@ -30,6 +30,7 @@ Synchronous numeric core; OpenCV imported lazily.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from dataclasses import dataclass
 from typing import Callable, Sequence
@@ -43,6 +44,7 @@ from .geometry import rotation_angle_deg, triangulate_views
 from .preprocess import Detection
 
 Frame = tuple[float, tuple[tuple[Detection, ...], ...]]
+_FLOOR_SIGMA = OptimizeConfig.model_fields["floor_sigma"].default  # m: a lower ankle's height about the floor
 
 
 @dataclass(frozen=True)
@@ -340,27 +342,25 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
     network's framesets: ``frames`` may hold only those in which the camera sees
     somebody). Returns copies of (R (C, 3, 3), t (C, 3), located (C,)) and each camera's
     last Resection."""
+    R0, t0, placed0 = R.copy(), t.copy(), located.copy()
     R, t, located = R.copy(), t.copy(), located.copy()
     last: dict[int, Resection] = {}
-    network: list[Floor | None] = []  # the located cameras' floor, fitted once when a pair needs it
-    first: list[Persons] = []  # the persons of the cameras located from the start
+    first: Persons | None = None  # the persons of the cameras located from the start
 
+    @functools.cache
     def floor() -> Floor | None:
-        if not network:
-            more = (triangulate_persons(floor_frames, R0, t0, placed0, assoc).X if len(floor_frames)
-                    else np.zeros((0, 17, 3)))
-            network.append(floor_of_persons(np.concatenate([first[0].X, more]),
-                                            OptimizeConfig.model_fields["floor_sigma"].default))
-        return network[0]
+        """The located cameras' floor, fitted once, when a pair needs it."""
+        more = (triangulate_persons(floor_frames, R0, t0, placed0, assoc).X if len(floor_frames)
+                else np.zeros((0, 17, 3)))
+        return floor_of_persons(np.concatenate([first.X, more]), _FLOOR_SIGMA)
 
-    R0, t0, placed0 = R.copy(), t.copy(), located.copy()
     while True:
         todo = [int(c) for c in np.flatnonzero(~located)]
         if not todo or located.sum() < 2:
             break
         persons = triangulate_persons(frames, R, t, located, assoc)
-        if not first:
-            first.append(persons)
+        if first is None:
+            first = persons
         found = [resect(frames, persons, c, float(focal[c]), boxes[c], cfg, seed=seed + c) for c in todo]
         if pairs:
             found = [r if r.accepted else (place_by_pair(frames, persons, r.cam, R, t, located, focal, cfg, seed=seed,
@@ -421,8 +421,7 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
     # the network's bones in metres, measured as the pair's are (each person a "frame")
     rows, joints = np.nonzero(np.isfinite(persons.X).all(axis=2))
     ref = pair_bones(rows * 17 + joints, persons.X[rows, joints])
-    floor = network_floor() if network_floor is not None else \
-        floor_of_persons(persons.X, OptimizeConfig.model_fields["floor_sigma"].default)
+    floor = network_floor() if network_floor is not None else floor_of_persons(persons.X, _FLOOR_SIGMA)
     single = single_views(sub)
     placed: list[Resection] = []
     for p in sorted(found, key=lambda p: -len(p.frames)):
