@@ -49,7 +49,7 @@ def calibrate(
 
     from proto import ReadStats, RecordingError, read_recording
 
-    from .cameras import CameraFileError, CameraSet, load_extrinsics, load_intrinsics, save_extrinsics
+    from .cameras import CameraFileError, CameraSet, load_extrinsics, load_intrinsics, save_extrinsics, save_intrinsics
     from .cli import fail
     from .config import ConfigError, EngineConfig
     from .evaluate import MIN_CAMERAS, evaluate
@@ -230,6 +230,8 @@ def calibrate(
                     f"(their spread about it {p.last_report.floor_spread:.3f} m; optimize.floor)")
     if p.split_check is not None:
         comment += f"\n{p.split_check.summary()}"
+    if p.lenses is not None:
+        comment += f"\n{p.lenses.summary()}; the lenses: {output}.intrinsics.yaml"
     if rec is not None:
         comment += f"\n{rec.summary()}"
     scale = boot.scale if boot is not None else (check.people if check is not None else None)
@@ -247,6 +249,11 @@ def calibrate(
         comment += f"\n{check.summary()}"
     extra = {n: {"calibrated": n not in not_calibrated and n not in only_bootstrap} for n in cams.names}
     save_extrinsics(output, extr, comment=comment, extra=extra)
+    lens_file = Path(f"{output}.intrinsics.yaml")
+    if p.lenses is not None:
+        save_intrinsics(lens_file, p.lenses.intrinsics(cams.intrinsics))
+    else:  # an earlier run's would read as this one's
+        lens_file.unlink(missing_ok=True)
     if boot is not None:
         from .cameras import write_atomic
 
@@ -288,6 +295,8 @@ def calibrate(
             console.print(f"[yellow]{name}: {rep['warning']}[/]", highlight=False)
     if p.levelled is not None:
         console.print(p.levelled.summary(), highlight=False)
+    if p.lenses is not None:
+        console.print(f"{p.lenses.summary()}; written: {output}.intrinsics.yaml", highlight=False)
     if p.split_check is not None:
         color = "yellow" if p.split_check.widened else "default"
         console.print(f"[{color}]{p.split_check.summary()}[/]", highlight=False)

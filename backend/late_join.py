@@ -218,7 +218,7 @@ class JoiningPipeline(Pipeline):
                 j.batch_adjust()
                 j.check_halves_safely()
             self.final_batch_start, self.cycle, self.last_report = j.final_batch_start, j.cycle, j.last_report
-            self.split_check, self.levelled = j.split_check, j.levelled
+            self.split_check, self.levelled, self.lenses = j.split_check, j.levelled, j.lenses
             return j.state()
         if self.frames:
             self.batch_adjust()

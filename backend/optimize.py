@@ -26,6 +26,7 @@ from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
+from scipy.stats import f as f_dist
 
 from .associate import Associator, Hypothesis, triangulate_hypotheses
 from .config import AssociateConfig, OptimizeConfig
@@ -76,6 +77,8 @@ class Problem:
     # bootstrap's, related by bones), and only weak priors hold them (see ``solve``)
     bones_from_start: bool = False
     level: bool = False  # also fit the plane of the solved lower ankles (``Solution.level``)
+    # the final solve also estimates how far these cameras' lenses are off their files (``_lens_prior``)
+    lenses: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         C = len(self.R)
@@ -149,6 +152,12 @@ class Solution:
     # with ``Problem.level``: the plane of its solved lower ankles (floor.fit_floor), held or
     # not: the floor the world frame is levelled on (``Pipeline._level``); None: not asked, or no plane
     level: Floor | None = None
+    # with ``Problem.lenses`` and lenses the data show off their files: (C, 4) each camera's
+    # fx / fx_file - 1, fy / fy_file - 1 and principal point shift (x, y) in focal lengths
+    # (NaN: not in the solve), and lens_std (4,) the spread of such deviations the data
+    # show (the prior they were estimated with); None: the files' lenses were kept
+    lenses: np.ndarray | None = None
+    lens_std: np.ndarray | None = None
 
 
 # COCO-17 bones; left and right share one length: (length index, joint a, joint b)
@@ -361,10 +370,10 @@ def solve(p: Problem) -> Solution:
                            person=who, floor=floor)
         if isinstance(out, str):
             return _failed(p, g, out, first_error, t0)
-        R, t, lms, e0, e1, its, _, _ = out
+        R, t, lms = out.R, out.t, out.landmarks
         # the error at the start of the first solve with the final solve's kinds of factors
-        first_error = e0 if first_error is None or (round_ == 1 and who is not None) else first_error
-        iterations += its
+        first_error = out.initial_error if first_error is None or (round_ == 1 and who is not None) else first_error
+        iterations += out.iterations
         if person is not None and p.config.floor:  # held in the next solve: see backend/floor.py
             floor = fit_floor(lms, g.lm_hyp, g.lm_joint, p.config.floor_sigma)
         if person is not None:  # the next solve measures the people's bones on this solution
@@ -385,24 +394,26 @@ def solve(p: Problem) -> Solution:
         # landmarks move with the solution: start the next round from it
         g = Graph(g.active, g.obs_cam, g.obs_lm, g.obs_xy, g.obs_sigma,
                   _retriangulate(g, R, t), g.lm_hyp, g.lm_joint)
-    out = _solve_graph(p, g, R, t, marginals=p.marginals, person=person, floor=floor)
+    lens_std = _lens_prior(p, g, R, t, person, floor, np.array([h.time for h in hyps])) if p.lenses else None
+    out = _solve_graph(p, g, R, t, marginals=p.marginals, person=person, floor=floor, lens_std=lens_std)
     if isinstance(out, str):
         return _failed(p, g, out, first_error, t0)
     if person is not None and p.config.outlier_rounds == 0:  # the first solve with bones
-        first_error = out[3]
-    if len(out) == 8:  # marginals not asked for
-        nan = np.full((C, 6, 6), np.nan)
-        out = out + (nan, nan.copy(), "")
-    R, t, lms, _, final_error, its, lengths, held, cov, cov_shape, reason = out
-    res = residuals_px(R, t, lms, g.obs_cam, g.obs_lm, g.obs_xy, p.focal)
+        first_error = out.initial_error
+    R, t, lms, final_error, its = out.R, out.t, out.landmarks, out.final_error, out.iterations
+    nan = np.full((C, 6, 6), np.nan)
+    cov = out.cov if out.cov is not None else nan
+    cov_shape = out.cov_shape if out.cov_shape is not None else nan.copy()
+    res = residuals_px(R, t, lms, g.obs_cam, g.obs_lm, seen_by_file(g.obs_xy, g.obs_cam, out.lenses), p.focal)
     per_cam = np.full(C, np.nan)
     for c in np.unique(g.obs_cam):
         per_cam[c] = np.median(res[g.obs_cam == c])
     level = fit_floor(lms, g.lm_hyp, g.lm_joint, p.config.floor_sigma) if p.level else None
-    return Solution(reason == "", reason, R, t, cov, cov_shape, g.active, np.bincount(g.obs_cam, minlength=C),
+    return Solution(out.reason == "", out.reason, R, t, cov, cov_shape, g.active, np.bincount(g.obs_cam, minlength=C),
                     int(len(np.unique(g.lm_hyp))), res, float(first_error), float(final_error),
-                    iterations + its, time.perf_counter() - t0, bone_lengths=lengths, residual_cam_px=per_cam,
-                    phantoms=phantoms, floor=floor if held else None, floor_points=held, level=level)
+                    iterations + its, time.perf_counter() - t0, bone_lengths=out.lengths, residual_cam_px=per_cam,
+                    phantoms=phantoms, floor=floor if out.held else None, floor_points=out.held, level=level,
+                    lenses=out.lenses, lens_std=lens_std)
 
 
 def _relocalize(p: Problem) -> Solution:
@@ -475,13 +486,100 @@ def _retriangulate(g: Graph, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return X
 
 
+@dataclass(frozen=True, eq=False)
+class _Solved:
+    """One GTSAM solve (``_solve_graph``): R, t (C, 3, 3), (C, 3); landmarks (L, 3);
+    lengths as ``bone_lengths`` (None: no bones); held: lower ankles held to the floor;
+    lenses (C, 4) as ``Solution.lenses`` (None: not estimated); cov, cov_shape (C, 6, 6)
+    (None: not asked)."""
+
+    R: np.ndarray
+    t: np.ndarray
+    landmarks: np.ndarray
+    initial_error: float
+    final_error: float
+    iterations: int
+    lengths: np.ndarray | None
+    held: int
+    lenses: np.ndarray | None = None
+    cov: np.ndarray | None = None
+    cov_shape: np.ndarray | None = None
+    reason: str = ""
+
+
+def seen_by_file(obs_xy: np.ndarray, obs_cam: np.ndarray, lenses: np.ndarray | None) -> np.ndarray:
+    """(M, 2) observations as the estimated lenses (``Solution.lenses``, None: the files')
+    see them: normalised by the calibration file, they are K_file^-1 K_lens x."""
+    if lenses is None:
+        return obs_xy
+    d = np.nan_to_num(lenses[obs_cam])
+    return (obs_xy - d[:, 2:]) / (1.0 + d[:, :2])
+
+
+def _lens_prior(p: Problem, g: Graph, R: np.ndarray, t: np.ndarray, person: np.ndarray | None,
+                floor: Floor | None, times: np.ndarray) -> np.ndarray | None:
+    """(4,) std of the lenses' deviations from their calibration files (fx, fy as
+    fractions, the principal point in focal lengths) that the data show, or None when they
+    show none: an empirical Bayes prior. The graph's hypotheses (times (H,) s) in two
+    halves of alternate blocks each estimate every camera's deviation under a loose prior
+    (``optimize.lens_focal_std``, ``lens_centre_std``); the halves' noise is independent,
+    their lenses are the same, so the mean over the cameras of the product of the two
+    estimates is the lenses' own spread (per group: focal lengths, principal points),
+    taken when it is significant (``_spread_p`` below 1 - ``_LENS_LEVEL``); no stated
+    noise enters (the solve's marginals overstate the lab's, the detector's noise is correlated
+    in time). Lenses as good as their files: no spread, and the files' lenses are kept,
+    since free lenses cost the lab twice its shape error (0.0057 -> 0.0145 m). Lenses 1 %
+    off: the final solve takes most of it (docs/accuracy.md, Session 37)."""
+    cfg = p.config
+    loose = np.array([cfg.lens_focal_std] * 2 + [cfg.lens_centre_std] * 2)
+    half = (np.floor((times - times.min()) / _LENS_BLOCK).astype(np.int64) % 2)[g.lm_hyp[g.obs_lm]]
+    found = []
+    for k in (0, 1):
+        gk = g.without(half != k, cfg)
+        out = _solve_graph(p, gk, R, t, marginals=False, tolerance=max(cfg.relative_tolerance, 1e-3), person=person,
+                           floor=floor, lens_std=loose)
+        if isinstance(out, str) or out.lenses is None:
+            return None
+        found.append(out.lenses)
+    spread = []
+    for group in (slice(0, 2), slice(2, 4)):
+        a, b = found[0][:, group], found[1][:, group]
+        both = np.all(np.isfinite(a) & np.isfinite(b), axis=1)
+        if both.sum() < 3:
+            return None
+        total = np.mean(((a + b) / 2) ** 2, axis=1)[both]  # per camera: the lens's square and the noise's
+        noise = np.mean(((a - b) / 2) ** 2, axis=1)[both]  # the noise's alone (the same lens in both halves)
+        spread.append(float(np.mean(total - noise)) if _spread_p(total, noise) < 1.0 - _LENS_LEVEL else 0.0)
+    if not any(spread):
+        return None
+    return np.sqrt(np.repeat(spread, 2))
+
+
+def _spread_p(total: np.ndarray, noise: np.ndarray) -> float:
+    """p value of the cameras' lenses adding nothing to their halves' mean square: the F
+    test of sum(total) against sum(noise) (n,), which have the same distribution then
+    (the halves' estimates independent and alike), on the noise's effective degrees of
+    freedom (Satterthwaite: a few noisy cameras carry the sums)."""
+    dof = float(noise.sum() ** 2 / max(float(np.sum(noise ** 2)), 1e-300))
+    return float(f_dist.sf(total.sum() / max(float(noise.sum()), 1e-300), dof, dof))
+
+
+# the spread is taken as shown at this level. A spread shown by chance costs little: the prior
+# is then about the estimates' own noise, and shrinks them by a factor of ~4.
+_LENS_LEVEL = 0.95
+_LENS_BLOCK = 10.0  # s: the halves' blocks, far longer than the detector noise's correlation (0.3 s)
+# a parameter the data show no spread of is held at its file's value by this std
+_LENS_HELD = 1e-5
+
+
 def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, marginals: bool,
-                 tolerance: float | None = None, person: np.ndarray | None = None, floor: Floor | None = None):
+                 tolerance: float | None = None, person: np.ndarray | None = None, floor: Floor | None = None,
+                 lens_std: np.ndarray | None = None) -> "_Solved | str":
     """One GTSAM solve of graph g from poses R0, t0; ``person`` (H,) int labels of the
     hypotheses for bone-length factors (None: none), and with them the lower ankles held
-    to ``floor`` (None: not). Returns a failure reason (str), or
-    (R, t, landmarks, initial error, final error, iterations, bone lengths, lower ankles
-    held to ``floor``[, cov, cov_shape, reason])."""
+    to ``floor`` (None: not). ``lens_std`` (4,): the lenses of ``p.lenses``' cameras are
+    variables too, at their files' with this prior std (fx, fy, principal point x, y:
+    ``Solution.lenses``). Returns a failure reason (str) or the solve."""
     import gtsam
 
     C, L = len(p.R), len(g.landmarks)
@@ -512,11 +610,24 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         robust = gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_k)
     Sigma, Robust, Factor = gtsam.noiseModel.Isotropic.Sigma, gtsam.noiseModel.Robust.Create, \
         gtsam.GenericProjectionFactorCal3_S2
+    kkey = [gtsam.symbol("k", c) for c in range(C)]
+    lensed = np.zeros(C, bool)  # cameras with a lens variable
+    if lens_std is not None:  # a unit calibration per camera: its deviation from the file, in focal lengths
+        lensed[[c for c in p.lenses if g.active[c]]] = True
+        sd = np.maximum(lens_std, _LENS_HELD)
+        lens_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sd[0], sd[1], _LENS_HELD, sd[2], sd[3]]))
+        for c in np.flatnonzero(lensed):
+            values.insert(kkey[c], K)
+            graph.add(gtsam.PriorFactorCal3_S2(kkey[c], K, lens_noise))
+    lensed_list = lensed.tolist()
     for c, l, xy, s in zip(g.obs_cam.tolist(), g.obs_lm.tolist(), g.obs_xy, g.obs_sigma.tolist()):
         noise = Sigma(2, s)
         if robust is not None:
             noise = Robust(robust, noise)
-        graph.add(Factor(xy, noise, xkey[c], lkey[l], K))
+        if not lensed_list[c]:
+            graph.add(Factor(xy, noise, xkey[c], lkey[l], K))
+        else:
+            graph.add(gtsam.GeneralSFMFactor2Cal3_S2(xy, noise, xkey[c], lkey[l], kkey[c]))
     lengths = _add_bones(graph, g, person, cfg, robust, Lk, gtsam) if person is not None else None
     on_floor = _add_floor(graph, values, g, floor, cfg, robust, Lk, gtsam) if person is not None and floor is not None \
         else []
@@ -531,6 +642,8 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         ordering.push_back(k)
     for c in cams:
         ordering.push_back(X(c))
+    for c in np.flatnonzero(lensed):
+        ordering.push_back(kkey[c])
     if on_floor:
         ordering.push_back(FLOOR_KEY)
     if cfg.solver == "lm":
@@ -566,7 +679,13 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
     held = len(on_floor)
     if lengths is not None:
         lengths = bone_lengths(g, person, lms)
-    out = (R, t, lms, float(initial_error), float(final_error), int(optimizer.iterations()), lengths, held)
+    lenses = None
+    if lensed.any():
+        lenses = np.full((C, 4), np.nan)
+        for c in np.flatnonzero(lensed):
+            lenses[c] = result.atCal3_S2(kkey[c]).vector()[[0, 1, 3, 4]] - [1.0, 1.0, 0.0, 0.0]
+    out = _Solved(R, t, lms, float(initial_error), float(final_error), int(optimizer.iterations()), lengths, held,
+                  lenses)
     if not marginals:
         return out
     cov = np.full((C, 6, 6), np.nan)
@@ -597,7 +716,7 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
                 break
             dropped.add(key)
             graph = _without_key(graph, key, gtsam)
-    return out + (cov, cov_shape, reason)
+    return replace(out, cov=cov, cov_shape=cov_shape, reason=reason)
 
 
 def _bone_instances(g: Graph, person: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -48,7 +48,7 @@ from .scale_check import ScaleCheck, check_run
 from .selection import HypothesisQueue
 from .split_check import SplitCheck, compare_halves, interleaved_halves
 from .stamp_watch import StampWatch
-from .state import CalibrationState, CameraState, Counters, CycleReport, Levelled
+from .state import CalibrationState, CameraState, Counters, CycleReport, Lenses, Levelled
 from .sync import Synchronizer
 
 
@@ -168,6 +168,8 @@ class Pipeline:
         self.scale_check: ScaleCheck | None = None
         self.split_check: SplitCheck | None = None  # the final batch on two halves of the data
         self.levelled: Levelled | None = None  # a bootstrap's floor frame levelled on the final batch's floor
+        # the lenses the final batch found off their files (optimize.lenses); the poses fit them
+        self.lenses: Lenses | None = None
         self.clock: float | None = None
         self.cycle = 0
         self.cycles_rejected = 0
@@ -616,6 +618,15 @@ class Pipeline:
         n = self.associated_total
         return (n >= a.lost_min_detections) & (self.associated_multi < 0.05 * n)
 
+    def lens_cameras(self) -> tuple[int, ...]:
+        """The cameras whose lenses a final batch may find off their files: those that see
+        people together with two more cameras. A lens (focal length, principal point) and
+        a pose differ only in what three views show; seen in pairs, as along a corridor, a
+        lens trades with the link's scale and bend (the corridor's shape error went 0.028
+        -> 0.046 m with them free; docs/accuracy.md, Session 37)."""
+        seen = self.associated_total >= self.cfg.associate.lost_min_detections
+        return tuple(int(c) for c in np.flatnonzero(seen & ~self._pairwise_only()))
+
     def _never_associated(self) -> np.ndarray:
         """(C,) cameras that never took part in a cycle though they saw people often."""
         a = self.cfg.associate
@@ -642,7 +653,8 @@ class Pipeline:
                        # keep its views to be put right; the solve's outlier rounds drop bad ones
                        gate_px=None, pose_px=self._pose_px(), max_hypotheses=max_hypotheses,
                        spacing=spacing, fill=final and self.cfg.refine.batch_fill,
-                       seed=int(self.rng.integers(2**31)) if seed is None else seed, kind="batch")
+                       seed=int(self.rng.integers(2**31)) if seed is None else seed, kind="batch",
+                       lenses=self.lens_cameras() if final and opt.lenses == "auto" else ())
 
     def apply(self, problem: Problem, solution: Solution) -> CycleReport:
         """Fold a solved cycle into the estimate (or reject it, keeping the estimate)."""
@@ -988,6 +1000,11 @@ class Pipeline:
             p, sol = self._batch_from_start(p, sol)
         self._inflight = p
         report = self.apply(p, sol)
+        if report.accepted and sol.lenses is not None and sol.lens_std is not None:
+            # relative to the intrinsics this pipeline works with: a resumed session's are its lenses already
+            used = np.array([(self.cameras.intrinsics[n].fx, self.cameras.intrinsics[n].fy) for n in self.names])
+            found = Lenses.of(self.names, sol.lenses, sol.lens_std, used)
+            self.lenses = found if self.lenses is None else self.lenses.then(found)
         if self.cfg.refine.floor_frame is not None:
             self.levelled = self._level(sol.level) if report.accepted else Levelled(False, "the final batch was rejected")
         return report
@@ -1109,12 +1126,21 @@ class Pipeline:
             "scale_heights": None if self.scale_heights is None else list(self.scale_heights),
             "scale_check": self.scale_check.to_dict() if self.scale_check is not None else None,
             "split_check": self.split_check.to_dict() if self.split_check is not None else None,
+            "lenses": self.lenses.to_dict() if self.lenses is not None else None,
         }
 
     @classmethod
     def restore(cls, cameras: CameraSet, config: EngineConfig, snapshot: dict, *, seed: int = 0) -> "Pipeline":
+        """A pipeline that goes on from ``snapshot``; ``cameras`` as the session began
+        (the calibration files' lenses: the snapshot's poses fit the lenses it found)."""
+        lenses = Lenses.from_dict(snapshot["lenses"]) if snapshot.get("lenses") else None
+        if lenses is not None and not set(lenses.cameras) <= set(cameras.names):
+            lenses = None  # another camera set: _load says so
+        if lenses is not None:
+            cameras = replace(cameras, intrinsics=lenses.intrinsics(cameras.intrinsics))
         p = cls(cameras, config, seed=seed)
         p._load(snapshot)
+        p.lenses = lenses
         return p
 
     def _load(self, snapshot: dict) -> None:

@@ -1478,7 +1478,9 @@ class Service:
                                        "split_check": None if s.pipeline.split_check is None else
                                        {**s.pipeline.split_check.to_dict(), "summary": s.pipeline.split_check.summary()},
                                        # a bootstrapped session's floor frame, levelled on the final batch's floor
-                                       "levelled": None if s.pipeline.levelled is None else s.pipeline.levelled.to_dict()}
+                                       "levelled": None if s.pipeline.levelled is None else s.pipeline.levelled.to_dict(),
+                                       # the lenses the final batch found off their calibration files
+                                       "lenses": None if s.pipeline.lenses is None else s.pipeline.lenses.to_dict()}
                     check = s.pipeline.scale_check
                     if check is not None:  # the initial estimate's scale against the people's
                         rec.scale = {**(rec.scale or {}), "check": check.to_dict(), "summary": check.summary()}
@@ -1971,8 +1973,9 @@ def _result_comment(rec: SessionRecord, state: "CalibrationState") -> str:
     """A result's header: the session and cycle; for a bootstrapped session where its
     frame and scale come from (backend/live_bootstrap.py)."""
     head = f"extrcal session {rec.id}, cycle {state.cycle}, {rec.state.value}"
-    levelled = (rec.final_batch or {}).get("levelled")
-    extra = "\n".join(x for x in (result_comment(rec.bootstrap), levelled and levelled["summary"]) if x)
+    levelled, lenses = ((rec.final_batch or {}).get(k) for k in ("levelled", "lenses"))
+    extra = "\n".join(x for x in (result_comment(rec.bootstrap), levelled and levelled["summary"],
+                                   lenses and lenses["summary"]) if x)
     return f"{head}\n{extra}" if extra else head
 
 

@@ -6,12 +6,12 @@ benchmarks read; they hold no gtsam objects and no references into the pipeline.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
-from typing import Any
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .cameras import Extrinsics, Pose
+from .cameras import Extrinsics, Intrinsics, Pose
 from .clock_offsets import SensorClock
 
 
@@ -95,6 +95,64 @@ class Levelled:
 
     def to_dict(self) -> dict[str, Any]:
         return {**asdict(self), "summary": self.summary()}
+
+
+@dataclass(frozen=True)
+class Lenses:
+    """How far the final batch adjustment found the lenses off their calibration files
+    (``optimize.lenses``): per camera, fx and fy as fractions of the file's (+0.01: 1 %
+    longer) and the principal point's shift in px (at the file's resolution); spread: the
+    std of such deviations the data show across the cameras (focal fraction, px). The
+    result's poses are the ones that fit these lenses."""
+
+    cameras: dict[str, tuple[float, float, float, float]]  # name -> (fx, fy fractions, cx, cy px)
+    spread_focal: float
+    spread_centre_px: float
+
+    @staticmethod
+    def of(names: Sequence[str], lenses: np.ndarray, spread: np.ndarray, focal: np.ndarray) -> "Lenses":
+        """From ``Solution.lenses`` (C, 4) and ``lens_std`` (4,) (normalised: the principal
+        point in focal lengths) and the files' focal lengths (C, 2) px (fx, fy)."""
+        assert lenses.shape == (len(names), 4) and spread.shape == (4,) and focal.shape == (len(names), 2)
+        cams = {n: (float(d[0]), float(d[1]), float(d[2] * f[0]), float(d[3] * f[1]))
+                for n, d, f in zip(names, lenses, focal) if np.all(np.isfinite(d))}
+        return Lenses(cams, float(spread[0]), float(spread[2] * np.median(focal)))
+
+    def intrinsics(self, files: Mapping[str, Intrinsics]) -> dict[str, Intrinsics]:
+        """The calibration files' intrinsics with these lenses (their distortion kept)."""
+        out = dict(files)
+        for n, (fx, fy, cx, cy) in self.cameras.items():
+            i = files[n]
+            out[n] = replace(i, fx=i.fx * (1 + fx), fy=i.fy * (1 + fy), cx=i.cx + cx, cy=i.cy + cy)
+        return out
+
+    def then(self, newer: "Lenses") -> "Lenses":
+        """These lenses, and ``newer`` found relative to them (a resumed session's final
+        batch): each camera's deviation from its file."""
+        cams = dict(self.cameras)
+        for n, (fx, fy, cx, cy) in newer.cameras.items():
+            a = cams.get(n, (0.0, 0.0, 0.0, 0.0))
+            cams[n] = ((1 + a[0]) * (1 + fx) - 1, (1 + a[1]) * (1 + fy) - 1, a[2] + cx, a[3] + cy)
+        return Lenses(cams, max(self.spread_focal, newer.spread_focal), max(self.spread_centre_px, newer.spread_centre_px))
+
+    @staticmethod
+    def from_dict(d: Mapping[str, Any]) -> "Lenses":
+        """``to_dict``'s inverse (a resumed session keeps the lenses its poses fit)."""
+        return Lenses({n: (float(v["fx"]), float(v["fy"]), float(v["cx_px"]), float(v["cy_px"]))
+                       for n, v in d["cameras"].items()}, float(d["spread_focal"]), float(d["spread_centre_px"]))
+
+    def summary(self) -> str:
+        worst_f = max(self.cameras.items(), key=lambda kv: abs(kv[1][0]) + abs(kv[1][1]))
+        worst_c = max(self.cameras.items(), key=lambda kv: np.hypot(kv[1][2], kv[1][3]))
+        return (f"lenses off their calibration files (optimize.lenses): the data show a spread of "
+                f"{100 * self.spread_focal:.2f} % in focal length and {self.spread_centre_px:.1f} px in principal point "
+                f"across the cameras; the poses fit the lenses estimated with it (most off: {worst_f[0]} focal "
+                f"{100 * worst_f[1][0]:+.2f} % / {100 * worst_f[1][1]:+.2f} %, {worst_c[0]} principal point "
+                f"({worst_c[1][2]:+.1f}, {worst_c[1][3]:+.1f}) px)")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"cameras": {n: {"fx": v[0], "fy": v[1], "cx_px": v[2], "cy_px": v[3]} for n, v in self.cameras.items()},
+                "spread_focal": self.spread_focal, "spread_centre_px": self.spread_centre_px, "summary": self.summary()}
 
 
 @dataclass(frozen=True)

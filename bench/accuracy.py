@@ -250,7 +250,8 @@ def limit(p, cfg, truth, ref, seed: int, start: str, budget: int | None = None) 
                          fill=cfg.refine.batch_fill)
     R_start, t_start = (R_ref, t_ref) if start == "reference" else (rf.R0, rf.t0)
     prob = Problem(cycle=0, R=R_start.copy(), t=t_start.copy(), prior_R=rf.R0.copy(), prior_t=rf.t0.copy(),
-                   prior_cov=P0, focal=p.focal, config=opt, hypotheses=tuple(hyps), kind="batch")
+                   prior_cov=P0, focal=p.focal, config=opt, hypotheses=tuple(hyps), kind="batch",
+                   lenses=p.lens_cameras() if opt.lenses == "auto" else ())
     sol = solve(prob)
     if sol.ok:
         rf.update(sol.active, sol.R, sol.t, sol.cov, posterior=True)  # the pipeline's batch path: scale kept

@@ -347,3 +347,63 @@ def test_a_batch_drops_a_view_its_hypothesis_s_other_views_miss_before_the_first
     unsure[hyps[first].cams[0]] = 500.0
     out, _ = _drop_inconsistent_views(list(bad), person, problem(R, t, bad, kind="batch", pose_px=unsure))
     assert [len(h.cams) for h in out if h.time == first] == [len(hyps[first].cams)]
+
+
+def _through_lenses(hyps: list[Hypothesis], lenses: np.ndarray) -> list[Hypothesis]:
+    """The hypotheses as lenses (C, 4) off their files see them (fx, fy fractions,
+    principal point in focal lengths): K_file^-1 K_lens x."""
+    out = []
+    for h in hyps:
+        d = lenses[h.cams]
+        xy = h.xy * (1.0 + d[:, None, :2]) + d[:, None, 2:]
+        out.append(Hypothesis(h.time, h.cams, xy, h.sigma, h.com))
+    return out
+
+
+@pytest.fixture(scope="module")
+def lens_scene():
+    R, t = rig(8, radius=5.0)
+    hyps = hypotheses(R, t, people(150, 7), noise_px=1.0, seed=7)
+    R0, t0 = perturbed(R, t, 0.05, 1.0, seed=8)
+    return R, t, hyps, R0, t0
+
+
+def _batch(R0, t0, hyps, lenses: tuple[int, ...]) -> Problem:
+    return problem(R0, t0, hyps, std_t=0.25, std_deg=5.0, kind="batch", lenses=lenses,
+                   config=OptimizeConfig(max_iterations=100))
+
+
+def test_lenses_as_good_as_their_files_are_kept(lens_scene):
+    R, t, hyps, R0, t0 = lens_scene
+    with_lenses = solve(_batch(R0, t0, hyps, tuple(range(8))))
+    without = solve(_batch(R0, t0, hyps, ()))
+    assert with_lenses.ok and without.ok
+    assert with_lenses.lenses is None and with_lenses.lens_std is None  # the estimates scatter by their noise only
+    assert np.array_equal(with_lenses.t, without.t) and np.array_equal(with_lenses.R, without.R)
+
+
+def test_lenses_off_their_files_are_estimated_and_the_poses_fit_them(lens_scene):
+    R, t, hyps, R0, t0 = lens_scene
+    rng = np.random.default_rng(3)
+    off = np.c_[np.repeat(rng.normal(0, 0.02, 8)[:, None], 2, axis=1), rng.normal(0, 0.01, (8, 2))]
+    seen = _through_lenses(hyps, off)
+    kept = solve(_batch(R0, t0, seen, ()))
+    sol = solve(_batch(R0, t0, seen, tuple(range(8))))
+    assert kept.ok and sol.ok, (kept.reason, sol.reason)
+    assert sol.lens_std is not None and sol.lenses is not None
+    assert 0.01 < sol.lens_std[0] < 0.04 and 0.003 < sol.lens_std[2] < 0.03  # the spread drawn: 0.02, 0.01
+    def rms(x):
+        return float(np.sqrt(np.mean(np.square(x))))
+
+    # the focal lengths trade with each camera's distance, the principal points with its turn: found to a part
+    assert rms(sol.lenses[:, :2] - off[:, :2]) < rms(off[:, :2]) / 3  # 0.0077 of 0.028 (focal fraction)
+    assert rms(sol.lenses[:, 2:] - off[:, 2:]) < rms(off[:, 2:]) / 2  # 0.0046 of 0.0106 (focal lengths)
+    before = evaluate(poses(kept.R, kept.t), poses(R, t)).shape_position.mean
+    after = evaluate(poses(sol.R, sol.t), poses(R, t)).shape_position.mean
+    assert after < before / 3, (before, after)  # 0.097 -> 0.021 m
+    # residuals through the estimated lenses: the 1 px noise (Rayleigh median 1.18)
+    assert np.median(sol.residual_px) < np.median(kept.residual_px) and np.median(sol.residual_px) < 1.25
+    # only the cameras asked for: the others keep their files' lenses
+    part = solve(_batch(R0, t0, seen, (0, 2, 3, 5, 6)))
+    assert part.ok and part.lenses is not None
+    assert np.isnan(part.lenses[[1, 4, 7]]).all() and np.isfinite(part.lenses[[0, 2, 3, 5, 6]]).all()

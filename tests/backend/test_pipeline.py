@@ -17,6 +17,7 @@ from backend.perturb import perturb_extrinsics
 from backend.monitor import Alarm, Recalibration
 from backend.pipeline import Pipeline, run_offline
 from backend.session import dumps_json
+from backend.state import Lenses
 from edge_clients.sim import Scene, SimConfig, Simulator
 from proto import KeypointMessage
 
@@ -132,6 +133,29 @@ def test_snapshot_and_restore_give_the_same_state(lab, run):
                       {n: cams.extrinsics[n] for n in cams.names[:-1]})
     with pytest.raises(ValueError, match="camera set"):
         Pipeline.restore(other, EngineConfig(), snap)
+
+
+def test_a_snapshot_keeps_the_lenses_its_poses_fit(lab, run):
+    """A final batch that found the lenses off their files (optimize.lenses) left poses
+    that fit those lenses: a session resumed from its snapshot works with them, and a
+    later final batch's lenses are added to them."""
+    cams, _, _ = lab
+    p, _ = run
+    assert p.lenses is None  # 30 s of lenses 0.2 % off their files: nothing shown
+    snap = json.loads(json.dumps(p.snapshot()))
+    assert snap["lenses"] is None
+    assert Pipeline.restore(cams, EngineConfig(), snap).cameras.intrinsics == cams.intrinsics
+    snap["lenses"] = Lenses({"cam_12": (0.02, 0.02, 3.0, -2.0)}, 0.015, 4.0).to_dict()
+    q = Pipeline.restore(cams, EngineConfig(), snap)
+    i, f = q.cameras.intrinsics["cam_12"], cams.intrinsics["cam_12"]
+    assert np.allclose([i.fx, i.fy, i.cx, i.cy], [1.02 * f.fx, 1.02 * f.fy, f.cx + 3.0, f.cy - 2.0])
+    assert q.cameras.intrinsics["cam_13"] == cams.intrinsics["cam_13"]
+    k = q.names.index("cam_12")
+    assert q.focal[k] == pytest.approx(1.02 * p.focal[k])
+    assert q.lenses is not None and q.lenses.cameras["cam_12"] == (0.02, 0.02, 3.0, -2.0)
+    assert q.snapshot()["lenses"] == snap["lenses"]
+    more = q.lenses.then(Lenses({"cam_12": (0.01, 0.0, 1.0, 1.0)}, 0.01, 2.0))
+    assert np.allclose(more.cameras["cam_12"], (1.02 * 1.01 - 1, 0.02, 4.0, -1.0))
 
 
 def test_the_scale_check_corrects_once_and_survives_a_snapshot(lab, run):

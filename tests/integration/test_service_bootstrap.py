@@ -112,6 +112,8 @@ def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, la
     # the floor frame made again on the final batch's floor, and the result says so
     assert stopped["final_batch"]["levelled"]["done"], stopped["final_batch"]["levelled"]
     assert "# world frame levelled again on the final batch adjustment's floor" in result_text
+    # the simulated lenses are 0.2 % off their files: the data do not show it, and the files' are kept
+    assert stopped["final_batch"]["lenses"] is None and "lenses off" not in result_text
 
     # the result: the placed cameras, the floor's frame and the people's scale in its header
     result = parse_extrinsics(result_text)
