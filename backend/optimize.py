@@ -86,6 +86,7 @@ class Problem:
         assert self.prior_R.shape == (C, 3, 3) and self.prior_t.shape == (C, 3)
         assert self.prior_cov.shape == (C, 6, 6) and self.focal.shape == (C,)
         assert not self.frames or self.associate is not None
+        assert all(0 <= c < C for c in self.lenses), self.lenses
 
 
 @dataclass(frozen=True, eq=False)

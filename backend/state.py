@@ -142,13 +142,18 @@ class Lenses:
                        for n, v in d["cameras"].items()}, float(d["spread_focal"]), float(d["spread_centre_px"]))
 
     def summary(self) -> str:
-        worst_f = max(self.cameras.items(), key=lambda kv: abs(kv[1][0]) + abs(kv[1][1]))
-        worst_c = max(self.cameras.items(), key=lambda kv: np.hypot(kv[1][2], kv[1][3]))
+        shown, most = [], []
+        if self.spread_focal > 0 and self.cameras:
+            n, v = max(self.cameras.items(), key=lambda kv: abs(kv[1][0]) + abs(kv[1][1]))
+            shown.append(f"{100 * self.spread_focal:.2f} % in focal length")
+            most.append(f"{n} focal {100 * v[0]:+.2f} % / {100 * v[1]:+.2f} %")
+        if self.spread_centre_px > 0 and self.cameras:
+            n, v = max(self.cameras.items(), key=lambda kv: np.hypot(kv[1][2], kv[1][3]))
+            shown.append(f"{self.spread_centre_px:.1f} px in principal point")
+            most.append(f"{n} principal point ({v[2]:+.1f}, {v[3]:+.1f}) px")
         return (f"lenses off their calibration files (optimize.lenses): the data show a spread of "
-                f"{100 * self.spread_focal:.2f} % in focal length and {self.spread_centre_px:.1f} px in principal point "
-                f"across the cameras; the poses fit the lenses estimated with it (most off: {worst_f[0]} focal "
-                f"{100 * worst_f[1][0]:+.2f} % / {100 * worst_f[1][1]:+.2f} %, {worst_c[0]} principal point "
-                f"({worst_c[1][2]:+.1f}, {worst_c[1][3]:+.1f}) px)")
+                f"{' and '.join(shown) or 'nothing'} across the cameras; the poses fit the lenses estimated with it"
+                + (f" (most off: {', '.join(most)})" if most else ""))
 
     def to_dict(self) -> dict[str, Any]:
         return {"cameras": {n: {"fx": v[0], "fy": v[1], "cx_px": v[2], "cy_px": v[3]} for n, v in self.cameras.items()},

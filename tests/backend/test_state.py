@@ -24,3 +24,6 @@ def test_lenses_in_pixels_and_as_intrinsics():
     assert "1.50 % in focal length" in got.summary() and "c focal -2.00 % / -2.00 %" in got.summary()
     assert "a principal point (+1.2, -2.0) px" in got.summary()
     assert got.to_dict()["cameras"]["c"]["fx"] == -0.02
+    # a group the data showed no spread in is not named
+    focal_only = Lenses({"a": (0.01, 0.01, 0.0, 0.0)}, 0.01, 0.0).summary()
+    assert "1.00 % in focal length across" in focal_only and "principal point" not in focal_only
