@@ -173,15 +173,13 @@ class OptimizeConfig(_Section):
     max_size_ratio: float = Field(1.3, ge=0, description="with bones: a hypothesis whose triangulated body is more "
                                   "than this times the largest person's is two walkers seen by two cameras that share no "
                                   "floor (docs/bones.md, Session 33); it is dropped. 0: off")
-
-
     lenses: Literal["off", "auto"] = Field(
         "auto", description="the final batch adjustment (and the split-half check's) also estimates how far each lens "
         "is off its calibration file (focal lengths, principal point), for the cameras that see people together with "
-        "two more, when the data show the lenses off (a spread of the cameras' deviations beyond their noise, Cochran's "
-        "test at 1 %): an empirical Bayes prior, and none when the lenses are as good as their files "
-        "(backend/optimize.py, _lens_prior; docs/accuracy.md, Session 37). The result's poses are then the ones that fit "
-        "the estimated lenses, which `extrcal calibrate` writes next to it; the files are not changed")
+        "two more, when two halves of the data show the lenses off alike (Wilcoxon's test of their estimates' products "
+        "at 5 %): an empirical Bayes prior, and none when the lenses are as good as their files (backend/optimize.py, "
+        "_lens_prior; docs/accuracy.md, Session 37). The result's poses are then the ones that fit the estimated lenses, "
+        "which `extrcal calibrate` writes next to it; the files are not changed")
     lens_focal_std: float = Field(0.02, gt=0, description="the loose prior of the first look at the lenses: std of a "
                                   "focal length about its file's, as a fraction")
     lens_centre_std: float = Field(0.01, gt=0, description="... and of the principal point, in focal lengths")
