@@ -35,6 +35,7 @@ from .geometry import centres_fix_rotation, rotation_angle_deg, triangulate_batc
 from .people import label_persons, oversized, segments
 from .preprocess import Detection
 from .selection import select_spaced
+from .split_check import interleaved_halves
 
 # a solve's reason when no landmark could be placed: the data, not the optimizer, failed
 NOTHING_TO_SOLVE = "no camera has enough observations"
@@ -535,7 +536,7 @@ def _lens_prior(p: Problem, g: Graph, R: np.ndarray, t: np.ndarray, person: np.n
     off: the final solve takes most of it (docs/accuracy.md, Session 37)."""
     cfg = p.config
     loose = np.array([cfg.lens_focal_std] * 2 + [cfg.lens_centre_std] * 2)
-    half = (np.floor((times - times.min()) / _LENS_BLOCK).astype(np.int64) % 2)[g.lm_hyp[g.obs_lm]]
+    half = interleaved_halves(times, _LENS_BLOCK)[g.lm_hyp[g.obs_lm]]
     found = []
     for k in (0, 1):
         gk = g.without(half != k, cfg)
@@ -607,9 +608,10 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         robust = gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_k)
     Sigma, Robust, Factor = gtsam.noiseModel.Isotropic.Sigma, gtsam.noiseModel.Robust.Create, \
         gtsam.GenericProjectionFactorCal3_S2
-    kkey = [gtsam.symbol("k", c) for c in range(C)]
     lensed = np.zeros(C, bool)  # cameras with a lens variable
+    kkey: list[int] = []  # their keys, by camera (not built for a cycle's solve)
     if lens_std is not None:  # a unit calibration per camera: its deviation from the file, in focal lengths
+        kkey = [gtsam.symbol("k", c) for c in range(C)]
         lensed[[c for c in p.lenses if g.active[c]]] = True
         sd = np.maximum(lens_std, _LENS_HELD)
         lens_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sd[0], sd[1], _LENS_HELD, sd[2], sd[3]]))
