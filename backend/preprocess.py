@@ -3,7 +3,7 @@
 Joints outside the image (or where its lens model folds back) and below the confidence
 threshold are dropped; a person needs both hips and both shoulders; persons too close to
 another person in the same image are dropped (their keypoints mix); crowded views are
-dropped. What remains is undistorted to normalised image coordinates with a per-joint
+dropped. Detections with no joint at the threshold take no part in either. What remains is undistorted to normalised image coordinates with a per-joint
 standard deviation in pixels.
 """
 
@@ -169,9 +169,6 @@ class Preprocessor:
         if intr is None:
             self.rejected["resolution_mismatch"] += P
             return []
-        if P > self.cfg.max_persons:
-            self.rejected["crowded_view"] += P
-            return []
         kp = v.kp.copy()
         seen = kp[..., 2] > 0
         outside, folded = unmeasured(kp, v.size, intr)
@@ -188,9 +185,18 @@ class Preprocessor:
         self.torso_seen[v.sensor] += int(detected.sum())
         self.torso_low[v.sensor] += int((detected & ~confident).sum())
         kp[kp[..., 2] < self.cfg.min_confidence, 2] = 0.0
+        # A detection with no joint at the threshold is no one the calibration sees: real
+        # detectors send such low-score boxes by the dozen, and counted as persons they
+        # would make a view crowded or a real person "too close" to a phantom.
+        present = (kp[..., 2] > 0).any(axis=1)
+        if present.sum() > self.cfg.max_persons:
+            self.rejected["crowded_view"] += P
+            return []
         keep = np.all(confident, axis=1)
         self.rejected["no_torso"] += int((~keep).sum())
-        close = self._too_close(kp, v.boxes, v.size) & keep
+        close = np.zeros(P, bool)
+        close[present] = self._too_close(kp[present], v.boxes[present], v.size)
+        close &= keep
         self.rejected["too_close"] += int(close.sum())
         keep &= ~close
         if not keep.any():

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -223,6 +225,25 @@ def test_crowded_views_are_dropped(pre, lab_intrinsics):
     assert p.view(_view("cam_4", persons, intr.resolution)) == []
     assert p.rejected["crowded_view"] == 4
     assert len(p.view(_view("cam_4", persons[:3], intr.resolution))) == 3
+
+
+def test_detections_below_the_threshold_neither_crowd_a_view_nor_crowd_a_person(pre, lab_intrinsics):
+    # a real detector's low-score boxes: a dozen phantoms, one on top of a real person
+    intr = lab_intrinsics["cam_4"]
+    p = pre(PreprocessConfig(max_persons=3))
+    real = [_pixels(intr, _body([x, 0.0, 6.0])) for x in (-2.0, 0.0, 2.0)]
+    phantoms = [_pixels(intr, _body([x, 0.0, 6.0])) + 3.0 for x in np.linspace(-2.0, 2.0, 12)]
+    conf = [np.full(17, 0.9)] * 3 + [np.full(17, 0.2)] * 12
+    kp = np.stack([np.c_[uv, c] for uv, c in zip(real + phantoms, conf)])
+    v = replace(_view("cam_4", real + phantoms, intr.resolution), kp=kp)
+    dets = p.view(v)
+    assert [d.index for d in dets] == [0, 1, 2]
+    assert p.rejected["crowded_view"] == 0 and p.rejected["too_close"] == 0
+    assert p.rejected["no_torso"] == 12
+    # the same phantoms at the threshold are persons: the view is crowded
+    kp[3:, :, 2] = 0.9
+    assert p.view(replace(v, kp=kp)) == []
+    assert p.rejected["crowded_view"] == 15
 
 
 def test_sigma_from_the_sensor_covariance_or_the_confidence(pre, lab_intrinsics):
