@@ -4,7 +4,8 @@ Generated rooms (``edge_clients.sim.scenes.room``: 4 or 8 cameras high in the co
 along the walls of a 7 x 5 m room, all looking at its centre through 100° lenses with
 strong barrel distortion, 640 x 480), variations of them (``hall``: 8 HD cameras 3.5 m
 high round a 16 x 10 m hall; ``low``: 4 cameras at head height; ``steep``: 4 cameras
-under a 3.4 m ceiling of a 4 x 4 m room looking steeply down) and the corridor; people walking
+under a 3.4 m ceiling of a 4 x 4 m room looking steeply down; ``rolled``: room8's cameras
+mounted rolled about their optical axes, portrait and upside down) and the corridor; people walking
 (``--persons``, heights 1.80 / 1.65 m). Each case runs the command a user runs,
 ``extrcal calibrate`` in a subprocess, from a perturbed initial estimate (the paper's
 protocol, ``--starts`` m/deg) or from none (``none``: bootstrap, metric scale from the
@@ -47,6 +48,8 @@ LAYOUTS = {
                       "resolution": (1280, 720), "k1": -0.05}),
     # cameras at head height looking across: people hide each other, views nearly level
     "low": ("room", {"cameras": 4, "height": 1.9, "aim": 1.2}),
+    # room8's cameras mounted rolled about their optical axes: portrait both ways, upside down
+    "rolled": ("room", {"cameras": 8, "roll": (0.0, 90.0, 180.0, -90.0, 30.0, 135.0, -60.0, 180.0)}),
     # a small room's cameras near a high ceiling looking steeply down: people foreshortened
     "steep": ("room", {"cameras": 4, "width": 4.0, "depth": 4.0, "height": 3.4, "aim": 0.3, "hfov": 110.0}),
 }

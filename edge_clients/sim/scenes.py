@@ -99,13 +99,16 @@ def _look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def room(cameras: int = 4, *, width: float = 7.0, depth: float = 5.0, height: float = 2.5, aim: float = 0.8,
-         resolution: tuple[int, int] = (640, 480), hfov: float = 100.0, k1: float = -0.28) -> Scene:
+         resolution: tuple[int, int] = (640, 480), hfov: float = 100.0, k1: float = -0.28,
+         roll: tuple[float, ...] = ()) -> Scene:
     """A ``width`` x ``depth`` m room (floor x along the width, y along the depth, z up, the
     origin in a corner) with ``cameras`` cameras ``height`` m high: the first four in its
     corners (0.3 m in from the walls), the next ones at the middles of the walls, each
     looking at the point ``aim`` m above the room's centre (a wall camera a little off it,
     so that no two cameras' views are symmetric). Lens: ``resolution``, ``hfov`` deg wide,
-    barrel distortion ``k1`` (k2 = k1²/3), the principal point 1 % off the image centre."""
+    barrel distortion ``k1`` (k2 = k1²/3), the principal point 1 % off the image centre.
+    ``roll``: deg, camera i turned by ``roll[i % len(roll)]`` about its optical axis (mounted
+    in portrait, upside down: people lie sideways or stand on their heads in its images)."""
     if not 2 <= cameras <= 8:
         raise ValueError(f"a room takes 2 to 8 cameras, got {cameras}")
     if not (width > 1.5 and depth > 1.5 and height > 1.8 and 0 < hfov < 150):
@@ -121,7 +124,11 @@ def room(cameras: int = 4, *, width: float = 7.0, depth: float = 5.0, height: fl
     for i, n in enumerate(names):
         c = np.array([*spots[i], height])
         target = centre + (np.array([0.4 * (-1) ** i, 0.3, 0.0]) if i >= 4 else 0.0)
-        poses[n] = Pose(_look_at(c, target), c)
+        R = _look_at(c, target)
+        if roll:
+            a = math.radians(roll[i % len(roll)])
+            R = R @ np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        poses[n] = Pose(R, c)
         intr[n] = Intrinsics(n, f, f * 1.002, w / 2 + 0.01 * w, h / 2 - 0.01 * h,
                              np.array([k1, k1 * k1 / 3, 0.0, 0.0, 0.0]), (w, h))
     return _walled(names, intr, poses, (0.0, 0.0), (width, depth))

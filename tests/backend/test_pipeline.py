@@ -571,6 +571,15 @@ def test_a_thin_cycle_does_not_make_a_camera_s_first_big_move(lab):
     rf.cycles[0] = 0
     off = Pipeline(cams, EngineConfig().merged({"select": {"first_cycle_gate": 0}}))
     assert not off._beyond_prediction(problem, sol).any()
+    # the final batch too: a camera no cycle calibrated keeps its start against a thin big
+    # move and stays "not calibrated"; the others take the batch's poses
+    batch = replace(problem, kind="batch", prior_cov=rf.P0.copy())
+    report = p.apply(batch, sol)
+    assert report.accepted
+    assert np.allclose(rf.t[0], problem.t[0]) and rf.cycles[0] == 0 and p.observations_batch[0] == 0
+    assert np.linalg.norm(rf.t[1] - t[1]) < 0.01 and np.linalg.norm(rf.t[1] - problem.t[1]) > 0.8  # 150 views decide
+    assert (rf.cycles[1:] == 1).all() and p.observations_batch[1] == 150
+    assert p.first_gated == [p.names[0]]
 
 
 def test_offline_the_default_monitor_does_not_watch(lab, watching):

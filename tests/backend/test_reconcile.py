@@ -164,6 +164,28 @@ def test_an_initial_estimate_the_data_confirm_is_kept():
     assert reconcile(_boot(names, Rb, tb, few), names, R, t, cfg) is None
 
 
+def test_one_camera_the_bootstrap_chained_wrong_does_not_make_a_fair_estimate_look_rough():
+    # the HD lab's seed 0: an estimate 0.25 m off everywhere (as it states), the bootstrap
+    # right but for one camera 1.3 m / 5° off (stated 0.013 m): not beyond refuse_sigma
+    rng = RNG(5)
+    names = [f"cam_{i}" for i in range(16)]
+    R, t = _network(rng, 16)
+    d = rng.normal(size=t.shape)
+    t0 = t + 0.25 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    Rb, tb = _similar(R, t, 0.4, so3_exp([0.2, 0.1, -1.0]), np.array([1.0, 0.0, 0.5]))
+    Rb[7] = so3_exp([0.0, 0.0, np.radians(5)]) @ Rb[7]
+    tb[7] += 0.4 * np.array([1.3, 0.0, 0.0])
+    cfg = EngineConfig()
+    rec = reconcile(_boot(names, Rb, tb, std=0.013), names, R, t0, cfg)
+    assert not rec.refused[7] and rec.translation[7] > 1.0  # not gross enough to refuse ...
+    assert not rec.used and rec.start(cfg) is None  # ... and not the estimate's roughness either
+    # a plain RMS over the cameras would have said otherwise (0.40 m against 1.5 x 0.25 m)
+    assert np.sqrt(np.mean(rec.translation**2)) > cfg.bootstrap.auto_sigma * cfg.refine.initial_std_translation
+    # every camera as rough as that one is: the data's shape
+    far = t + 0.9 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    assert reconcile(_boot(names, Rb, tb, std=0.013), names, R, far, cfg).used
+
+
 def test_cameras_swapped_in_the_initial_estimate_start_where_the_data_hold_them():
     rng = RNG(2)
     names = [f"cam_{i}" for i in range(10)]

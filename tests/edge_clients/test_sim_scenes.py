@@ -67,6 +67,15 @@ def test_room_cameras_look_at_the_room_and_most_of_it_is_seen_by_three(n):
     assert make("room", cameras=4).names == s.names[:4]
 
 
+def test_a_rolled_camera_turns_about_its_optical_axis_only():
+    flat, rolled = room(4), room(4, roll=(0.0, 90.0, 180.0))
+    for k, name in enumerate(flat.names):
+        a, b = flat.poses[name], rolled.poses[name]
+        assert np.allclose(a.t, b.t) and np.allclose(a.R[:, 2], b.R[:, 2])  # same place, same view
+        turn = np.degrees(np.arctan2(a.R[:, 1] @ b.R[:, 0], a.R[:, 0] @ b.R[:, 0]))
+        assert np.isclose(turn, (0.0, 90.0, 180.0, 0.0)[k]) or np.isclose(abs(turn), 180.0) and k == 2
+
+
 def test_written_scene_loads_and_simulates(tmp_path):
     scene = corridor()
     d = write_scene(scene, tmp_path / "corridor")
