@@ -7,7 +7,9 @@ line, leave the turn about the corridor to the orientations (``geometry.align_po
 
 Measured when the bars were set (seeded, one walker of 1.80 m, the first 90 s): 6/6
 placed, shape 0.051 m / 1.44° (worst 0.078 m / 1.86°), scale 1.048 (the population
-prior's 1.72 m for the walker); without the bones 2 placed.
+prior's 1.72 m for the walker); without the bones 2 placed. Since the bones place only
+what the geometry and the resection leave (session 38): shape 0.037 m (worst 0.052 m),
+orientations within 1.12° after the best turn of the world (1.35° before).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from backend.bootstrap import bootstrap, collect_frames
 from backend.cameras import CameraSet, Extrinsics, Pose
 from backend.config import EngineConfig
 from backend.evaluate import evaluate
-from backend.geometry import rotation_angle_deg
+from backend.geometry import project_so3, rotation_angle_deg
 from backend.perturb import perturb_extrinsics
 from backend.reconcile import reconcile_cameras
 from edge_clients.sim import SimConfig, Simulator
@@ -40,7 +42,12 @@ def test_a_corridor_is_placed_whole_by_the_walkers_bones(chain):
     scene, frames, focal, cfg, boot = chain
     assert boot.located.all()
     acc = evaluate(boot.poses(), scene.poses)
-    assert acc.shape_position.max < 0.15 and acc.orientation.max < 2.0
+    assert acc.shape_position.max < 0.15
+    # the orientations up to one turn of the world: the centres, nearly on one line, leave
+    # the evaluation's turn about the corridor free (the same result 2.0-3.3° through it)
+    got = boot.poses()
+    Rw = project_so3(sum(scene.poses[n].R @ got[n].R.T for n in scene.names))
+    assert max(rotation_angle_deg(Rw @ got[n].R, scene.poses[n].R) for n in scene.names) < 1.5
     assert 0.85 < acc.scale < 1.15  # the population prior's scale, for one walker of 1.80 m
     # without the bones' relations only the best-related pair is placed
     off = cfg.model_copy(update={"bootstrap": cfg.bootstrap.model_copy(update={"bone_scales": False})})
