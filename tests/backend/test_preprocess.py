@@ -227,23 +227,26 @@ def test_crowded_views_are_dropped(pre, lab_intrinsics):
     assert len(p.view(_view("cam_4", persons[:3], intr.resolution))) == 3
 
 
-def test_detections_below_the_threshold_neither_crowd_a_view_nor_crowd_a_person(pre, lab_intrinsics):
-    # a real detector's low-score boxes: a dozen phantoms, one on top of a real person
+def test_detections_below_the_threshold_do_not_crowd_a_view_but_still_hide_a_neighbour(pre, lab_intrinsics):
+    # a real detector's low-score boxes: a dozen of them, away from the three real persons
     intr = lab_intrinsics["cam_4"]
     p = pre(PreprocessConfig(max_persons=3))
     real = [_pixels(intr, _body([x, 0.0, 6.0])) for x in (-2.0, 0.0, 2.0)]
-    phantoms = [_pixels(intr, _body([x, 0.0, 6.0])) + 3.0 for x in np.linspace(-2.0, 2.0, 12)]
-    conf = [np.full(17, 0.9)] * 3 + [np.full(17, 0.2)] * 12
-    kp = np.stack([np.c_[uv, c] for uv, c in zip(real + phantoms, conf)])
-    v = replace(_view("cam_4", real + phantoms, intr.resolution), kp=kp)
-    dets = p.view(v)
-    assert [d.index for d in dets] == [0, 1, 2]
-    assert p.rejected["crowded_view"] == 0 and p.rejected["too_close"] == 0
-    assert p.rejected["no_torso"] == 12
-    # the same phantoms at the threshold are persons: the view is crowded
-    kp[3:, :, 2] = 0.9
-    assert p.view(replace(v, kp=kp)) == []
+    boxes = [[*uv.min(0), *uv.max(0)] for uv in real] + [[40.0 * k, 0.0, 40.0 * k + 10, 10.0] for k in range(12)]
+    phantoms = [np.full((17, 2), 5.0) + [40.0 * k, 0.0] for k in range(12)]
+    kp = np.stack([np.c_[uv, np.full(17, c)] for uv, c in zip(real + phantoms, [0.9] * 3 + [0.2] * 12)])
+    v = replace(_view("cam_4", real + phantoms, intr.resolution, boxes=boxes), kp=kp)
+    assert [d.index for d in p.view(v)] == [0, 1, 2]
+    assert p.rejected["crowded_view"] == 0 and p.rejected["no_torso"] == 12
+    # the same at the threshold are persons: the view is crowded
+    crowd = kp.copy()
+    crowd[3:, :, 2] = 0.9
+    assert p.view(replace(v, kp=crowd)) == []
     assert p.rejected["crowded_view"] == 15
+    # a low-score detection on top of a real person is most likely someone half hidden
+    # behind it, whose keypoints mix with its: the person in front is dropped as too close
+    behind = replace(v, boxes=np.array(boxes[:3] + [boxes[1]] + boxes[4:]))
+    assert [d.index for d in p.view(behind)] == [0, 2] and p.rejected["too_close"] == 1
 
 
 def test_sigma_from_the_sensor_covariance_or_the_confidence(pre, lab_intrinsics):
