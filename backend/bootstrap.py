@@ -1218,8 +1218,10 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                         found += 1
                 if found:
                     say(f"re-localised {found} camera(s) by PnP")
-            if bones_at is not None and (bones_at[2] & ~located).any():
+            added = np.zeros(C, bool)
+            if bones_at is not None:
                 R, t, added = _place_by_bones(R, t, located, *bones_at)
+            if added.any():
                 located |= added
                 if bones_auto:
                     opt = opt.model_copy(update={"bones": "batch"})
