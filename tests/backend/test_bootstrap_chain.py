@@ -17,11 +17,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from backend.bootstrap import bootstrap, collect_frames
+from backend.bootstrap import _place_by_bones, bootstrap, collect_frames
 from backend.cameras import CameraSet, Extrinsics, Pose
 from backend.config import EngineConfig
 from backend.evaluate import evaluate
-from backend.geometry import project_so3, rotation_angle_deg
+from backend.geometry import project_so3, rotation_angle_deg, so3_exp
 from backend.perturb import perturb_extrinsics
 from backend.reconcile import reconcile_cameras
 from edge_clients.sim import SimConfig, Simulator
@@ -85,3 +85,23 @@ def test_two_walkers_down_a_corridor_keep_the_chain_at_one_scale():
     acc = evaluate(placed, {n: scene.poses[n] for n in placed})
     assert acc.shape_position.max < 0.15
     assert 0.9 < acc.scale < 1.12  # the population prior's 1.72 m against walkers of 1.80 and 1.65 m
+
+
+def test_the_bones_placement_is_moved_onto_the_network_by_two_cameras():
+    """``_place_by_bones``: the cameras only the bones placed, moved onto the adjusted
+    network by the similarity of two cameras both placed (its turn from their orientations:
+    two centres leave the turn about their line free)."""
+    rng = np.random.default_rng(4)
+    C = 6
+    R = np.stack([so3_exp(rng.normal(0, 0.5, 3)) for _ in range(C)])
+    t = np.c_[np.arange(C) * 3.5, rng.normal(0, 0.2, C), np.full(C, 2.6)]
+    Rw, s, tw = so3_exp([0.1, -0.3, 1.2]), 0.29, np.array([1.0, -2.0, 0.3])
+    R_b = np.einsum("ij,cjk->cik", Rw.T, R)  # the bones' frame: turned, scaled, moved
+    t_b = ((t - tw) @ Rw) / s
+    located = np.array([False, False, True, True, False, False])
+    got_R, got_t, added = _place_by_bones(R, np.where(located[:, None], t, 0.0), located, R_b, t_b, np.ones(C, bool))
+    assert added.tolist() == [True, True, False, False, True, True]
+    assert np.allclose(got_R, R, atol=1e-9) and np.allclose(got_t, t, atol=1e-9)
+    # one camera in common places nothing
+    one = np.array([False, False, True, False, False, False])
+    assert not _place_by_bones(R, t, one, R_b, t_b, np.ones(C, bool))[2].any()
