@@ -785,10 +785,11 @@ class Pipeline:
 
     def _batch_thin_first_move(self, problem: Problem, solution: Solution) -> np.ndarray:
         """``_thin_first_move`` of a batch: a camera no cycle calibrated that the batch would
-        move far on a handful of views keeps its start and stays "not calibrated". Fast
-        walkers left the lab's cam_13 (seen 3 s in 180) to a final batch whose 5 views of
-        it were 4 of one walker joined to the other: 1.35 m / 19° off, "calibrated", with
-        a stated 0.18 m / 1.5° (docs/accuracy.md, Session 38)."""
+        move far on a handful of views keeps its start and stays "not calibrated". With a
+        preprocessing variant tried in session 38, fast walkers left the lab's cam_13
+        (seen 3 s in 180) to a final batch whose 5 views of it were 4 of one walker joined
+        to the other: 1.35 m / 19° off, "calibrated", with a stated 0.18 m / 1.5°
+        (docs/accuracy.md, Session 38)."""
         moves = _moves(problem, solution)
         thin = self._thin_first_move(solution, moves)
         for c in np.flatnonzero(thin):
