@@ -1115,21 +1115,19 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     logs, scaled, _ = pair_scales(good, cfg.model_copy(update={"bone_scales": False}))
     t, located = place_cameras(C, R, good, logs, scaled)
     located &= connected
-    bones_at = None  # (R, t, located) of the placement with the bones' relations
-    bone_links = 0
+    bones_at = None  # (R, t, located) of the placement with the bones' relations, for after the resection
+    bone_links = 0  # the bones' relations the placement took as it is
     if cfg.bone_scales:
-        blogs, bscaled, bone_links = pair_scales(good, cfg)
+        blogs, bscaled, n_bones = pair_scales(good, cfg)
         tb, lb = place_cameras(C, R, good, blogs, bscaled)
         lb &= connected
-        if (lb & ~located).any():
-            bones_at = (R.copy(), tb, lb)
         if located.sum() < 2:  # nothing to place the rest on: the bones' placement as it is
-            t, located, bones_at = tb, lb, None
-        elif bones_at is None:
-            bone_links = 0
+            t, located, bone_links = tb, lb, n_bones
+        elif (lb & ~located).any():
+            bones_at = (R.copy(), tb, lb)
     stages["graph"] = _time.perf_counter() - t0
     say(f"view graph: {len(good)} pairs after rotation averaging, {int(scaled.sum())} with a scale"
-        + (f" ({bone_links} of their relations by the people's bones)" if bone_links and bones_at is None else "")
+        + (f" ({bone_links} of their relations by the people's bones)" if bone_links else "")
         + f", {int(located.sum())}/{C} cameras placed"
         + (f" ({int((bones_at[2] & ~located).sum())} more by the people's bones, unless the resection places "
            "them)" if bones_at is not None else ""))
@@ -1151,7 +1149,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     opt = config.optimize.model_copy(update={"max_iterations": max(config.optimize.max_iterations, 100)})
     bones_auto = opt.bones == "auto"
     if bones_auto:  # a scale carried by bones needs them to hold it in the adjustment too
-        opt = opt.model_copy(update={"bones": "batch" if bone_links and bones_at is None else "off"})
+        opt = opt.model_copy(update={"bones": "batch" if bone_links else "off"})
     # not the floor: the bootstrap's first adjustments start from poses the pairs chained,
     # and in the lab (one relation by bones, seed 0 at 110 s) holding its ankles to one
     # plane bent the network (0.012 -> 0.048 m); the final batch of a chain holds it

@@ -230,8 +230,9 @@ def calibrate(
                     f"(their spread about it {p.last_report.floor_spread:.3f} m; optimize.floor)")
     if p.split_check is not None:
         comment += f"\n{p.split_check.summary()}"
+    lens_file = Path(f"{output}.intrinsics.yaml")  # the lenses found, next to the result
     if p.lenses is not None:
-        comment += f"\n{p.lenses.summary()}; the lenses: {output}.intrinsics.yaml"
+        comment += f"\n{p.lenses.summary()}; the lenses: {lens_file}"
     if rec is not None:
         comment += f"\n{rec.summary()}"
     scale = boot.scale if boot is not None else (check.people if check is not None else None)
@@ -249,7 +250,6 @@ def calibrate(
         comment += f"\n{check.summary()}"
     extra = {n: {"calibrated": n not in not_calibrated and n not in only_bootstrap} for n in cams.names}
     save_extrinsics(output, extr, comment=comment, extra=extra)
-    lens_file = Path(f"{output}.intrinsics.yaml")
     if p.lenses is not None:
         save_intrinsics(lens_file, p.lenses.intrinsics(cams.intrinsics))
     else:  # an earlier run's would read as this one's
@@ -296,7 +296,7 @@ def calibrate(
     if p.levelled is not None:
         console.print(p.levelled.summary(), highlight=False)
     if p.lenses is not None:
-        console.print(f"{p.lenses.summary()}; written: {output}.intrinsics.yaml", highlight=False)
+        console.print(f"{p.lenses.summary()}; written: {lens_file}", highlight=False)
     if p.split_check is not None:
         color = "yellow" if p.split_check.widened else "default"
         console.print(f"[{color}]{p.split_check.summary()}[/]", highlight=False)
