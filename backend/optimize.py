@@ -80,6 +80,9 @@ class Problem:
     level: bool = False  # also fit the plane of the solved lower ankles (``Solution.level``)
     # the final solve also estimates how far these cameras' lenses are off their files (``_lens_prior``)
     lenses: tuple[int, ...] = ()
+    # the final solve's covariance also with the calibration files' accuracy
+    # (``optimize.lens_accuracy_*``: ``Solution.cov_shape_lenses``)
+    lens_accuracy: bool = False
 
     def __post_init__(self) -> None:
         C = len(self.R)
@@ -160,6 +163,10 @@ class Solution:
     # show (the prior they were estimated with); None: the files' lenses were kept
     lenses: np.ndarray | None = None
     lens_std: np.ndarray | None = None
+    # with ``Problem.lens_accuracy``: (C, 6, 6) ``cov_shape`` with every lens as uncertain as
+    # ``optimize.lens_accuracy_*`` says (those estimated: as their estimate), NaN = none;
+    # None: not asked, or nothing to state
+    cov_shape_lenses: np.ndarray | None = None
 
 
 # COCO-17 bones; left and right share one length: (length index, joint a, joint b)
@@ -397,9 +404,11 @@ def solve(p: Problem) -> Solution:
         g = Graph(g.active, g.obs_cam, g.obs_lm, g.obs_xy, g.obs_sigma,
                   _retriangulate(g, R, t), g.lm_hyp, g.lm_joint)
     lens_std = _lens_prior(p, g, R, t, person, floor, np.array([h.time for h in hyps])) if p.lenses else None
-    out = _solve_graph(p, g, R, t, marginals=p.marginals, person=person, floor=floor, lens_std=lens_std)
+    lens_prior = _lens_stds(C, p.lenses, lens_std)
+    out = _solve_graph(p, g, R, t, marginals=p.marginals, person=person, floor=floor, lens_prior=lens_prior)
     if isinstance(out, str):
         return _failed(p, g, out, first_error, t0)
+    cov_shape_lenses = _with_lens_accuracy(p, g, out, person, floor, lens_prior) if p.lens_accuracy else None
     if person is not None and p.config.outlier_rounds == 0:  # the first solve with bones
         first_error = out.initial_error
     R, t, lms, final_error, its = out.R, out.t, out.landmarks, out.final_error, out.iterations
@@ -415,7 +424,7 @@ def solve(p: Problem) -> Solution:
                     int(len(np.unique(g.lm_hyp))), res, float(first_error), float(final_error),
                     iterations + its, time.perf_counter() - t0, bone_lengths=out.lengths, residual_cam_px=per_cam,
                     phantoms=phantoms, floor=floor if out.held else None, floor_points=out.held, level=level,
-                    lenses=out.lenses, lens_std=lens_std)
+                    lenses=out.lenses, lens_std=lens_std, cov_shape_lenses=cov_shape_lenses)
 
 
 def _relocalize(p: Problem) -> Solution:
@@ -541,7 +550,7 @@ def _lens_prior(p: Problem, g: Graph, R: np.ndarray, t: np.ndarray, person: np.n
     for k in (0, 1):
         gk = g.without(half != k, cfg)
         out = _solve_graph(p, gk, R, t, marginals=False, tolerance=max(cfg.relative_tolerance, 1e-3), person=person,
-                           floor=floor, lens_std=loose)
+                           floor=floor, lens_prior=_lens_stds(len(p.R), p.lenses, loose))
         if isinstance(out, str) or out.lenses is None:
             return None
         found.append(out.lenses)
@@ -570,14 +579,87 @@ _LENS_BLOCK = 10.0  # s: the halves' blocks, far longer than the detector noise'
 _LENS_HELD = 1e-5
 
 
+def _lens_stds(C: int, cams: Sequence[int], std: np.ndarray | None) -> np.ndarray | None:
+    """(C, 4) lens prior std per camera: ``std`` (4,) for ``cams``, NaN (no lens variable)
+    for the others; None when ``std`` is."""
+    if std is None:
+        return None
+    out = np.full((C, 4), np.nan)
+    out[list(cams)] = std
+    return out
+
+
+def _with_lens_accuracy(p: Problem, g: Graph, out: "_Solved", person: np.ndarray | None, floor: Floor | None,
+                        lens_prior: np.ndarray | None) -> np.ndarray | None:
+    """(C, 6, 6) ``out``'s shape covariance with the errors of the lens parameters it held
+    at their files, of ``optimize.lens_accuracy_*`` std, considered (Schmidt's consider
+    covariance: what such errors would move the solution by, added to its noise's; a
+    parameter the solve estimated is in its marginals already; one the data showed no
+    spread of was held), at the solution, not a solve again. The
+    projections hardly tell a focal length from the camera's distance to the people, nor
+    a principal point from the camera's turn, and the files' errors move the poses as
+    much as the keypoints' noise or more (docs/accuracy.md, Session 39). None when there
+    is nothing to add, or the marginals fail."""
+    cfg = p.config
+    acc = np.array([cfg.lens_accuracy_focal] * 2 + [cfg.lens_accuracy_centre] * 2)
+    if not p.marginals or out.cov_shape is None or not acc.any():
+        return None
+    C = len(p.R)
+    consider = np.repeat(acc[None], C, axis=0)
+    g_at = replace(g, landmarks=out.landmarks)
+    m = _solve_graph(p, g_at, out.R, out.t, marginals=True, person=person, floor=floor, lens_prior=lens_prior,
+                     lens_at=out.lenses, iterate=False, consider=consider)
+    if isinstance(m, str) or m.reason or m.cov_shape is None:
+        return None
+    return m.cov_shape
+
+
+def _considered(marg, poses: list[int], lenses: list[int], estimated: np.ndarray, std: np.ndarray,
+                gtsam) -> np.ndarray:
+    """(6N, 6N) the joint covariance of the poses (N keys) when of the ``lenses``' (K keys)
+    parameters (Cal3_S2's fx, fy, skew, u0, v0) only the ``estimated`` (5K,) bool were
+    estimated with them and the others held at their files, though off them by ``std``
+    (5K,): Λ_ee⁻¹ + Λ_ee⁻¹ Λ_eh Σ Λ_he Λ_ee⁻¹ from the joint information Λ of all of them
+    (the landmarks marginalised; e: the estimated, h: the held)."""
+    keys = poses + lenses
+    info = marg.jointMarginalInformation(gtsam.KeyVector(keys))
+    M = np.block([[info.at(a, b) for b in keys] for a in keys])
+    est = np.r_[np.ones(6 * len(poses), bool), estimated]
+    A, B = M[np.ix_(est, est)], M[np.ix_(est, ~est)]
+    sd = std[~estimated]
+    Ainv = np.linalg.inv(A)
+    G = Ainv @ B
+    cov = Ainv + G @ (sd[:, None] ** 2 * G.T)
+    return cov[:6 * len(poses), :6 * len(poses)]
+
+
+def _consider_parts(with_lens: np.ndarray, lensed: np.ndarray, prior: np.ndarray, consider: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """For ``_considered``: of the cameras ``with_lens`` (C,) bool, which lens parameters
+    (5 each, Cal3_S2's order) the solve estimated (``lensed`` (C,) cameras, those with a
+    prior (C, 4) beyond the held one) and the std (5 each) of the others' errors
+    (``consider`` (C, 4); the skew: none)."""
+    est, std = [], []
+    for c in np.flatnonzero(with_lens):
+        free = lensed[c] & (np.nan_to_num(prior[c]) > 10 * _LENS_HELD)
+        est.append(np.r_[free[:2], False, free[2:]])
+        std.append(np.r_[np.nan_to_num(consider[c, :2]), 0.0, np.nan_to_num(consider[c, 2:])])
+    return np.concatenate(est), np.concatenate(std)
+
+
 def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, marginals: bool,
                  tolerance: float | None = None, person: np.ndarray | None = None, floor: Floor | None = None,
-                 lens_std: np.ndarray | None = None) -> "_Solved | str":
+                 lens_prior: np.ndarray | None = None, lens_at: np.ndarray | None = None,
+                 iterate: bool = True, consider: np.ndarray | None = None) -> "_Solved | str":
     """One GTSAM solve of graph g from poses R0, t0; ``person`` (H,) int labels of the
     hypotheses for bone-length factors (None: none), and with them the lower ankles held
-    to ``floor`` (None: not). ``lens_std`` (4,): the lenses of ``p.lenses``' cameras are
-    variables too, at their files' with this prior std (fx, fy, principal point x, y:
-    ``Solution.lenses``). Returns a failure reason (str) or the solve."""
+    to ``floor`` (None: not). ``lens_prior`` (C, 4), NaN rows = none: the lenses of those
+    cameras are variables too, with this prior std about their files' (fx, fy, principal
+    point x, y: ``Solution.lenses``), started at ``lens_at`` (C, 4) deviations (None: the
+    files'). ``iterate`` False: no optimisation, the marginals at the start. ``consider``
+    (C, 4), NaN rows = none: lenses held at their files whose errors, of this std, the
+    covariances also carry (``_with_lens_accuracy``). Returns a failure reason (str) or
+    the solve."""
     import gtsam
 
     C, L = len(p.R), len(g.landmarks)
@@ -610,15 +692,23 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         gtsam.GenericProjectionFactorCal3_S2
     lensed = np.zeros(C, bool)  # cameras with a lens variable
     kkey: list[int] = []  # their keys, by camera (not built for a cycle's solve)
-    if lens_std is not None:  # a unit calibration per camera: its deviation from the file, in focal lengths
+    held_lens = np.zeros(C, bool)  # cameras whose lens is a variable only for ``consider``
+    if lens_prior is not None or consider is not None:  # a unit calibration per camera: its deviation from the file
+        nan = np.full((C, 4), np.nan)
+        lens_prior = nan if lens_prior is None else lens_prior
+        consider = nan if consider is None else consider
+        assert lens_prior.shape == consider.shape == (C, 4) and (lens_at is None or lens_at.shape == (C, 4))
         kkey = [gtsam.symbol("k", c) for c in range(C)]
-        lensed[[c for c in p.lenses if g.active[c]]] = True
-        sd = np.maximum(lens_std, _LENS_HELD)
-        lens_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sd[0], sd[1], _LENS_HELD, sd[2], sd[3]]))
-        for c in np.flatnonzero(lensed):
-            values.insert(kkey[c], K)
-            graph.add(gtsam.PriorFactorCal3_S2(kkey[c], K, lens_noise))
-    lensed_list = lensed.tolist()
+        lensed = g.active & np.all(np.isfinite(lens_prior), axis=1)
+        held_lens = g.active & ~lensed & np.all(np.isfinite(consider), axis=1)
+        for c in np.flatnonzero(lensed | held_lens):
+            # a held lens's prior only keeps the system definite: its errors enter by ``consider``
+            sd = np.maximum(lens_prior[c] if lensed[c] else consider[c], _LENS_HELD)
+            d = np.zeros(4) if lens_at is None else np.nan_to_num(lens_at[c])
+            values.insert(kkey[c], gtsam.Cal3_S2(1.0 + d[0], 1.0 + d[1], 0.0, d[2], d[3]))
+            graph.add(gtsam.PriorFactorCal3_S2(kkey[c], K, gtsam.noiseModel.Diagonal.Sigmas(
+                np.array([sd[0], sd[1], _LENS_HELD, sd[2], sd[3]]))))
+    lensed_list = (lensed | held_lens).tolist()
     for c, l, xy, s in zip(g.obs_cam.tolist(), g.obs_lm.tolist(), g.obs_xy, g.obs_sigma.tolist()):
         noise = Sigma(2, s)
         if robust is not None:
@@ -641,7 +731,7 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         ordering.push_back(k)
     for c in cams:
         ordering.push_back(X(c))
-    for c in np.flatnonzero(lensed):
+    for c in np.flatnonzero(lensed | held_lens):
         ordering.push_back(kkey[c])
     if on_floor:
         ordering.push_back(FLOOR_KEY)
@@ -660,7 +750,7 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         params.setOrdering(ordering)
         optimizer = gtsam.DoglegOptimizer(graph, values, params)
     try:
-        result = optimizer.optimize()
+        result = optimizer.optimize() if iterate else values
     except RuntimeError as e:  # IndeterminantLinearSystem and friends
         return f"optimizer failed: {_first_line(e)}"
     final_error = graph.error(result)
@@ -683,8 +773,8 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         lenses = np.full((C, 4), np.nan)
         for c in np.flatnonzero(lensed):
             lenses[c] = result.atCal3_S2(kkey[c]).vector()[[0, 1, 3, 4]] - [1.0, 1.0, 0.0, 0.0]
-    out = _Solved(R, t, lms, float(initial_error), float(final_error), int(optimizer.iterations()), lengths, held,
-                  lenses)
+    out = _Solved(R, t, lms, float(initial_error), float(final_error), int(optimizer.iterations()) if iterate else 0,
+                  lengths, held, lenses)
     if not marginals:
         return out
     cov = np.full((C, 6, 6), np.nan)
@@ -698,9 +788,12 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         try:
             marg = gtsam.Marginals(graph, result)
             live = [c for c in cams if X(c) not in dropped]
-            keys = gtsam.KeyVector([X(c) for c in live])
-            joint = marg.jointMarginalCovariance(keys)
-            J = np.block([[joint.at(X(a), X(b)) for b in live] for a in live])
+            if consider is not None:
+                J = _considered(marg, [X(c) for c in live], [kkey[c] for c in np.flatnonzero(lensed | held_lens)],
+                                *_consider_parts(lensed | held_lens, lensed, lens_prior, consider), gtsam)
+            else:
+                joint = marg.jointMarginalCovariance(gtsam.KeyVector([X(c) for c in live]))
+                J = np.block([[joint.at(X(a), X(b)) for b in live] for a in live])
             for i, c in enumerate(live):
                 cov[c] = J[6 * i:6 * i + 6, 6 * i:6 * i + 6]
             S = shape_covariance(R[live], t[live], J)

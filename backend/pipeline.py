@@ -57,6 +57,21 @@ log = logging.getLogger(__name__)
 _CLOCK_SAMPLES = 16  # offline: messages held back to find a plausible start of time
 
 
+def _added(cov: np.ndarray, more: np.ndarray | None) -> np.ndarray | None:
+    """(C, 6, 6) ``more`` - ``cov``, each made positive semi-definite (the marginals of a
+    graph with more variables hold at least as much uncertainty, up to rounding); None
+    when ``more`` is."""
+    if more is None:
+        return None
+    assert cov.shape == more.shape and cov.shape[1:] == (6, 6)
+    d = 0.5 * ((more - cov) + np.swapaxes(more - cov, 1, 2))
+    out = np.full_like(d, np.nan)
+    ok = np.all(np.isfinite(d), axis=(1, 2))
+    w, V = np.linalg.eigh(d[ok])
+    out[ok] = np.einsum("cij,cj,ckj->cik", V, np.maximum(w, 0.0), V)
+    return out
+
+
 def _from_prior(R0: np.ndarray, t0: np.ndarray, P: np.ndarray, R: np.ndarray, t: np.ndarray
                 ) -> tuple[float, float, float]:
     """How far pose R (3, 3), t (3,) lies from the prior pose R0, t0 with tangent
@@ -170,6 +185,11 @@ class Pipeline:
         self.levelled: Levelled | None = None  # a bootstrap's floor frame levelled on the final batch's floor
         # the lenses the final batch found off their files (optimize.lenses); the poses fit them
         self.lenses: Lenses | None = None
+        # (C, 6, 6) what the lenses' accuracy adds to the stated covariance (``state``), from the
+        # final batch (``optimize.lens_accuracy_*``), NaN = nothing. Kept apart from the
+        # refiner's: convergence, the split-half check (both halves share the lenses) and the
+        # monitor go by the noise's alone; a lens's error is no less for more data
+        self.lens_cov: np.ndarray | None = None
         self.clock: float | None = None
         self.cycle = 0
         self.cycles_rejected = 0
@@ -1009,7 +1029,8 @@ class Pipeline:
 
     def batch_adjust(self) -> CycleReport:
         p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2, final=True)
-        p = replace(p, level=self.cfg.refine.floor_frame is not None)  # the floor ``_level`` makes the frame on
+        # the floor ``_level`` makes the frame on; the std with the lenses' accuracy (``_state_lenses``)
+        p = replace(p, level=self.cfg.refine.floor_frame is not None, lens_accuracy=True)
         sol = solve(p)
         if sol.ok and sol.phantoms:
             # Phantoms are judged by their size in the start's scale, and a link of a chain
@@ -1024,6 +1045,8 @@ class Pipeline:
             p, sol = self._batch_from_start(p, sol)
         self._inflight = p
         report = self.apply(p, sol)
+        if report.accepted:
+            self.lens_cov = _added(sol.cov_shape, sol.cov_shape_lenses)
         if report.accepted and sol.lenses is not None and sol.lens_std is not None:
             # relative to the intrinsics this pipeline works with: a resumed session's are its lenses already
             used = np.array([(self.cameras.intrinsics[n].fx, self.cameras.intrinsics[n].fy) for n in self.names])
@@ -1095,7 +1118,7 @@ class Pipeline:
         for c, n in enumerate(self.names):
             ct, cr = rf.change(c)
             cams.append(CameraState(
-                name=n, R=rf.R[c].copy(), t=rf.t[c].copy(), cov=rf.S[c].copy(),
+                name=n, R=rf.R[c].copy(), t=rf.t[c].copy(), cov=self._stated_cov(c),
                 observations=int(self.observations[c] + self.observations_batch[c]), cycles=int(rf.cycles[c]),
                 change_translation=ct, change_rotation=cr, converged=rf.converged(c),
                 last_seen=self.last_seen.get(n), moved_at=moved.get(c),
@@ -1109,6 +1132,14 @@ class Pipeline:
                                 clocks=self.clock_states(),
                                 scale_check=self.scale_check.to_dict() if self.scale_check is not None else None,
                                 split_check=self.split_check.to_dict() if self.split_check is not None else None)
+
+    def _stated_cov(self, c: int) -> np.ndarray:
+        """(6, 6) camera c's covariance as stated: the solves' (shape), and what its lens's
+        accuracy adds once a final batch has found it."""
+        S = self.refiner.S[c].copy()
+        if self.lens_cov is not None and np.all(np.isfinite(self.lens_cov[c])):
+            S += self.lens_cov[c]
+        return S
 
     def skeletons(self, n: int = 4) -> list[list[list[float] | None]]:
         """The newest ``n`` hypotheses of distinct persons as 3D skeletons (17 joints, world
@@ -1151,6 +1182,8 @@ class Pipeline:
             "scale_check": self.scale_check.to_dict() if self.scale_check is not None else None,
             "split_check": self.split_check.to_dict() if self.split_check is not None else None,
             "lenses": self.lenses.to_dict() if self.lenses is not None else None,
+            "lens_cov": None if self.lens_cov is None else
+            [x.tolist() if np.all(np.isfinite(x)) else None for x in self.lens_cov],
         }
 
     @classmethod
@@ -1198,6 +1231,9 @@ class Pipeline:
         if config.monitor.on:  # held from the first cycle after the restart, not the monitor's first turn
             rf.held = p.watched & config.monitor.hold
         rf.batched = np.array(snapshot.get("batched", [False] * len(p.names)), dtype=bool)
+        if snapshot.get("lens_cov") is not None:
+            p.lens_cov = np.array([np.full((6, 6), np.nan) if x is None else x for x in snapshot["lens_cov"]],
+                                  dtype=np.float64)
         p.observations = np.array(snapshot["observations"], dtype=np.int64)
         p.observations_batch = np.array(snapshot.get("observations_batch", [0] * len(p.names)), dtype=np.int64)
         applied = {n: float(o) for n, o in snapshot.get("clock_offsets", {}).items() if n in p.names}

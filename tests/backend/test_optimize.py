@@ -11,7 +11,7 @@ from backend.associate import Hypothesis
 from backend.cameras import Pose
 from backend.config import AssociateConfig, OptimizeConfig, RefineConfig
 from backend.evaluate import evaluate
-from backend.geometry import rotation_angle_deg, so3_exp
+from backend.geometry import pose_std, rotation_angle_deg, so3_exp
 from backend.optimize import Problem, _drop_inconsistent_views, build_graph, residuals_px, shape_covariance, solve
 from backend.preprocess import TORSO, Detection
 from backend.refine import initial_covariance
@@ -407,3 +407,39 @@ def test_lenses_off_their_files_are_estimated_and_the_poses_fit_them(lens_scene)
     part = solve(_batch(R0, t0, seen, (0, 2, 3, 5, 6)))
     assert part.ok and part.lenses is not None
     assert np.isnan(part.lenses[[1, 4, 7]]).all() and np.isfinite(part.lenses[[0, 2, 3, 5, 6]]).all()
+
+
+def test_the_final_std_carries_the_lenses_accuracy(lens_scene):
+    """Lenses 1 % off their files, kept as the files (the data are too few to show it): the
+    keypoints' noise alone states a std the poses are far outside of; with the files'
+    accuracy (``optimize.lens_accuracy_*`` 1 %) the stated std is about their error."""
+    R, t, hyps, R0, t0 = lens_scene
+    off = np.random.default_rng(11).normal(0, 0.01, (8, 4))
+    seen = _through_lenses(hyps, off)
+    cfg = OptimizeConfig(max_iterations=100, lens_accuracy_focal=0.01, lens_accuracy_centre=0.01)
+    sol = solve(problem(R0, t0, seen, std_t=0.25, std_deg=5.0, kind="batch", config=cfg, lens_accuracy=True))
+    assert sol.ok and sol.lenses is None and sol.cov_shape_lenses is not None
+    acc = evaluate(poses(sol.R, sol.t), poses(R, t))
+    err = np.array([acc.per_camera[n][2] for n in poses(R, t)])
+    noise, _ = pose_std(sol.cov_shape)
+    both, _ = pose_std(sol.cov_shape_lenses)
+    assert np.all(both > 5 * noise)  # 21 mm against 1.0 mm
+    # the 3D error against sqrt(3) x the per-axis std: 1 on average when the std is honest
+    z_noise, z_both = err / (np.sqrt(3) * noise), err / (np.sqrt(3) * both)
+    assert np.sqrt(np.mean(z_noise ** 2)) > 5  # 19.6
+    assert 0.5 < np.sqrt(np.mean(z_both ** 2)) < 1.6, (err, both)  # 0.98 (0.93-1.43 for other draws and 0.3 %)
+    # focal lengths the data show off (2 %) are estimated, their uncertainty the solve's own;
+    # the principal points they show no spread of are held, and their errors considered: the
+    # turn of each camera, which a principal point's shift mimics, is the less certain
+    far = np.c_[np.repeat(np.random.default_rng(3).normal(0, 0.02, 8)[:, None], 2, axis=1), np.zeros((8, 2))]
+    est = solve(problem(R0, t0, _through_lenses(hyps, far), std_t=0.25, std_deg=5.0, kind="batch", config=cfg,
+                        lenses=tuple(range(8)), lens_accuracy=True))
+    assert est.ok and est.lenses is not None and est.cov_shape_lenses is not None
+    assert est.lens_std[0] > 0.01 and est.lens_std[2] < 1e-3, est.lens_std
+    turn, turned = pose_std(est.cov_shape)[1], pose_std(est.cov_shape_lenses)[1]
+    assert np.all(turned > 2 * turn), (turn, turned)  # 0.07-0.08° -> 0.43-0.56° (1 % of the focal length: 0.57°)
+    # not asked (every cycle), or no accuracy stated: nothing added
+    assert solve(problem(R0, t0, seen, std_t=0.25, std_deg=5.0, kind="batch", config=cfg)).cov_shape_lenses is None
+    none = cfg.model_copy(update={"lens_accuracy_focal": 0.0, "lens_accuracy_centre": 0.0})
+    quiet = solve(problem(R0, t0, seen, std_t=0.25, std_deg=5.0, kind="batch", config=none, lens_accuracy=True))
+    assert quiet.cov_shape_lenses is None and np.array_equal(quiet.t, sol.t)

@@ -135,6 +135,25 @@ def test_snapshot_and_restore_give_the_same_state(lab, run):
         Pipeline.restore(other, EngineConfig(), snap)
 
 
+def test_the_stated_std_carries_the_lenses_accuracy_and_convergence_the_noise_alone(lab, run):
+    """The final batch adds what the calibration files' errors (optimize.lens_accuracy_*,
+    0.3 %) would move each pose by to the stated covariance; the refiner's own, by which
+    convergence, the split-half check and the monitor go, keeps the noise's alone."""
+    p, _ = run
+    assert p.lens_cov is not None
+    state = p.state()
+    calibrated = [c for c, cam in enumerate(state.cameras) if cam.cycles > 0]
+    assert len(calibrated) == len(WEST)
+    for c in calibrated:
+        cam = state.cameras[c]
+        noise, _ = p.refiner.std(c)
+        added = np.sqrt(cam.std_translation ** 2 - noise ** 2)
+        assert added > 0.005, (cam.name, cam.std_translation, noise)  # 7-14 mm on 11-32 mm
+        assert cam.converged == p.refiner.converged(c)
+    silent = state.cameras[p.names.index(SILENT)]
+    np.testing.assert_array_equal(silent.cov, p.refiner.S[p.names.index(SILENT)])  # not in the batch: nothing added
+
+
 def test_a_snapshot_keeps_the_lenses_its_poses_fit(lab, run):
     """A final batch that found the lenses off their files (optimize.lenses) left poses
     that fit those lenses: a session resumed from its snapshot works with them, and a
