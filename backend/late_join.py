@@ -388,6 +388,8 @@ class JoiningPipeline(Pipeline):
             "batched": [bool(rf.batched[old[n]]) if n in old else False for n in names],
             "observations": [int(self.observations[old[n]]) if n in old else 0 for n in names],
             "observations_batch": [int(self.observations_batch[old[n]]) if n in old else 0 for n in names],
+            "lens_cov": None if snap.get("lens_cov") is None else
+            [snap["lens_cov"][old[n]] if n in old else None for n in names],
         })
         return cams, snap
 

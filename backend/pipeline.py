@@ -1231,7 +1231,7 @@ class Pipeline:
         if config.monitor.on:  # held from the first cycle after the restart, not the monitor's first turn
             rf.held = p.watched & config.monitor.hold
         rf.batched = np.array(snapshot.get("batched", [False] * len(p.names)), dtype=bool)
-        if snapshot.get("lens_cov") is not None:
+        if snapshot.get("lens_cov") is not None and len(snapshot["lens_cov"]) == len(p.names):
             p.lens_cov = np.array([np.full((6, 6), np.nan) if x is None else x for x in snapshot["lens_cov"]],
                                   dtype=np.float64)
         p.observations = np.array(snapshot["observations"], dtype=np.int64)
