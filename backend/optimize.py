@@ -163,9 +163,9 @@ class Solution:
     # show (the prior they were estimated with); None: the files' lenses were kept
     lenses: np.ndarray | None = None
     lens_std: np.ndarray | None = None
-    # with ``Problem.lens_accuracy``: (C, 6, 6) ``cov_shape`` with every lens as uncertain as
-    # ``optimize.lens_accuracy_*`` says (those estimated: as their estimate), NaN = none;
-    # None: not asked, or nothing to state
+    # with ``Problem.lens_accuracy``: (C, 6, 6) ``cov_shape`` plus what the errors of the lens
+    # parameters the solve held at their files (``optimize.lens_accuracy_*`` std) move the
+    # poses by (``_with_lens_accuracy``), NaN = none; None: not asked, or nothing to state
     cov_shape_lenses: np.ndarray | None = None
 
 
@@ -657,9 +657,10 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
     cameras are variables too, with this prior std about their files' (fx, fy, principal
     point x, y: ``Solution.lenses``), started at ``lens_at`` (C, 4) deviations (None: the
     files'). ``iterate`` False: no optimisation, the marginals at the start. ``consider``
-    (C, 4), NaN rows = none: lenses held at their files whose errors, of this std, the
-    covariances also carry (``_with_lens_accuracy``). Returns a failure reason (str) or
-    the solve."""
+    (C, 4), NaN rows = none: the std of the errors of the lens parameters held at their
+    files (a camera's without a prior in ``lens_prior``, and those it holds), which the
+    covariances then also carry (``_with_lens_accuracy``). Returns a failure reason (str)
+    or the solve."""
     import gtsam
 
     C, L = len(p.R), len(g.landmarks)

@@ -1029,7 +1029,7 @@ class Pipeline:
 
     def batch_adjust(self) -> CycleReport:
         p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2, final=True)
-        # the floor ``_level`` makes the frame on; the std with the lenses' accuracy (``_state_lenses``)
+        # the floor ``_level`` makes the frame on; the std with the lenses' accuracy (``lens_cov``)
         p = replace(p, level=self.cfg.refine.floor_frame is not None, lens_accuracy=True)
         sol = solve(p)
         if sol.ok and sol.phantoms:
