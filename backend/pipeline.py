@@ -1141,6 +1141,16 @@ class Pipeline:
             S += self.lens_cov[c]
         return S
 
+    def std_note(self) -> str | None:
+        """What the stated std holds, once a final batch added the lenses' accuracy (for
+        a result's header); None before."""
+        if self.lens_cov is None:
+            return None
+        o = self.cfg.optimize
+        return (f"stated std: the keypoints' noise and the calibration files' lens accuracy, "
+                f"{100 * o.lens_accuracy_focal:.2g} % in focal length and {100 * o.lens_accuracy_centre:.2g} % of it in "
+                f"principal point (optimize.lens_accuracy_*)")
+
     def skeletons(self, n: int = 4) -> list[list[list[float] | None]]:
         """The newest ``n`` hypotheses of distinct persons as 3D skeletons (17 joints, world
         frame, None where a joint is not triangulated), for display."""

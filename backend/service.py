@@ -1480,7 +1480,9 @@ class Service:
                                        # a bootstrapped session's floor frame, levelled on the final batch's floor
                                        "levelled": None if s.pipeline.levelled is None else s.pipeline.levelled.to_dict(),
                                        # the lenses the final batch found off their calibration files
-                                       "lenses": None if s.pipeline.lenses is None else s.pipeline.lenses.to_dict()}
+                                       "lenses": None if s.pipeline.lenses is None else s.pipeline.lenses.to_dict(),
+                                       # what the stated std holds (optimize.lens_accuracy_*)
+                                       "std_note": s.pipeline.std_note()}
                     check = s.pipeline.scale_check
                     if check is not None:  # the initial estimate's scale against the people's
                         rec.scale = {**(rec.scale or {}), "check": check.to_dict(), "summary": check.summary()}
@@ -1973,9 +1975,9 @@ def _result_comment(rec: SessionRecord, state: "CalibrationState") -> str:
     """A result's header: the session and cycle; for a bootstrapped session where its
     frame and scale come from (backend/live_bootstrap.py)."""
     head = f"extrcal session {rec.id}, cycle {state.cycle}, {rec.state.value}"
-    levelled, lenses = ((rec.final_batch or {}).get(k) for k in ("levelled", "lenses"))
+    levelled, lenses, std = ((rec.final_batch or {}).get(k) for k in ("levelled", "lenses", "std_note"))
     extra = "\n".join(x for x in (result_comment(rec.bootstrap), levelled and levelled["summary"],
-                                   lenses and lenses["summary"]) if x)
+                                   lenses and lenses["summary"], std) if x)
     return f"{head}\n{extra}" if extra else head
 
 

@@ -93,6 +93,8 @@ def test_calibrate_writes_extrinsics_history_and_names_uncalibrated_cameras(file
     assert text.startswith("# extrcal calibrate of ")
     named = re.search(r"# not calibrated \(kept initial pose\): (.*)", text).group(1).split(", ")
     assert ABSENT in named
+    # what the stated std holds (optimize.lens_accuracy_*, 0.3 % by default)
+    assert "# stated std: the keypoints' noise and the calibration files' lens accuracy, 0.3 % in focal length" in text
     cycles = int(re.search(r"(\d+) cycles", text).group(1))
     assert cycles >= 3
     doc = yaml.safe_load(text)

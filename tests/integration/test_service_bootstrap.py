@@ -121,6 +121,8 @@ def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, la
     assert stopped["final_batch"]["retimed"] == {}  # no clock offsets estimated: no view timed again
     # the final batch on two halves of the data ran in the solver and is reported
     assert stopped["final_batch"]["split_check"]["summary"].startswith("split-half check")
+    # what the stated std holds: the lenses' accuracy too (optimize.lens_accuracy_*)
+    assert f"# {stopped['final_batch']['std_note']}" in result_text and "lens accuracy" in result_text
     # the floor frame made again on the final batch's floor, and the result says so
     assert stopped["final_batch"]["levelled"]["done"], stopped["final_batch"]["levelled"]
     assert "# world frame levelled again on the final batch adjustment's floor" in result_text
