@@ -410,7 +410,7 @@ def test_lenses_off_their_files_are_estimated_and_the_poses_fit_them(lens_scene)
 
 
 def test_the_final_std_carries_the_lenses_accuracy(lens_scene):
-    """Lenses 1 % off their files, kept as the files (the data are too few to show it): the
+    """Lenses 1 % off their files, kept as the files (the solve is asked for no lens): the
     keypoints' noise alone states a std the poses are far outside of; with the files'
     accuracy (``optimize.lens_accuracy_*`` 1 %) the stated std is about their error."""
     R, t, hyps, R0, t0 = lens_scene
