@@ -230,8 +230,9 @@ def calibrate(
                     f"(their spread about it {p.last_report.floor_spread:.3f} m; optimize.floor)")
     if p.split_check is not None:
         comment += f"\n{p.split_check.summary()}"
-    if p.std_note() is not None:
-        comment += f"\n{p.std_note()}"
+    std_note = p.std_note()
+    if std_note is not None:
+        comment += f"\n{std_note}"
     lens_file = Path(f"{output}.intrinsics.yaml")  # the lenses found, next to the result
     if p.lenses is not None:
         comment += f"\n{p.lenses.summary()}; the lenses: {lens_file}"

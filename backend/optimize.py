@@ -691,9 +691,9 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         robust = gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_k)
     Sigma, Robust, Factor = gtsam.noiseModel.Isotropic.Sigma, gtsam.noiseModel.Robust.Create, \
         gtsam.GenericProjectionFactorCal3_S2
-    lensed = np.zeros(C, bool)  # cameras with a lens variable
+    lensed = np.zeros(C, bool)  # cameras whose lens the solve estimates
     kkey: list[int] = []  # their keys, by camera (not built for a cycle's solve)
-    held_lens = np.zeros(C, bool)  # cameras whose lens is a variable only for ``consider``
+    with_lens = lensed  # cameras with a lens variable: those, and those only ``consider``ed
     if lens_prior is not None or consider is not None:  # a unit calibration per camera: its deviation from the file
         nan = np.full((C, 4), np.nan)
         lens_prior = nan if lens_prior is None else lens_prior
@@ -701,15 +701,15 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         assert lens_prior.shape == consider.shape == (C, 4) and (lens_at is None or lens_at.shape == (C, 4))
         kkey = [gtsam.symbol("k", c) for c in range(C)]
         lensed = g.active & np.all(np.isfinite(lens_prior), axis=1)
-        held_lens = g.active & ~lensed & np.all(np.isfinite(consider), axis=1)
-        for c in np.flatnonzero(lensed | held_lens):
+        with_lens = g.active & (lensed | np.all(np.isfinite(consider), axis=1))
+        for c in np.flatnonzero(with_lens):
             # a held lens's prior only keeps the system definite: its errors enter by ``consider``
             sd = np.maximum(lens_prior[c] if lensed[c] else consider[c], _LENS_HELD)
             d = np.zeros(4) if lens_at is None else np.nan_to_num(lens_at[c])
             values.insert(kkey[c], gtsam.Cal3_S2(1.0 + d[0], 1.0 + d[1], 0.0, d[2], d[3]))
             graph.add(gtsam.PriorFactorCal3_S2(kkey[c], K, gtsam.noiseModel.Diagonal.Sigmas(
                 np.array([sd[0], sd[1], _LENS_HELD, sd[2], sd[3]]))))
-    lensed_list = (lensed | held_lens).tolist()
+    lensed_list = with_lens.tolist()
     for c, l, xy, s in zip(g.obs_cam.tolist(), g.obs_lm.tolist(), g.obs_xy, g.obs_sigma.tolist()):
         noise = Sigma(2, s)
         if robust is not None:
@@ -732,7 +732,7 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
         ordering.push_back(k)
     for c in cams:
         ordering.push_back(X(c))
-    for c in np.flatnonzero(lensed | held_lens):
+    for c in np.flatnonzero(with_lens):
         ordering.push_back(kkey[c])
     if on_floor:
         ordering.push_back(FLOOR_KEY)
@@ -790,8 +790,8 @@ def _solve_graph(p: Problem, g: Graph, R0: np.ndarray, t0: np.ndarray, *, margin
             marg = gtsam.Marginals(graph, result)
             live = [c for c in cams if X(c) not in dropped]
             if consider is not None:
-                J = _considered(marg, [X(c) for c in live], [kkey[c] for c in np.flatnonzero(lensed | held_lens)],
-                                *_consider_parts(lensed | held_lens, lensed, lens_prior, consider), gtsam)
+                J = _considered(marg, [X(c) for c in live], [kkey[c] for c in np.flatnonzero(with_lens)],
+                                *_consider_parts(with_lens, lensed, lens_prior, consider), gtsam)
             else:
                 joint = marg.jointMarginalCovariance(gtsam.KeyVector([X(c) for c in live]))
                 J = np.block([[joint.at(X(a), X(b)) for b in live] for a in live])
