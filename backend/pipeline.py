@@ -540,7 +540,9 @@ class Pipeline:
         p = self._batch_problem(s.first_scope, s.min_spacing)
         self.first_passes += 1
         self.queue.clear()  # their data are in this adjustment: a cycle must not count them again
-        return replace(p, associate=a.model_copy(update={"min_views": a.min_views_unsettled}), kind="first")
+        # the std a running session states carries the lenses' accuracy from here on (``_lens_part``)
+        return replace(p, associate=a.model_copy(update={"min_views": a.min_views_unsettled}), kind="first",
+                       lens_accuracy=True)
 
     def _recalibrate_problem(self, cam: int, since: float) -> Problem:
         """A moved camera calibrated again by an adjustment over every archived frame since
@@ -722,6 +724,8 @@ class Pipeline:
                 active = solution.active
             upd = self.refiner.update(active, solution.R, solution.t, solution.cov, posterior=batch or first,
                                       cov_shape=solution.cov_shape, final=batch)
+            if first:
+                self._lens_part(solution, active)
             change_t = float(upd.changed_translation.max())
             change_r = float(upd.changed_rotation.max())
             if batch:
@@ -1045,8 +1049,9 @@ class Pipeline:
             p, sol = self._batch_from_start(p, sol)
         self._inflight = p
         report = self.apply(p, sol)
-        if report.accepted:
-            self.lens_cov = _added(sol.cov_shape, sol.cov_shape_lenses)
+        if report.accepted:  # the final word: a camera it did not place keeps no earlier part
+            self.lens_cov = None
+            self._lens_part(sol, np.ones(len(self.names), bool))
         if report.accepted and sol.lenses is not None and sol.lens_std is not None:
             # relative to the intrinsics this pipeline works with: a resumed session's are its lenses already
             used = np.array([(self.cameras.intrinsics[n].fx, self.cameras.intrinsics[n].fy) for n in self.names])
@@ -1132,6 +1137,21 @@ class Pipeline:
                                 clocks=self.clock_states(),
                                 scale_check=self.scale_check.to_dict() if self.scale_check is not None else None,
                                 split_check=self.split_check.to_dict() if self.split_check is not None else None)
+
+    def _lens_part(self, sol: Solution, cams: np.ndarray) -> None:
+        """Take what the lenses' accuracy adds to the stated covariance of ``cams`` (C,) bool
+        from an adjustment with the start's prior (the first, the final batch): how far a
+        lens off its file moves a pose depends on where the people are in the views, not on
+        how much data there are, so the first adjustment's part stands for the running
+        session's until the final batch's replaces it (a cycle's, with the filter's prior,
+        would be held down by it)."""
+        add = _added(sol.cov_shape, sol.cov_shape_lenses)
+        if add is None:
+            return
+        if self.lens_cov is None:
+            self.lens_cov = np.full((len(self.names), 6, 6), np.nan)
+        take = cams & np.all(np.isfinite(add), axis=(1, 2))
+        self.lens_cov[take] = add[take]
 
     def _stated_cov(self, c: int) -> np.ndarray:
         """(6, 6) camera c's covariance as stated: the solves' (shape), and what its lens's

@@ -154,6 +154,27 @@ def test_the_stated_std_carries_the_lenses_accuracy_and_convergence_the_noise_al
     np.testing.assert_array_equal(silent.cov, p.refiner.S[p.names.index(SILENT)])  # not in the batch: nothing added
 
 
+def test_a_running_session_states_the_lenses_accuracy_from_its_first_adjustment(lab, run):
+    """Before any final batch, the first adjustment (the start's prior, like the final
+    batch's) gives each camera it placed the lenses' part of the stated std, of the size
+    the final batch's is; the final batch's then replaces it."""
+    cams, _, msgs = lab
+    p = run_offline(cams, EngineConfig(), msgs, seed=0, finish=False)
+    assert p.first_passes == EngineConfig().select.first_passes and p.lens_cov is not None
+    assert p.std_note() is not None
+    state = p.state()
+    placed = [c for c in range(len(p.names)) if np.all(np.isfinite(p.lens_cov[c]))]
+    assert {p.names[c] for c in placed} <= set(WEST) and len(placed) >= len(WEST) - 1
+    final, _ = run
+    for c in placed:
+        np.testing.assert_allclose(state.cameras[c].cov, p.refiner.S[c] + p.lens_cov[c])
+        early = np.sqrt(np.trace(p.lens_cov[c][3:, 3:]))
+        late = np.sqrt(np.trace(final.lens_cov[c][3:, 3:]))
+        assert late / 3 < early < 3 * late, (p.names[c], early, late)
+    silent = p.names.index(SILENT)
+    np.testing.assert_array_equal(state.cameras[silent].cov, p.refiner.S[silent])
+
+
 def test_a_snapshot_keeps_the_lenses_its_poses_fit(lab, run):
     """A final batch that found the lenses off their files (optimize.lenses) left poses
     that fit those lenses: a session resumed from its snapshot works with them, and a
