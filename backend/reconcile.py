@@ -30,6 +30,12 @@ Per camera, the two are compared after the alignment:
   the data's pose whatever the mode but 'never'. Left at its initial pose such a camera
   is never calibrated: its views join nobody, and re-localisation refuses poses that far
   from the initial estimate.
+- *block*: three or more overruled cameras that one similarity of their own puts within
+  the refusal limits of the initial estimate (``_block``): the two agree on them and
+  disagree on how they hang on the rest, which the bootstrap gets wrong when it chains a
+  room through one bad pair (slow, pausing walkers). Not overruled: they start from the
+  initial estimate. (An initial estimate with a whole room misplaced, the other way round,
+  is then not put right by the data; its cameras stay refused, the summary names them.)
 
 ``bootstrap.with_initial``: 'never' (the paper's way), 'always' (start from the aligned
 bootstrap for every camera it placed and did not refuse), 'auto' (the same, but only when
@@ -40,6 +46,7 @@ estimate the data confirm is left exactly as it is).
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, replace
 from typing import Iterable, Mapping, Sequence
@@ -84,6 +91,9 @@ class Reconciled:
     std_rotation: np.ndarray
     overruled: np.ndarray
     nowhere: bool = False  # every camera refused: the data's shape used for all, in the centres' frame
+    # (C,) bool: refused cameras that the initial estimate holds as one block (``_block``),
+    # not overruled; None: none
+    block: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         C = len(self.names)
@@ -91,6 +101,9 @@ class Reconciled:
         for a in (self.translation, self.rotation, self.agrees, self.refused, self.from_bootstrap, self.aligned,
                   self.std_translation, self.std_rotation, self.overruled):
             assert a.shape == (C,)
+        if self.block is None:
+            object.__setattr__(self, "block", np.zeros(C, bool))
+        assert self.block.shape == (C,)
 
     @property
     def used(self) -> bool:
@@ -172,13 +185,18 @@ class Reconciled:
         head = (f"the initial estimate vs the data's shape (bootstrap, {n} cameras, aligned on "
                 f"{int(self.aligned.sum())}): median {dt:.3f} m / {dr:.2f}°, max {np.nanmax(self.translation):.3f} m / "
                 f"{np.nanmax(self.rotation):.2f}°; {int(self.agrees.sum())}/{n} agree")
-        refused = [m for m, r, o in zip(self.names, self.refused, self.overruled) if r and not o]
+        refused = [m for m, r, o, k in zip(self.names, self.refused, self.overruled, self.block) if r and not o and not k]
         tail = f"; refused (too far from the initial estimate): {', '.join(refused)}" if refused else ""
         over = [f"{m} ({d:.2f} m / {a:.0f}° away)" for m, o, d, a in
                 zip(self.names, self.overruled, self.translation, self.rotation) if o]
         if over:
             tail += (f"; the data place {', '.join(over)} far from the initial estimate (swapped or moved?): "
                      "started from the data's pose")
+        if self.block.any():
+            tail += (f"; the data place {', '.join(m for m, k in zip(self.names, self.block) if k)} far from the "
+                     "initial estimate as one block, each where the initial estimate has it relative to the others: "
+                     "the bootstrap (or the estimate) linked the block to the rest wrongly; started from the "
+                     "initial estimate")
         if self.nowhere:
             tail += ("; the initial estimate singles out no camera, it is off everywhere: its frame and scale "
                      "are only as good as its centres")
@@ -193,6 +211,7 @@ class Reconciled:
             "from_bootstrap": [n for n, u in zip(self.names, self.from_bootstrap) if u],
             "refused": [n for n, r in zip(self.names, self.refused) if r],
             "overruled": [n for n, o in zip(self.names, self.overruled) if o],
+            "block": [n for n, k in zip(self.names, self.block) if k],
             "nowhere": self.nowhere,
             "disagree": [n for n, a, f in zip(self.names, self.agrees, fin) if f and not a],
             "translation": {n: round(float(d), 5) for n, d, f in zip(self.names, self.translation, fin) if f},
@@ -269,6 +288,9 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
     overruled = np.zeros(C, bool)
     if mode != "never":
         overruled[idx] = refused[idx] & _held_by_data(boot, bi)
+    block = _block(boot, bi, idx, overruled, R0, t0, b.refuse_sigma * rc.initial_std_translation,
+                   b.refuse_sigma * rc.initial_std_rotation)
+    overruled &= ~block
     if refused.sum() > max(2, 0.25 * both.sum()) or (aligned & ~refused).sum() < max(3, refused.sum()):
         # many cameras refused, or few left to align on: the alignment is in doubt, not a camera
         overruled[:] = False
@@ -303,7 +325,45 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
         if use[c]:
             R[c], t[c] = Ra[i], ta[i]
     return Reconciled(tuple(names), R, t, dt, dr, agrees, refused, use, aligned, float(s), mode, st, sr, overruled,
-                      nowhere and mode != "never")
+                      nowhere and mode != "never", block)
+
+
+_BLOCK_TRIES = 1000  # three-camera sets ``_block`` fits from (all of them up to 19 cameras overruled)
+
+
+def _block(boot: BootstrapResult, bi: np.ndarray, idx: np.ndarray, overruled: np.ndarray, R0: np.ndarray,
+           t0: np.ndarray, lim_t: float, lim_r: float) -> np.ndarray:
+    """(C,) bool: of the ``overruled`` (C,) cameras (``idx`` (N,) in the initial estimate
+    R0, t0; ``bi`` (N,) the bootstrap's index of each), the three or more that, aligned on
+    their own (bootstrap onto initial estimate), lie within ``lim_t`` m / ``lim_r`` deg of
+    the initial estimate: the two agree on where they are relative to each other and
+    disagree on one link, that of the block to the rest. Cameras swapped or moved one by one
+    do not fit one similarity; a block does when the bootstrap chained it to the others
+    through a wrong pair (slow, pausing walkers in the lab: five cameras of one room
+    6-15 m / 61-73° off, each within 0.3 m / 12° of the estimate aligned on its own, the
+    run 3.8 m off when they started from the data). Which of the two got the link wrong
+    the cameras' own fit cannot say; the initial estimate, within its stated std for
+    every camera of the block, keeps them, and the pipeline's association decides."""
+    out = np.zeros(len(overruled), bool)
+    k = np.flatnonzero(overruled[idx])  # positions in idx / bi
+    if len(k) < 3:
+        return out
+    Rb, tb, Ri, ti = boot.R[bi[k]], boot.t[bi[k]], R0[idx[k]], t0[idx[k]]
+    best = np.zeros(len(k), bool)
+    # the largest set one similarity fits, tried from every three (swapped cameras beside a
+    # block are too many for a trimmed fit of all of them)
+    for tri in itertools.islice(itertools.combinations(range(len(k)), 3), _BLOCK_TRIES):
+        use = np.zeros(len(k), bool)
+        use[list(tri)] = True
+        al = align_poses(Rb, tb, Ri, ti, use, orientations=True)
+        if al is None:
+            continue
+        fits = (al.dt <= lim_t) & (al.dr <= lim_r)
+        if fits[use].all() and fits.sum() > best.sum():
+            best = fits
+    if best.sum() >= 3:
+        out[idx[k[best]]] = True
+    return out
 
 
 def _frame_angle(R0: np.ndarray, R: np.ndarray) -> float:

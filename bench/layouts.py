@@ -3,7 +3,8 @@
 Generated rooms (``edge_clients.sim.scenes.room``: 4 or 8 cameras high in the corners and
 along the walls of a 7 x 5 m room, all looking at its centre through 100° lenses with
 strong barrel distortion, 640 x 480), variations of them (``hall``: 8 HD cameras 3.5 m
-high round a 16 x 10 m hall; ``low``: 4 cameras at head height; ``steep``: 4 cameras
+high round a 16 x 10 m hall; ``warehouse``: 8 of them 5 m high round 24 x 16 m through
+55° lenses; ``low``: 4 cameras at head height; ``steep``: 4 cameras
 under a 3.4 m ceiling of a 4 x 4 m room looking steeply down; ``rolled``: room8's cameras
 mounted rolled about their optical axes, portrait and upside down) and the corridor; people walking
 (``--persons``, heights 1.80 / 1.65 m). Each case runs the command a user runs,
@@ -46,6 +47,9 @@ LAYOUTS = {
     # a hall: people small in HD images, long baselines, mild lenses
     "hall": ("room", {"cameras": 8, "width": 16.0, "depth": 10.0, "height": 3.5, "aim": 1.0, "hfov": 70.0,
                       "resolution": (1280, 720), "k1": -0.05}),
+    # a warehouse: people 5-25 m away through narrow HD lenses high up, weak angles between views
+    "warehouse": ("room", {"cameras": 8, "width": 24.0, "depth": 16.0, "height": 5.0, "aim": 1.0, "hfov": 55.0,
+                           "resolution": (1920, 1080), "k1": -0.03}),
     # cameras at head height looking across: people hide each other, views nearly level
     "low": ("room", {"cameras": 4, "height": 1.9, "aim": 1.2}),
     # room8's cameras mounted rolled about their optical axes: portrait both ways, upside down

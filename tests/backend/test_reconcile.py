@@ -259,3 +259,33 @@ def test_refused_cameras_do_not_pull_the_frame_the_others_are_compared_in():
     rec = reconcile(_boot(names, Rb, tb, residual_px=res, observations=obs), names, R0, t0, EngineConfig())
     assert rec.refused.tolist() == [c in (1, 5) for c in range(10)] and rec.overruled[[1, 5]].all()
     assert not rec.aligned[[1, 5]].any() and rec.aligned.sum() == 8
+
+
+def test_a_block_the_bootstrap_linked_wrongly_starts_from_the_initial_estimate():
+    """Three cameras of one room that the bootstrap chained to the rest through a wrong
+    pair: metres and 90° off as a block, each where the initial estimate has it relative
+    to the others. Held by the bootstrap's own fit as firmly as any camera, they are still
+    not overruled: the two disagree on a link, not on the cameras. Two cameras swapped
+    beside them are."""
+    rng = RNG(7)
+    names = [f"cam_{i}" for i in range(20)]
+    R, t = _network(rng, 20)
+    Rb, tb = _similar(R, t, 0.5, so3_exp([0.1, 0.2, 0.4]), np.array([0.0, 1.0, 0.2]))
+    room = [3, 8, 11]
+    Rb[room], tb[room] = _similar(Rb[room], tb[room], 1.1, so3_exp([0.0, 0.0, np.radians(90)]), np.array([4.0, -2.0, 0.0]))
+    R0 = np.stack([so3_exp(np.radians(3) * v / np.linalg.norm(v)) @ r for v, r in zip(rng.normal(size=(20, 3)), R)])
+    t0 = t + rng.normal(0, 0.06, t.shape)
+    res, obs = np.full(20, 1.3), np.full(20, 800)
+    cfg = EngineConfig()
+    rec = reconcile(_boot(names, Rb, tb, residual_px=res, observations=obs), names, R0, t0, cfg)
+    assert rec.refused.tolist() == [c in room for c in range(20)]
+    assert rec.block.tolist() == rec.refused.tolist() and not rec.overruled.any() and not rec.used
+    assert "as one block" in rec.summary() and rec.to_dict()["block"] == [names[c] for c in room]
+    np.testing.assert_array_equal(rec.R, R0)
+    # two cameras swapped besides: they are overruled, the block is not
+    R2, t2 = R0.copy(), t0.copy()
+    R2[[0, 6]], t2[[0, 6]] = R2[[6, 0]], t2[[6, 0]]
+    rec = reconcile(_boot(names, Rb, tb, residual_px=res, observations=obs), names, R2, t2, cfg)
+    assert rec.refused.tolist() == [c in room + [0, 6] for c in range(20)]
+    assert rec.overruled.tolist() == [c in (0, 6) for c in range(20)] and rec.block.tolist() == [c in room for c in range(20)]
+    assert rec.from_bootstrap.tolist() == rec.overruled.tolist()
