@@ -245,7 +245,7 @@ def trimmed_similarity(src: np.ndarray, dst: np.ndarray, *, floor: float = 0.05,
     return s, R, tr, keep
 
 
-_LMEDS_TRIES = 300  # three-point fits ``_least_median_start`` tries (all of them up to 12 points)
+_LMEDS_TRIES = 300  # three-point fits ``_least_median_start`` tries (all of them up to 13 points)
 _LMEDS_MIN_POINTS = 7  # ... of at least this many points (a median of four others at least)
 
 
@@ -263,26 +263,35 @@ def _least_median_start(src: np.ndarray, dst: np.ndarray, s: float, R: np.ndarra
     if N < _LMEDS_MIN_POINTS:
         return s, R, t
     start = float(np.median(np.linalg.norm(s * src @ R.T + t - dst, axis=1)))
-    triples = itertools.combinations(range(N), 3)
-    if math.comb(N, 3) > _LMEDS_TRIES:
+    if math.comb(N, 3) <= _LMEDS_TRIES:
+        tri = np.array(list(itertools.combinations(range(N), 3)))
+    else:
         rng = np.random.default_rng(N)
-        triples = (tuple(rng.choice(N, 3, replace=False)) for _ in range(_LMEDS_TRIES))
-    best = (start / 2, s, R, t)
-    for tri in triples:
-        k = list(tri)
-        a, b = src[k], dst[k]
-        # three points spread enough to hold a turn: not (nearly) on a line, not co-located
-        if min(np.linalg.norm(a[[0, 0, 1]] - a[[1, 2, 2]], axis=1)) <= min_distance or \
-                np.linalg.norm(np.cross(a[1] - a[0], a[2] - a[0])) <= min_distance ** 2:
-            continue
-        sk, Rk, tk = umeyama(a, b, with_scale=True)
-        if not sk > 0:
-            continue
-        # over the other points: the three fit themselves, and of few points they are the median
-        med = float(np.median(np.delete(np.linalg.norm(sk * src @ Rk.T + tk - dst, axis=1), k)))
-        if med < best[0]:
-            best = (med, sk, Rk, tk)
-    return best[1], best[2], best[3]
+        tri = np.array([rng.choice(N, 3, replace=False) for _ in range(_LMEDS_TRIES)])
+    a, b = src[tri], dst[tri]  # (T, 3, 3): each three's points
+    # spread enough to hold a turn: not co-located, not (nearly) on a line
+    sides = np.linalg.norm(a[:, [0, 0, 1]] - a[:, [1, 2, 2]], axis=2).min(1)
+    area = np.linalg.norm(np.cross(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0]), axis=1)
+    # Umeyama's fit of every three at once (as ``umeyama``)
+    mu_a, mu_b = a.mean(1), b.mean(1)
+    xa, xb = a - mu_a[:, None], b - mu_b[:, None]
+    U, S, Vt = np.linalg.svd(np.einsum("tni,tnj->tij", xb, xa) / 3)
+    D = np.ones((len(tri), 3))
+    D[:, 2] = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    Rk = U @ (D[:, :, None] * Vt)
+    var = (xa ** 2).sum((1, 2)) / 3
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sk = (S * D).sum(1) / var
+    tk = mu_b - sk[:, None] * np.einsum("tij,tj->ti", Rk, mu_a)
+    res = np.linalg.norm(sk[:, None, None] * np.einsum("tij,nj->tni", Rk, src) + tk[:, None] - dst[None], axis=2)
+    # over the other points: the three fit themselves, and of few points they are the median
+    res[np.arange(len(tri))[:, None], tri] = np.nan
+    med = np.nanmedian(res, axis=1)
+    med[~((sides > min_distance) & (area > min_distance ** 2) & (sk > 0) & np.isfinite(med))] = np.inf
+    k = int(np.argmin(med))
+    if med[k] < start / 2:
+        return float(sk[k]), Rk[k], tk[k]
+    return s, R, t
 
 
 @dataclass(frozen=True)
