@@ -184,7 +184,8 @@ class OptimizeConfig(_Section):
                                   "focal length about its file's, as a fraction")
     lens_centre_std: float = Field(0.01, gt=0, description="... and of the principal point, in focal lengths")
     lens_accuracy_focal: float = Field(0.003, ge=0, description="how far the calibration files' focal lengths may be "
-                                       "off (std, as a fraction) in the stated std (from the first adjustment's, then the final batch's): each pose's "
+                                       "off (std, as a fraction) in the stated std (the first adjustment's, then the "
+                                       "final batch's): each pose's "
                                        "std then carries what such lens errors would move it (a 0.3 % focal length moves "
                                        "a camera 1.5 cm along its view of people 5 m away), not only the keypoints' "
                                        "noise. Lenses the final batch estimates (lenses) carry their own. 0 (with "

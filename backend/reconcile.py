@@ -342,8 +342,9 @@ def _block(boot: BootstrapResult, bi: np.ndarray, idx: np.ndarray, overruled: np
     through a wrong pair (slow, pausing walkers in the lab: five cameras of one room
     6-15 m / 61-73° off, each within 0.3 m / 12° of the estimate aligned on its own, the
     run 3.8 m off when they started from the data). Which of the two got the link wrong
-    the cameras' own fit cannot say; the initial estimate, within its stated std for
-    every camera of the block, keeps them, and the pipeline's association decides."""
+    the cameras' own fit cannot say; the initial estimate, within its refusal limits for
+    every camera of the block once the block's own similarity is taken, keeps them, and the
+    pipeline's association decides."""
     out = np.zeros(len(overruled), bool)
     k = np.flatnonzero(overruled[idx])  # positions in idx / bi
     if len(k) < 3:
