@@ -280,8 +280,7 @@ def _least_median_start(src: np.ndarray, dst: np.ndarray, s: float, R: np.ndarra
     D[:, 2] = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
     Rk = U @ (D[:, :, None] * Vt)
     var = (xa ** 2).sum((1, 2)) / 3
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sk = (S * D).sum(1) / var
+    sk = (S * D).sum(1) / np.where(var > 0, var, 1.0)  # three points in one: no scale, and not taken (sides)
     tk = mu_b - sk[:, None] * np.einsum("tij,tj->ti", Rk, mu_a)
     res = np.linalg.norm(sk[:, None, None] * np.einsum("tij,nj->tni", Rk, src) + tk[:, None] - dst[None], axis=2)
     # over the other points: the three fit themselves, and of few points they are the median
