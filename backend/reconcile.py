@@ -185,7 +185,8 @@ class Reconciled:
         head = (f"the initial estimate vs the data's shape (bootstrap, {n} cameras, aligned on "
                 f"{int(self.aligned.sum())}): median {dt:.3f} m / {dr:.2f}°, max {np.nanmax(self.translation):.3f} m / "
                 f"{np.nanmax(self.rotation):.2f}°; {int(self.agrees.sum())}/{n} agree")
-        refused = [m for m, r, o, k in zip(self.names, self.refused, self.overruled, self.block) if r and not o and not k]
+        refused = [m for m, r, o, k in zip(self.names, self.refused, self.overruled, self.block)
+                   if r and not o and not k]
         tail = f"; refused (too far from the initial estimate): {', '.join(refused)}" if refused else ""
         over = [f"{m} ({d:.2f} m / {a:.0f}° away)" for m, o, d, a in
                 zip(self.names, self.overruled, self.translation, self.rotation) if o]

@@ -98,9 +98,9 @@ class CameraOut(BaseModel):
     translation: list[float] = Field(description="optical centre in the world, m")
     rotation: list[float] = Field(description="world_R_cam quaternion [x, y, z, w]")
     std_translation: float | None = Field(description="m, one std (RMS over the axes) of the camera's place in "
-                                          "the network's shape, from the solves' covariance, with what the lenses' accuracy "
-                                          "adds (optimize.lens_accuracy_*) from the first adjustment on (the final "
-                                          "batch's once it ran)")
+                                          "the network's shape, from the solves' covariance, with what the lenses' "
+                                          "accuracy adds (optimize.lens_accuracy_*) from the first adjustment on (the "
+                                          "final batch's once it ran)")
     std_rotation: float | None = Field(description="deg, as std_translation")
     observations: int = Field(description="keypoint projections of this camera used so far")
     cycles: int = Field(description="cycles this camera took part in")

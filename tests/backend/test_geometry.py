@@ -109,9 +109,9 @@ def test_umeyama_recovers_a_known_transform(with_scale):
 
 def test_a_trimmed_similarity_keeps_the_majority_where_a_block_of_points_is_metres_off():
     """Twenty camera centres over a 30 x 10 m lab 0.75 m off each, the five at one end (a
-    room the bootstrap chained through a wrong pair) turned 65° about the middle as a block:
-    the fit of all of them is turned 22° and, trimmed at 3x its median residual, takes the
-    block for right; the least median start of three finds the majority. A sound start
+    room the bootstrap chained through a wrong pair) turned 65° about the middle as a block.
+    Without the least median start the fit of all of them is turned 22° and, trimmed at 3x
+    its median residual, keeps the block; with it the fit is the majority's. A sound start
     stands as it was."""
     rng = np.random.default_rng(0)
     dst = np.c_[rng.uniform(0, 30, 20), rng.uniform(0, 10, 20), rng.uniform(2.4, 2.8, 20)]

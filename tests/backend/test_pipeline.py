@@ -157,7 +157,7 @@ def test_the_stated_std_carries_the_lenses_accuracy_and_convergence_the_noise_al
 def test_a_running_session_states_the_lenses_accuracy_from_its_first_adjustment(lab, run):
     """Before any final batch, the first adjustment (the start's prior, like the final
     batch's) gives each camera it placed the lenses' part of the stated std, of the size
-    the final batch's is; the final batch's then replaces it."""
+    the final batch's (the ``run`` fixture's, which replaced it) is."""
     cams, _, msgs = lab
     p = run_offline(cams, EngineConfig(), msgs, seed=0, finish=False)
     assert p.first_passes == EngineConfig().select.first_passes and p.lens_cov is not None

@@ -272,7 +272,8 @@ def test_a_block_the_bootstrap_linked_wrongly_starts_from_the_initial_estimate()
     R, t = _network(rng, 20)
     Rb, tb = _similar(R, t, 0.5, so3_exp([0.1, 0.2, 0.4]), np.array([0.0, 1.0, 0.2]))
     room = [3, 8, 11]
-    Rb[room], tb[room] = _similar(Rb[room], tb[room], 1.1, so3_exp([0.0, 0.0, np.radians(90)]), np.array([4.0, -2.0, 0.0]))
+    Rb[room], tb[room] = _similar(Rb[room], tb[room], 1.1, so3_exp([0.0, 0.0, np.radians(90)]),
+                                  np.array([4.0, -2.0, 0.0]))
     R0 = np.stack([so3_exp(np.radians(3) * v / np.linalg.norm(v)) @ r for v, r in zip(rng.normal(size=(20, 3)), R)])
     t0 = t + rng.normal(0, 0.06, t.shape)
     res, obs = np.full(20, 1.3), np.full(20, 800)
@@ -287,5 +288,6 @@ def test_a_block_the_bootstrap_linked_wrongly_starts_from_the_initial_estimate()
     R2[[0, 6]], t2[[0, 6]] = R2[[6, 0]], t2[[6, 0]]
     rec = reconcile(_boot(names, Rb, tb, residual_px=res, observations=obs), names, R2, t2, cfg)
     assert rec.refused.tolist() == [c in room + [0, 6] for c in range(20)]
-    assert rec.overruled.tolist() == [c in (0, 6) for c in range(20)] and rec.block.tolist() == [c in room for c in range(20)]
+    assert rec.overruled.tolist() == [c in (0, 6) for c in range(20)]
+    assert rec.block.tolist() == [c in room for c in range(20)]
     assert rec.from_bootstrap.tolist() == rec.overruled.tolist()
