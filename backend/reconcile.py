@@ -90,20 +90,15 @@ class Reconciled:
     std_translation: np.ndarray
     std_rotation: np.ndarray
     overruled: np.ndarray
+    block: np.ndarray  # (C,) bool: refused cameras the initial estimate holds as one block (``_block``), not overruled
     nowhere: bool = False  # every camera refused: the data's shape used for all, in the centres' frame
-    # (C,) bool: refused cameras that the initial estimate holds as one block (``_block``),
-    # not overruled; None: none
-    block: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         C = len(self.names)
         assert self.R.shape == (C, 3, 3) and self.t.shape == (C, 3)
         for a in (self.translation, self.rotation, self.agrees, self.refused, self.from_bootstrap, self.aligned,
-                  self.std_translation, self.std_rotation, self.overruled):
+                  self.std_translation, self.std_rotation, self.overruled, self.block):
             assert a.shape == (C,)
-        if self.block is None:
-            object.__setattr__(self, "block", np.zeros(C, bool))
-        assert self.block.shape == (C,)
 
     @property
     def used(self) -> bool:
@@ -326,7 +321,7 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
         if use[c]:
             R[c], t[c] = Ra[i], ta[i]
     return Reconciled(tuple(names), R, t, dt, dr, agrees, refused, use, aligned, float(s), mode, st, sr, overruled,
-                      nowhere and mode != "never", block)
+                      block, nowhere and mode != "never")
 
 
 _BLOCK_TRIES = 1000  # three-camera sets ``_block`` fits from (all of them up to 19 cameras overruled)
