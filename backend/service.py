@@ -1209,7 +1209,7 @@ class Service:
             rec.reason = note
         state = s.state
         ext = state.extrinsics(s.resolutions)
-        comment = _result_comment(rec, state)
+        comment = _result_comment(s)
         store = self.store
 
         def write_result() -> None:  # in the writer thread: YAML and JSON take their time
@@ -1690,7 +1690,7 @@ class Service:
             return (self.calibration_dict(s) if live else self._stored_calibration(sid)), "application/json"
         if live:
             ext = s.state.extrinsics(s.resolutions)
-            text = dump_extrinsics(ext, comment=_result_comment(s.record, s.state))
+            text = dump_extrinsics(ext, comment=_result_comment(s))
             intr_text = s.inputs.intrinsics_yaml
         else:
             text = self.store.result_yaml(sid)
@@ -1732,7 +1732,7 @@ class Service:
         None when the history cannot be written (logged, shown as a storage error)."""
         rec, state = s.record, s.state
         doc = self.calibration_dict(s)
-        text = dump_extrinsics(state.extrinsics(s.resolutions), comment=_result_comment(rec, state))
+        text = dump_extrinsics(state.extrinsics(s.resolutions), comment=_result_comment(s))
         try:
             return await asyncio.to_thread(self.versions.record, doc, text, s.inputs.intrinsics_yaml, by=by,
                                            reason=reason, activate=activate)
@@ -1971,11 +1971,15 @@ def _utc(stamp: float | None) -> str:
         datetime.fromtimestamp(stamp, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
 
 
-def _result_comment(rec: SessionRecord, state: "CalibrationState") -> str:
+def _result_comment(s: ActiveSession) -> str:
     """A result's header: the session and cycle; for a bootstrapped session where its
-    frame and scale come from (backend/live_bootstrap.py)."""
+    frame and scale come from (backend/live_bootstrap.py); what the stated std holds, which
+    the running pipeline says (its first adjustment adds the lenses' accuracy, long before
+    a final batch)."""
+    rec, state = s.record, s.state
     head = f"extrcal session {rec.id}, cycle {state.cycle}, {rec.state.value}"
-    levelled, lenses, std = ((rec.final_batch or {}).get(k) for k in ("levelled", "lenses", "std_note"))
+    levelled, lenses = ((rec.final_batch or {}).get(k) for k in ("levelled", "lenses"))
+    std = s.pipeline.std_note()
     extra = "\n".join(x for x in (result_comment(rec.bootstrap), levelled and levelled["summary"],
                                    lenses and lenses["summary"], std) if x)
     return f"{head}\n{extra}" if extra else head

@@ -86,6 +86,7 @@ def test_live_session_converges_stops_and_has_a_result(tmp_path, lab_dir):
                 assert s["converged_cycle"] is not None and s["cycles"] >= s["converged_cycle"]
                 assert all(c["converged"] for c in s["cameras"] if c["cycles"] > 0)
                 status = client.get("/status").json()
+                running = client.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text
                 stopped = client.post(f"/sessions/{sid}/stop").json()
             sub.undeclare()
         finally:
@@ -102,6 +103,9 @@ def test_live_session_converges_stops_and_has_a_result(tmp_path, lab_dir):
         # the loop's lag is reported; no wall-time bound here (CI machines may be loaded: the
         # solve-off-the-loop bound is tests/backend/test_service_lag.py, figures in bench/)
         assert status["loop_lag"]["max"] is not None and status["loop_lag"]["max"] >= 0
+
+        # while it ran, its result said what its std holds: the first adjustment added the lenses' accuracy
+        assert "# stated std: the keypoints' noise and the calibration files' lens accuracy" in running, running[:600]
 
         # stopped with a final result that beats the initial estimate
         assert stopped["state"] == "stopped" and stopped["stopped_by"] == "request"
