@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import time as _time
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
@@ -57,6 +57,7 @@ from .geometry import hat, pose_std, project_so3, rotation_angle_deg, so3_exp, t
 from .optimize import BONE_NAMES, BONES
 from .people import ANKLE_HEIGHT, ScaleEstimate, Segments, measure_scale, segments
 from .preprocess import Detection, Preprocessor
+from .stamp_watch import StampWatch
 from .sync import Synchronizer
 
 Frame = tuple[float, tuple[tuple[Detection, ...], ...]]
@@ -72,9 +73,11 @@ class BootstrapError(RuntimeError):
 
 def collect_frames(names: Sequence[str], intrinsics: Mapping[str, Intrinsics], config: EngineConfig,
                    messages: Iterable[KeypointMessage], *, max_seconds: float = 0.0,
-                   progress: Progress | None = None) -> list[Frame]:
+                   progress: Progress | None = None, stamps: StampWatch | None = None) -> list[Frame]:
     """The pipeline's front end (sync, preprocess) on messages in arrival order: the
     preprocessed framesets with >= 2 views, up to ``max_seconds`` of data (0: all).
+    ``stamps``: watches the accepted messages' stamps as the pipeline does (its
+    ``leads()`` then say which sensors' clocks run apart, ``mistimed``).
 
     The clock is the newest plausible stamp, found as the pipeline finds it: the first
     messages are held back and their median decides which stamps are absurd."""
@@ -105,8 +108,12 @@ def collect_frames(names: Sequence[str], intrinsics: Mapping[str, Intrinsics], c
 
     def push(m: KeypointMessage) -> None:
         nonlocal clock
-        if sync.push(m, clock) is None and (clock is None or m.stamp > clock):
-            clock = m.stamp
+        if sync.push(m, clock) is None:
+            if clock is None or m.stamp > clock:
+                clock = m.stamp
+            if stamps is not None:
+                stamps.observe(m.sensor, m.stamp)
+                stamps.sample(clock)
 
     for m in messages:
         if clock is None:
@@ -885,6 +892,9 @@ class BootstrapResult:
     residual_px: np.ndarray | None = None
     observations: np.ndarray | None = None
     floor: FloorFrame | None = None  # how ``frame`` was made: the final batch levels it again on its floor
+    # sensors whose stamps ran apart from the others' (``mistimed``): name -> the shift (s) its
+    # views were timed by here (its lead, or 0 where its stamps fitted its pairs better)
+    mistimed: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         C = len(self.names)
@@ -920,6 +930,7 @@ class BootstrapResult:
             "data_seconds": self.data_seconds, "seconds": self.seconds, "stages": dict(self.stages),
             "bridge_checks": list(self.checks),
             "resections": list(self.resections),
+            "mistimed": dict(self.mistimed),
         }
 
 
@@ -964,6 +975,62 @@ def _without(frames: Sequence[Frame], keep: np.ndarray) -> list[Frame]:
         if len(vs) >= 2:
             out.append((time_, vs))
     return out
+
+
+def retimed(frames: Sequence[Frame], cam: int, delta: float, *, max_gap: float = 0.25) -> list[Frame]:
+    """``frames`` with camera ``cam``'s views those it had ``delta`` s later, interpolated
+    between its two nearest frames (at most ``max_gap`` s apart) in which it saw one
+    person (with several persons nothing tells which is which: such views are dropped,
+    as are frames left with < 2 views). Its sigma is the larger of the two."""
+    own = [(T, v[0]) for T, views in frames for v in views if v and v[0].cam == cam and len(v) == 1]
+    times = np.array([T for T, _ in own])
+    out: list[Frame] = []
+    for T, views in frames:
+        others = tuple(v for v in views if v and v[0].cam != cam)
+        target = T + delta
+        j = int(np.searchsorted(times, target))
+        d = None
+        if j < len(times) and times[j] == target:
+            d = own[j][1]
+        elif 0 < j < len(times) and times[j] - times[j - 1] <= max_gap:
+            (t0, d0), (t1, d1) = own[j - 1], own[j]
+            w = (target - t0) / (t1 - t0)
+            d = replace(d0, xy=(1 - w) * d0.xy + w * d1.xy, sigma=np.fmax(d0.sigma, d1.sigma))
+        if d is not None:
+            others = tuple(sorted(others + ((d,),), key=lambda v: v[0].cam))
+        if len(others) >= 2:
+            out.append((T, others))
+    return out
+
+
+def _timed(frames: list[Frame], names: Sequence[str], focal: np.ndarray, cfg: BootstrapConfig,
+           mistimed: Mapping[str, float], *, seed: int) -> tuple[list[Frame], dict[str, float]]:
+    """The frames with each sensor of ``mistimed`` (name -> lead, s) timed as its pairs
+    with the others (not mistimed) agree best: by its lead (a clock that runs ahead or
+    behind) or as stamped (a longer delay than the others', the stamps right), judged by
+    the frames its pairs agree in. The stamps alone cannot tell the two apart (backend/
+    stamp_watch.py); a view a fifth of a second off shows a walker 0.26 m from where
+    the others see him, and the lab's seed 2 with five sensors -200 ... +200 ms off put
+    cam_2 14 m off (docs/bootstrap.md, Session 41). The pipeline estimates the offsets
+    from then on (clock.estimate)."""
+    C = len(names)
+    idx = {n: c for c, n in enumerate(names)}
+    reference = np.array([n not in mistimed for n in names])
+    out, shifts = frames, {}
+    for n, lead in mistimed.items():
+        c = idx[n]
+        keep = reference.copy()
+        keep[c] = True
+        base = _without(frames, keep)
+        agree = []
+        for F in (base, retimed(base, c, lead)):
+            pairs, _ = pair_poses(F, C, focal, cfg, seed=seed, only=c)
+            agree.append(sum(len(p.frames) for p in pairs))
+        shifts[n] = lead if agree[1] > agree[0] else 0.0
+    for n, d in shifts.items():
+        if d:
+            out = retimed(out, idx[n], d)
+    return out, shifts
 
 
 def _pair_hypotheses(frames: Sequence[Frame], pairs: Sequence[PairPose], use: np.ndarray,
@@ -1058,11 +1125,14 @@ def floor_frame(seg: Segments, t: np.ndarray, located: np.ndarray, height: float
 
 
 def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, config: EngineConfig, *,
-              heights: Sequence[float] = (), seed: int = 0, progress: Progress | None = None) -> BootstrapResult:
+              heights: Sequence[float] = (), seed: int = 0, progress: Progress | None = None,
+              mistimed: Mapping[str, float] | None = None) -> BootstrapResult:
     """Camera poses from ``frames`` alone (see the module doc). ``heights``: known heights
     of the walkers (m); without them the population prior sets the scale. ``config``: in
     the cameras' pixels (``EngineConfig.for_images``, as ``bootstrap_messages`` and the
-    pipelines make it). Raises BootstrapError when fewer than 2 cameras can be placed."""
+    pipelines make it). ``mistimed``: sensors whose stamps run apart from the others'
+    (``mistimed``; name -> lead, s): left out, to be placed once the pipeline has timed
+    them. Raises BootstrapError when fewer than 2 cameras can be placed."""
     from .optimize import Problem, solve
     from .relocalize import relocalize
     from .resect import resect_unplaced
@@ -1075,6 +1145,11 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     focal = np.asarray(focal, dtype=np.float64)
     assert focal.shape == (C,)
     frames = list(frames)
+    timed: dict[str, float] = {}
+    if mistimed:
+        frames, timed = _timed(frames, names, focal, cfg, {n: float(v) for n, v in mistimed.items() if n in names},
+                               seed=seed)
+        say(mistimed_summary(timed))
     if len(frames) < cfg.min_pair_frames:
         raise BootstrapError(f"{len(frames)} framesets with >= 2 views: too few to start "
                              f"(a pair needs {cfg.min_pair_frames})")
@@ -1253,7 +1328,32 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     stages["people"] = _time.perf_counter() - t0
     return BootstrapResult(tuple(names), R, t, located, std_t, std_r, scale, note, len(good), tried, len(frames),
                            float(data_seconds), _time.perf_counter() - t_start, stages, check_notes, resect_notes,
-                           residual_px, observations, spec)
+                           residual_px, observations, spec, timed)
+
+
+def mistimed_summary(timed: Mapping[str, float]) -> str:
+    """A line for a result's header: how the bootstrap timed the sensors whose stamps ran
+    apart (``BootstrapResult.mistimed``: name -> shift, s); "" for none."""
+    if not timed:
+        return ""
+    return ("bootstrap: sensors whose stamps ran apart from the others' as they arrived, timed by what their "
+            "pairs agree on: " + ", ".join(f"{n} {f'{1000 * v:+.0f} ms (its clock)' if v else 'as stamped (its delay)'}"
+                                           for n, v in sorted(timed.items(), key=lambda kv: natural_key(kv[0]))))
+
+
+def mistimed(stamps: StampWatch, config: EngineConfig, cameras: int) -> dict[str, float]:
+    """Sensors whose stamps run more than ``clock.auto_lead`` apart from the others' as
+    they arrive (name -> median lead, s), as the pipeline's ``clock.estimate = "auto"``
+    finds them; empty when the clocks are not estimated (``clock.estimate = false``: the
+    user vouches for them) or when they are half of the ``cameras`` or more (then the
+    others' stamps are no reference). Their views show a walker where he was up to a
+    fifth of a second before or after the others': the lab's seed 2 with five sensors
+    -200 ... +200 ms off put cam_2 14 m off and bent the network by metres (docs/bootstrap.md,
+    Session 41). Left out, they join later, timed (backend/late_join.py)."""
+    if config.clock.estimate is False:
+        return {}
+    far = {n: v for n, v in stamps.leads().items() if abs(v) > config.clock.auto_lead}
+    return far if 2 * len(far) < cameras else {}
 
 
 def bootstrap_messages(intrinsics: Mapping[str, Intrinsics], config: EngineConfig, messages: Iterable[KeypointMessage],
@@ -1264,7 +1364,9 @@ def bootstrap_messages(intrinsics: Mapping[str, Intrinsics], config: EngineConfi
     BootstrapError as ``bootstrap``."""
     names = tuple(sorted(intrinsics, key=natural_key))
     config = config.for_images(i.resolution for i in intrinsics.values())
+    stamps = StampWatch(config.clock.auto_lead)
     frames = collect_frames(names, intrinsics, config, messages, max_seconds=config.bootstrap.max_seconds,
-                            progress=progress)
+                            progress=progress, stamps=stamps)
     focal = np.array([0.5 * (intrinsics[n].fx + intrinsics[n].fy) for n in names])
-    return bootstrap(frames, names, focal, config, heights=heights, seed=seed, progress=progress)
+    return bootstrap(frames, names, focal, config, heights=heights, seed=seed, progress=progress,
+                     mistimed=mistimed(stamps, config, len(names)))

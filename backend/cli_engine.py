@@ -79,7 +79,7 @@ def calibrate(
         raise fail(f"recording {recording} does not exist")
     boot = None
     if initial is None or distrust_initial:
-        from .bootstrap import BootstrapError, bootstrap_messages, camera_set, handover
+        from .bootstrap import BootstrapError, bootstrap_messages, camera_set, handover, mistimed_summary
         from .cameras import natural_key
 
         names = tuple(sorted(intr, key=natural_key))
@@ -241,6 +241,8 @@ def calibrate(
     scale = boot.scale if boot is not None else (check.people if check is not None else None)
     if boot is not None:
         comment += f"\nno initial estimate: {boot.frame}"
+        if boot.mistimed:
+            comment += f"\n{mistimed_summary(boot.mistimed)}"
         if p.levelled is not None:
             comment += f"\n{p.levelled.summary()}"
         comment += "".join(f"\n{ln}" for ln in late_lines)

@@ -38,16 +38,19 @@ import math
 import time as _time
 from collections import Counter, deque
 from dataclasses import dataclass, field, replace
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from proto import KeypointMessage
 
-from .bootstrap import BootstrapError, BootstrapResult, Frame, bootstrap, camera_set, handover
+from .bootstrap import (
+    BootstrapError, BootstrapResult, Frame, bootstrap, camera_set, handover, mistimed, mistimed_summary,
+)
 from .cameras import CameraSet, dump_extrinsics
 from .config import EngineConfig
 from .preprocess import Preprocessor
+from .stamp_watch import StampWatch
 from .state import CalibrationState, Counters
 from .sync import Synchronizer
 
@@ -87,6 +90,7 @@ class BootstrapJob:
     data_seconds: float
     seen: np.ndarray
     final: bool
+    mistimed: Mapping[str, float] = field(default_factory=dict)  # left out: ``bootstrap.mistimed``
 
     def __post_init__(self) -> None:
         assert self.focal.shape == (len(self.names),) and self.seen.shape == (len(self.names),)
@@ -116,7 +120,8 @@ def run_job(job: BootstrapJob) -> Outcome:
     BootstrapError (too few pairs, too few persons) is an outcome, not an exception."""
     t0 = _time.perf_counter()
     try:
-        res = bootstrap(job.frames, job.names, job.focal, job.config, heights=job.heights, seed=job.seed)
+        res = bootstrap(job.frames, job.names, job.focal, job.config, heights=job.heights, seed=job.seed,
+                        mistimed=job.mistimed)
     except BootstrapError as e:
         return Outcome(None, str(e), _time.perf_counter() - t0)
     return Outcome(res, None, _time.perf_counter() - t0)
@@ -278,6 +283,7 @@ class Collector:
         self.focal = np.array([0.5 * (cameras.intrinsics[n].fx + cameras.intrinsics[n].fy) for n in self.names])
         self.sync = Synchronizer(config.sync, self.names)
         self.preprocess = Preprocessor(config.preprocess, self.names, cameras.intrinsics)
+        self.stamps = StampWatch(config.clock.auto_lead)  # sensors whose clocks run apart sit the bootstrap out
         self.frames: deque[Frame] = deque(maxlen=config.refine.archive_frames)
         self.clock: float | None = None
         self.messages = 0
@@ -306,6 +312,7 @@ class Collector:
             self.rejected[reason] += 1
             return reason
         self.last_seen[msg.sensor] = msg.stamp
+        self.stamps.observe(msg.sensor, msg.stamp)
         if arrival is None and (self.clock is None or msg.stamp > self.clock):
             self.clock = msg.stamp
         return None
@@ -316,6 +323,7 @@ class Collector:
             return 0
         if self.clock is None or now > self.clock:
             self.clock = now
+        self.stamps.sample(now)
         for fs in self.sync.pop_ready(now):
             dets = self.preprocess(fs)
             if len(dets) < 2:
@@ -385,7 +393,7 @@ class Collector:
             return None
         job = BootstrapJob(len(self.attempts) + 1, tuple(self.frames), tuple(self.names), self.focal.copy(),
                            self.cfg, self.options.heights, self.seed, secs, self.seen.copy(),
-                           final=secs >= self.deadline)
+                           final=secs >= self.deadline, mistimed=mistimed(self.stamps, self.cfg, len(self.names)))
         self.running = job
         return job
 
@@ -493,6 +501,8 @@ def result_comment(bootstrap_record: dict[str, Any] | None) -> str:
     else:
         lines.append(f"no initial estimate: bootstrapped live from {res.get('data_seconds', 0):.0f} s of data; "
                      f"{b.get('frame', '')}")
+        if res.get("mistimed"):
+            lines.append(mistimed_summary(res["mistimed"]))
         sc = res.get("scale")
         if sc:
             lines.append(f"metric scale from people: scale {sc['factor']:.4f} ± {100 * sc['rel_std']:.1f} % from the "

@@ -81,6 +81,24 @@ def test_attempts_start_at_live_first_one_at_a_time():
     assert len(job.frames) < len(col.frames)
 
 
+def test_a_sensor_whose_stamps_run_apart_is_named_to_the_bootstrap():
+    """As the pipeline's ``clock.estimate = "auto"`` finds them (backend/stamp_watch.py):
+    cam_3's stamps run 0.2 s ahead of the others' as they arrive; the attempt is told,
+    and the bootstrap times its views by what its pairs agree on (``bootstrap.mistimed``)."""
+    from proto import KeypointMessage
+
+    col = _collector()
+    for k in range(300):  # 30 s at 10 Hz, in arrival order
+        T = 1000.0 + 0.1 * k
+        for n in NAMES:
+            col.push(KeypointMessage(n, k, T + (0.2 if n == "cam_3" else 0.0), (848, 480)))
+        col.advance(T)
+    _feed(col, 60.0)
+    job = col.job()
+    assert job is not None and set(job.mistimed) == {"cam_3"}
+    assert job.mistimed["cam_3"] == pytest.approx(0.2, abs=0.02)
+
+
 def test_a_failed_attempt_is_retried_with_more_data_and_the_deadline_accepts_any_result():
     col = _collector()
     _feed(col, 60.0)
