@@ -340,6 +340,32 @@ def test_bootstrap_refuses_too_little_data():
         bootstrap([(0.0, ((d,), (e,)))], ("cam_0", "cam_1"), np.array([600.0, 600.0]), EngineConfig())
 
 
+def test_a_camera_s_views_retimed_are_its_views_that_much_later():
+    """``retimed``: camera 1's single-person views interpolated ``delta`` s later (a view
+    of two persons is no end of it: which is which?); none across a gap of over 0.25 s."""
+    from backend.bootstrap import retimed
+
+    def det(c, x):
+        xy = np.full((17, 2), float(x))
+        xy[3] = np.nan  # a joint it missed
+        sigma = np.ones(17)
+        sigma[3] = np.nan
+        return Detection(c, xy, sigma, 600.0)
+
+    frames = [(0.1 * k, ((det(0, 0.0),), (det(1, k),))) for k in range(10)]
+    frames[4] = (0.4, ((det(0, 0.0),), (det(1, 4), det(1, 40))))  # two persons: not one to time
+    frames += [(2.0, ((det(0, 0.0),), (det(1, 20),)))]  # after a gap of 1.1 s
+    out = retimed(frames, 1, 0.15)
+    got = {round(T, 2): v[1][0].xy[0, 0] for T, v in out if len(v) == 2}
+    # 0.2 -> 0.35 and 0.3 -> 0.45 lie between 0.3 and 0.5 (0.4 had two persons); 0.8 and 0.9 face the gap
+    assert got == pytest.approx({0.0: 1.5, 0.1: 2.5, 0.2: 3.5, 0.3: 4.5, 0.4: 5.5, 0.5: 6.5, 0.6: 7.5, 0.7: 8.5})
+    assert {round(T, 2) for T, v in out} == set(got)  # frames left with camera 0 alone are dropped
+    assert all(np.isnan(v[1][0].xy[3]).all() and np.isnan(v[1][0].sigma[3]) for _, v in out)
+    same = {round(T, 2): v[1] for T, v in retimed(frames, 1, 0.0)}
+    assert same[0.3][0].xy[0, 0] == 3.0  # at its own instants: as it was
+    assert len(same[0.4]) == 1 and same[0.4][0].xy[0, 0] == pytest.approx(4.0)  # the two persons: one, between
+
+
 # ------------------------------------------------------------------ whole bootstrap, simulated
 
 WEST = ("cam_11", "cam_12", "cam_13", "cam_14", "cam_15", "cam_16", "cam_17")
