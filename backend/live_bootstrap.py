@@ -358,6 +358,9 @@ class Collector:
     def skeletons(self, n: int = 4) -> list:
         return []
 
+    def std_note(self) -> str | None:
+        return None  # no poses, no std
+
     def counters(self) -> Counters:
         return Counters(messages=self.messages, rejected=dict(self.rejected), framesets=self.sync.framesets,
                         framesets_rejected=dict(self.sync.framesets_rejected), views=self.preprocess.accepted,
