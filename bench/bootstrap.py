@@ -18,6 +18,8 @@ seeds (recordings cached like bench/accuracy.py, with its helpers). Per seed:
     python bench/bootstrap.py --checkpoints 120 --no-online --population-heights   # the scale prior's honesty
     python bench/bootstrap.py --report b.json         # the tables of an earlier --out
     python bench/bootstrap.py --data-seconds 110 --out c.json   # `extrcal calibrate` on the first 110 s
+    python bench/bootstrap.py --data-seconds 180 --jobs 2 \
+        --sim clock_offsets=cam_2:-0.2,cam_5:-0.1,cam_9:0.05,cam_13:0.12,cam_17:0.2   # five clocks off
 
 With --data-seconds T: the whole `extrcal calibrate` path without an initial estimate
 (``backend.cli_engine.calibrate`` itself, in this process: the bootstrap, the online

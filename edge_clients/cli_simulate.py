@@ -18,9 +18,25 @@ def _floats(text: str, what: str) -> tuple[float, ...]:
         raise typer.BadParameter(f"{what}: expected comma-separated numbers, got {text!r}") from None
 
 
+def _per_sensor(text: str, what: str) -> dict[str, float]:
+    """``cam_2:-0.2,cam_5:0.1`` -> {sensor: number} (clock_offsets, clock_drifts, sensor_rates)."""
+    out = {}
+    for item in (x.strip() for x in text.split(",") if x.strip()):
+        name, sep, value = item.rpartition(":")
+        try:
+            if not sep or not name:
+                raise ValueError
+            out[name.strip()] = float(value)
+        except ValueError:
+            raise typer.BadParameter(f"--set {what}: expected sensor:number pairs separated by commas, "
+                                     f"got {item!r}") from None
+    return out
+
+
 def _parse_set(items: list[str]) -> dict:
     """key=value pairs for any SimConfig field; values parsed as numbers, booleans,
-    comma-separated tuples, or 'none'."""
+    comma-separated tuples, per-sensor values (``clock_offsets=cam_2:-0.2,cam_5:0.1``)
+    or 'none'."""
     from edge_clients.sim import SimConfig
 
     known = SimConfig.field_names()
@@ -37,6 +53,8 @@ def _parse_set(items: list[str]) -> dict:
             out[key] = None
         elif v.lower() in ("true", "false"):
             out[key] = v.lower() == "true"
+        elif ":" in v:
+            out[key] = _per_sensor(v, key)
         elif "," in v:
             out[key] = _floats(v, key)
         else:

@@ -81,6 +81,11 @@ def test_simulate_writes_recording_and_truth_and_prints_figures(cli, lab_dir, tm
 
     t = Truth.load(tmp_path / "rec.jsonl.gz.truth.npz")
     assert t.config["noise_scale"] == 1.5 and t.config["miss_prob"] == 0.05 and t.config["duration"] == 2.0
+    _run(cli, "simulate", "--cameras", lab_dir, "--duration", 1, "--out", tmp_path / "c.msgpack",
+         "--set", "clock_offsets=cam_2:-0.2,cam_17:0.12")
+    c = Truth.load(tmp_path / "c.msgpack.truth.npz")
+    offsets = dict(zip(c.sensors, c.clock_offset.tolist()))
+    assert offsets["cam_2"] == pytest.approx(-0.2) and offsets["cam_17"] == pytest.approx(0.12)
     d = json.loads(_run(cli, "simulate", "--cameras", lab_dir, "--duration", 1, "--out", tmp_path / "b.msgpack",
                         "--no-noise", "--json"))
     assert d["false_detections"] == 0 and sum(d["messages"].values()) > 100
@@ -89,6 +94,8 @@ def test_simulate_writes_recording_and_truth_and_prints_figures(cli, lab_dir, tm
 def test_simulate_bad_options(cli, tmp_path, lab_dir):
     out = _run(cli, "simulate", "--out", tmp_path / "r.jsonl", "--set", "bogus=1", code=2)
     assert "unknown simulator setting" in out
+    out = _run(cli, "simulate", "--out", tmp_path / "r.jsonl", "--set", "clock_offsets=cam_2:-0.2,cam_5", code=2)
+    assert "expected sensor:number pairs separated by commas, got 'cam_5'" in " ".join(out.replace("│", " ").split())
     out = _run(cli, "simulate", "--cameras", lab_dir, "--out", tmp_path / "r.jsonl", "--heights", "1.8", code=2)
     assert "heights: 1 heights for 2 persons" in out
     out = _run(cli, "simulate", "--cameras", tmp_path, "--out", tmp_path / "r.jsonl", code=2)
