@@ -1146,8 +1146,9 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     of the walkers (m); without them the population prior sets the scale. ``config``: in
     the cameras' pixels (``EngineConfig.for_images``, as ``bootstrap_messages`` and the
     pipelines make it). ``mistimed``: sensors whose stamps run apart from the others'
-    (``mistimed``; name -> lead, s): left out, to be placed once the pipeline has timed
-    them. Raises BootstrapError when fewer than 2 cameras can be placed."""
+    (``mistimed``; name -> lead, s): their views timed by their lead or as stamped,
+    whichever their pairs agree with more (``_timed``). Raises BootstrapError when fewer
+    than 2 cameras can be placed."""
     from .optimize import Problem, solve
     from .relocalize import relocalize
     from .resect import resect_unplaced
@@ -1361,10 +1362,7 @@ def mistimed(stamps: StampWatch, config: EngineConfig, cameras: int) -> dict[str
     they arrive (name -> median lead, s), as the pipeline's ``clock.estimate = "auto"``
     finds them; empty when the clocks are not estimated (``clock.estimate = false``: the
     user vouches for them) or when they are half of the ``cameras`` or more (then the
-    others' stamps are no reference). Their views show a walker where he was up to a
-    fifth of a second before or after the others': the lab's seed 2 with five sensors
-    -200 ... +200 ms off put cam_2 14 m off and bent the network by metres (docs/bootstrap.md,
-    Session 41). Left out, they join later, timed (backend/late_join.py)."""
+    others' stamps are no reference). The bootstrap times them (``_timed``)."""
     if config.clock.estimate is False:
         return {}
     far = {n: v for n, v in stamps.leads().items() if abs(v) > config.clock.auto_lead}

@@ -90,7 +90,7 @@ class BootstrapJob:
     data_seconds: float
     seen: np.ndarray
     final: bool
-    mistimed: Mapping[str, float] = field(default_factory=dict)  # left out: ``bootstrap.mistimed``
+    mistimed: Mapping[str, float] = field(default_factory=dict)  # to be timed: ``bootstrap.mistimed``
 
     def __post_init__(self) -> None:
         assert self.focal.shape == (len(self.names),) and self.seen.shape == (len(self.names),)
@@ -283,7 +283,7 @@ class Collector:
         self.focal = np.array([0.5 * (cameras.intrinsics[n].fx + cameras.intrinsics[n].fy) for n in self.names])
         self.sync = Synchronizer(config.sync, self.names)
         self.preprocess = Preprocessor(config.preprocess, self.names, cameras.intrinsics)
-        self.stamps = StampWatch(config.clock.auto_lead)  # sensors whose clocks run apart sit the bootstrap out
+        self.stamps = StampWatch(config.clock.auto_lead)  # which sensors' stamps run apart (``bootstrap.mistimed``)
         self.frames: deque[Frame] = deque(maxlen=config.refine.archive_frames)
         self.clock: float | None = None
         self.messages = 0
