@@ -166,9 +166,12 @@ def test_live_options_and_the_result_header():
     assert LiveOptions.from_dict(o.to_dict()) == o and LiveOptions.from_dict(None) == LiveOptions()
     rec = {"phase": "done", "frame": "floor frame: z up", "not_placed": ["cam_3"],
            "result": {"data_seconds": 90.0, "scale": {"factor": 1.01, "rel_std": 0.014, "method": "known height",
-                                                      "persons": 2, "heights": [1.96, 1.7]}}}
+                                                      "persons": 2, "heights": [1.96, 1.7]},
+                      "mistimed": {"cam_2": 0.0, "cam_1": -0.2113}}}  # BootstrapResult.to_dict()
     text = result_comment(rec)
     assert "bootstrapped live from 90 s of data; floor frame: z up" in text
+    assert ("bootstrap: sensors whose stamps ran apart from the others' as they arrived, timed by what their pairs "
+            "agree on: cam_1 -211 ms (its clock), cam_2 as stamped (its delay)") in text
     assert "metric scale from people: scale 1.0100 ± 1.4 % from the known height" in text
     assert "not placed by the bootstrap (not calibrated): cam_3" in text
     assert result_comment({"phase": "collecting"}) == "" and result_comment(None) == ""
