@@ -5,7 +5,7 @@ intervals in a known world). This module finds one from the preprocessed framese
 (``Detection`` tuples, as ``Pipeline.frames`` archives them), synchronously:
 
 0. Timing. A sensor whose stamps run apart from the others' as they arrive (a clock
-   off, or a longer delay: ``mistimed``) has its views timed by its lead or as stamped,
+   off, or a longer delay: ``stamps_apart``) has its views timed by its lead or as stamped,
    whichever its pairs with the others agree with more (``_timed``).
 1. Pairs. In a frame where camera a and camera b each see exactly one person, the 17
    joints are correspondences, if it is the same person. Over time they give an essential
@@ -80,7 +80,7 @@ def collect_frames(names: Sequence[str], intrinsics: Mapping[str, Intrinsics], c
     """The pipeline's front end (sync, preprocess) on messages in arrival order: the
     preprocessed framesets with >= 2 views, up to ``max_seconds`` of data (0: all).
     ``stamps``: watches the accepted messages' stamps as the pipeline does (its
-    ``leads()`` then say which sensors' clocks run apart, ``mistimed``).
+    ``leads()`` then say which sensors' clocks run apart, ``stamps_apart``).
 
     The clock is the newest plausible stamp, found as the pipeline finds it: the first
     messages are held back and their median decides which stamps are absurd."""
@@ -895,7 +895,7 @@ class BootstrapResult:
     residual_px: np.ndarray | None = None
     observations: np.ndarray | None = None
     floor: FloorFrame | None = None  # how ``frame`` was made: the final batch levels it again on its floor
-    # sensors whose stamps ran apart from the others' (``mistimed``): name -> the shift (s) its
+    # sensors whose stamps ran apart from the others' (``stamps_apart``): name -> the shift (s) its
     # views were timed by here (its lead, or 0 where its stamps fitted its pairs better)
     mistimed: Mapping[str, float] = field(default_factory=dict)
 
@@ -1146,7 +1146,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     of the walkers (m); without them the population prior sets the scale. ``config``: in
     the cameras' pixels (``EngineConfig.for_images``, as ``bootstrap_messages`` and the
     pipelines make it). ``mistimed``: sensors whose stamps run apart from the others'
-    (``mistimed``; name -> lead, s): their views timed by their lead or as stamped,
+    (``stamps_apart``; name -> lead, s): their views timed by their lead or as stamped,
     whichever their pairs agree with more (``_timed``). Raises BootstrapError when fewer
     than 2 cameras can be placed."""
     from .optimize import Problem, solve
@@ -1357,7 +1357,7 @@ def mistimed_summary(timed: Mapping[str, float]) -> str:
                                            for n, v in sorted(timed.items(), key=lambda kv: natural_key(kv[0]))))
 
 
-def mistimed(stamps: StampWatch, config: EngineConfig, cameras: int) -> dict[str, float]:
+def stamps_apart(stamps: StampWatch, config: EngineConfig, cameras: int) -> dict[str, float]:
     """Sensors whose stamps run more than ``clock.auto_lead`` apart from the others' as
     they arrive (name -> median lead, s), as the pipeline's ``clock.estimate = "auto"``
     finds them; empty when the clocks are not estimated (``clock.estimate = false``: the
@@ -1382,4 +1382,4 @@ def bootstrap_messages(intrinsics: Mapping[str, Intrinsics], config: EngineConfi
                             progress=progress, stamps=stamps)
     focal = np.array([0.5 * (intrinsics[n].fx + intrinsics[n].fy) for n in names])
     return bootstrap(frames, names, focal, config, heights=heights, seed=seed, progress=progress,
-                     mistimed=mistimed(stamps, config, len(names)))
+                     mistimed=stamps_apart(stamps, config, len(names)))

@@ -45,7 +45,7 @@ import numpy as np
 from proto import KeypointMessage
 
 from .bootstrap import (
-    BootstrapError, BootstrapResult, Frame, bootstrap, camera_set, handover, mistimed, mistimed_summary,
+    BootstrapError, BootstrapResult, Frame, bootstrap, camera_set, handover, mistimed_summary, stamps_apart,
 )
 from .cameras import CameraSet, dump_extrinsics
 from .config import EngineConfig
@@ -90,7 +90,7 @@ class BootstrapJob:
     data_seconds: float
     seen: np.ndarray
     final: bool
-    mistimed: Mapping[str, float] = field(default_factory=dict)  # to be timed: ``bootstrap.mistimed``
+    mistimed: Mapping[str, float] = field(default_factory=dict)  # to be timed: ``bootstrap.stamps_apart``
 
     def __post_init__(self) -> None:
         assert self.focal.shape == (len(self.names),) and self.seen.shape == (len(self.names),)
@@ -283,7 +283,7 @@ class Collector:
         self.focal = np.array([0.5 * (cameras.intrinsics[n].fx + cameras.intrinsics[n].fy) for n in self.names])
         self.sync = Synchronizer(config.sync, self.names)
         self.preprocess = Preprocessor(config.preprocess, self.names, cameras.intrinsics)
-        self.stamps = StampWatch(config.clock.auto_lead)  # which sensors' stamps run apart (``bootstrap.mistimed``)
+        self.stamps = StampWatch(config.clock.auto_lead)  # which sensors' stamps run apart (``bootstrap.stamps_apart``)
         self.frames: deque[Frame] = deque(maxlen=config.refine.archive_frames)
         self.clock: float | None = None
         self.messages = 0
@@ -396,7 +396,7 @@ class Collector:
             return None
         job = BootstrapJob(len(self.attempts) + 1, tuple(self.frames), tuple(self.names), self.focal.copy(),
                            self.cfg, self.options.heights, self.seed, secs, self.seen.copy(),
-                           final=secs >= self.deadline, mistimed=mistimed(self.stamps, self.cfg, len(self.names)))
+                           final=secs >= self.deadline, mistimed=stamps_apart(self.stamps, self.cfg, len(self.names)))
         self.running = job
         return job
 

@@ -84,7 +84,7 @@ def test_attempts_start_at_live_first_one_at_a_time():
 def test_a_sensor_whose_stamps_run_apart_is_named_to_the_bootstrap():
     """As the pipeline's ``clock.estimate = "auto"`` finds them (backend/stamp_watch.py):
     cam_3's stamps run 0.2 s ahead of the others' as they arrive; the attempt is told,
-    and the bootstrap times its views by what its pairs agree on (``bootstrap.mistimed``)."""
+    and the bootstrap times its views by what its pairs agree on (``bootstrap.stamps_apart``)."""
     from proto import KeypointMessage
 
     col = _collector()
