@@ -373,6 +373,10 @@ DURATION = 60.0
 SEED = 0
 
 
+# for the runs that test no stated std: the split-half check (tested elsewhere) costs another final batch
+NO_SPLIT_CHECK = EngineConfig().merged({"refine": {"split_check": False}})
+
+
 @pytest.fixture(scope="module")
 def booted(lab_dir):
     from edge_clients.sim import Scene, SimConfig, Simulator
@@ -432,7 +436,7 @@ def test_handover_to_the_online_pipeline(booted):
     res, truth, intr, msgs, _ = booted
     from backend.pipeline import run_offline
 
-    cfg = handover(EngineConfig(), res)
+    cfg = handover(NO_SPLIT_CHECK, res)
     assert cfg.refine.initial_std_translation >= EngineConfig().bootstrap.handover_std_translation
     cams = camera_set(intr, res)
     assert set(cams.names) == {n for c, n in enumerate(res.names) if res.located[c]}
@@ -463,7 +467,7 @@ def test_pipeline_from_a_rough_start_takes_the_data_shape(booted):
     ref = {n: Extrinsics(p, intr[n].resolution) for n, p in truth.items()}
     init = perturb_extrinsics(ref, 0.75, 20.0, seed=4)
     cams = CameraSet.combine(intr, init)
-    cfg = EngineConfig()
+    cfg = NO_SPLIT_CHECK
     rec, _, note = reconcile_cameras(res, cams, cfg)
     print(note)
     assert rec is not None and rec.used and not rec.refused.any()
@@ -497,7 +501,7 @@ def test_cameras_swapped_in_the_initial_estimate_are_calibrated_where_the_data_h
     init["cam_12"], init["cam_16"] = (replace(init["cam_12"], pose=init["cam_16"].pose),
                                       replace(init["cam_16"], pose=init["cam_12"].pose))
     cams = CameraSet.combine(intr, init)
-    cfg = EngineConfig()
+    cfg = NO_SPLIT_CHECK
     rec, _, note = reconcile_cameras(res, cams, cfg)
     print(note)
     assert rec is not None and [n for n, o in zip(rec.names, rec.overruled) if o] == ["cam_12", "cam_16"]
@@ -522,7 +526,7 @@ def test_the_final_batch_from_the_bootstrap_is_kept_when_the_online_estimate_was
     from backend.pipeline import run_offline
 
     res, truth, intr, msgs, _ = booted
-    cfg = handover(EngineConfig(), res)
+    cfg = handover(NO_SPLIT_CHECK, res)
     assert cfg.refine.final_batch_from_start
     cams = camera_set(intr, res)
     p = run_offline(cams, cfg, msgs, seed=SEED, finish=False)
