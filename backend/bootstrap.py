@@ -1015,8 +1015,9 @@ def _timed(frames: list[Frame], names: Sequence[str], focal: np.ndarray, cfg: Bo
     second off shows a walker 0.26 m from where the others see him, and the lab's seed 2
     with five sensors -200 ... +200 ms off put cam_2 14 m off (docs/bootstrap.md,
     Session 41). Judged by the frames its pairs agree in (``_timing_agreement``); no
-    pair either way: as stamped. The pipeline estimates the offsets from then on."""
-    C = len(names)
+    pair either way: as stamped, and left out of the shifts returned (not judged: a
+    camera placed later is timed then, backend/late_join.py). The pipeline estimates
+    the offsets from then on."""
     idx = {n: c for c, n in enumerate(names)}
     reference = np.array([n not in mistimed for n in names])
     out, shifts = frames, {}
@@ -1025,7 +1026,8 @@ def _timed(frames: list[Frame], names: Sequence[str], focal: np.ndarray, cfg: Bo
         keep = reference.copy()
         keep[c] = True
         as_stamped, by_lead = _timing_agreement(_without(frames, keep), c, lead, focal, cfg, seed=seed)
-        shifts[n] = lead if by_lead > as_stamped else 0.0
+        if as_stamped or by_lead:  # no pair either way (a camera that saw nobody yet): not judged
+            shifts[n] = lead if by_lead > as_stamped else 0.0
     for n, d in shifts.items():
         if d:
             out = retimed(out, idx[n], d)

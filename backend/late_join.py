@@ -20,6 +20,13 @@ with an honest, large std), and the final batch adjustment over all archived fra
 adjusts it with the others. Without a camera that passes, the final batch runs as in the
 plain pipeline, on the same frames and seeds: the result does not change.
 
+A camera without a pose has no clock offset estimated: the estimate needs its
+associations. Its stamps are watched as the bootstrap watches them (``StampWatch``):
+when they run apart from the others', it is resected both on its views as stamped and
+on them its lead later (``retimed``), and joins timed as the one that agrees in more
+framesets less those it disagrees in (docs/clock_offsets.md, Session 42); the pipeline
+it joins applies that offset and estimates it from then on.
+
 The numeric core: synchronous, no network.
 """
 
@@ -27,13 +34,14 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, replace
+from dataclasses import field as dataclass_field
 from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
 from proto import KeypointMessage
 
-from .bootstrap import Frame, view_box
+from .bootstrap import Frame, retimed, stamps_apart, view_box
 from .cameras import CameraSet, Extrinsics, Intrinsics, Pose
 from .config import EngineConfig
 from .geometry import R_to_quat
@@ -41,6 +49,7 @@ from .live_bootstrap import remap
 from .pipeline import Pipeline
 from .preprocess import Preprocessor
 from .resect import SCALED_BY, Resection, resect_unplaced
+from .stamp_watch import StampWatch
 from .sync import Synchronizer
 
 # The resection's own std (reprojections, one correlated block per detection) was 3-5x
@@ -65,6 +74,7 @@ class Joined:
     adjusted: bool = False  # the final batch took it (else its resected pose is its result)
     live: bool = False  # it joined while the run went on (its cycles calibrated it), not when it ended
     paired_with: str = ""  # placed by its pair with this camera (``resect.place_by_pair``), not resected
+    timed: float = 0.0  # s its views were taken later than stamped (its stamps' lead; 0: as stamped)
 
     def summary(self) -> str:
         return later_summary(self.to_dict())
@@ -77,7 +87,7 @@ class Joined:
                 "scaled_by": r.scaled_by,
                 # the resected pose (translation, rotation quaternion x, y, z, w, as in the extrinsics YAML)
                 "translation": r.t.tolist(), "rotation": R_to_quat(r.R).tolist(), "adjusted": self.adjusted,
-                "live": self.live}
+                "live": self.live, "timed": self.timed}
 
 
 class JoiningPipeline(Pipeline):
@@ -107,6 +117,8 @@ class JoiningPipeline(Pipeline):
         self.late: list[Joined] = []
         self.late_notes: list[str] = []
         self.late_archived = 0  # framesets ever archived in late_frames (a full deque stops growing)
+        # every sensor's stamps as they arrive: the unplaced cameras' clocks are estimated by nobody
+        self.late_stamps = StampWatch(self.cfg.clock.auto_lead)
         self._late_tried: float | None = None  # data time of the last resection while running
         self._late_seen = 0  # late_archived then
 
@@ -132,6 +144,7 @@ class JoiningPipeline(Pipeline):
         else:
             reason = super().push(msg, arrival)
         if not self._releasing and self.unplaced:  # the held-back messages re-enter push: in _late_pending already
+            self.late_stamps.observe(msg.sensor, msg.stamp)
             self._late_push(msg, arrival)
         return reason
 
@@ -160,6 +173,7 @@ class JoiningPipeline(Pipeline):
         return new
 
     def _late_advance(self, now: float) -> None:
+        self.late_stamps.sample(now)
         if self._late_pending and self.clock is not None:
             pending, self._late_pending = self._late_pending, []
             for m in sorted(pending, key=lambda m: m.stamp):
@@ -268,8 +282,9 @@ class JoiningPipeline(Pipeline):
         # the pipeline's own framesets too
         own = list(self.frames)[:: max(1, len(self.frames) // FLOOR_FRAMES)]
         floor_frames = tuple(remap(own, {c: names.index(n) for c, n in enumerate(self.names)}))
+        leads = {names.index(n): v for n, v in stamps_apart(self.late_stamps, self.cfg, C).items() if n in self.unplaced}
         return LateJob(frames, R, t, located, focal, self.cfg.associate, self.cfg.bootstrap, self.cycle,
-                       floor_frames)
+                       floor_frames, leads)
 
     def _accept(self, job: "LateJob", found: "LateResult", live: bool = False) -> list[Joined]:
         """The cameras a resection placed (``late``, ``late_notes``); returns the new ones."""
@@ -289,7 +304,13 @@ class JoiningPipeline(Pipeline):
             st = max(st0, k * float(np.sqrt(np.trace(cov[3:, 3:]) / 3))) if cov is not None else st0
             sr = max(sr0, k * float(np.degrees(np.sqrt(np.trace(cov[:3, :3]) / 3)))) if cov is not None else sr0
             new.append(Joined(names[r.cam], r, float(seconds), st, sr, live=live,
-                              paired_with=names[r.paired] if r.paired >= 0 else ""))
+                              paired_with=names[r.paired] if r.paired >= 0 else "",
+                              timed=float(found.timed.get(r.cam, 0.0))))
+        for j in new:
+            if j.timed:  # its archived views as the resection took them, its next ones timed so
+                self.late_frames = deque(retimed(list(self.late_frames), names.index(j.name), j.timed),
+                                         maxlen=self.late_frames.maxlen)
+                self.late_sync.set_offset(j.name, j.timed)
         self.late += new
         return new
 
@@ -391,6 +412,10 @@ class JoiningPipeline(Pipeline):
             "lens_cov": None if snap.get("lens_cov") is None else
             [snap["lens_cov"][old[n]] if n in old else None for n in names],
         })
+        timed = {n: j.timed for n, j in late.items() if j.timed}
+        if timed:  # applied and estimated on from there (``Pipeline.restore``)
+            snap["clock_offsets"] = {**snap["clock_offsets"], **timed}
+            snap["clock_estimating"] = True
         return cams, snap
 
     def _merged_frames(self, names: tuple[str, ...]) -> deque:
@@ -431,7 +456,10 @@ class JoiningPipeline(Pipeline):
         p.rng, p.clock = self.rng, self.clock
         p.messages, p.rejected, p.last_seen = self.messages, self.rejected, dict(self.last_seen)
         p.relocalized = list(self.relocalized)
-        p._offset_history = [list(self._offset_history[old[n]]) if n in old else [] for n in p.names]
+        timed = {j.name: j.timed for j in self.late}
+        # a late camera's archived views: timed by its lead from the first (``_accept``), or as stamped
+        p._offset_history = [list(self._offset_history[old[n]]) if n in old else
+                             [(-np.inf, timed[n])] if timed.get(n) else [] for n in p.names]
         if self.raw is not None and p.raw is not None:
             p.raw = self.raw.keep(p.names)
         p.frames = self._merged_frames(p.names)
@@ -444,14 +472,18 @@ class LateResult:
 
     resections: tuple[Resection, ...]
     located: np.ndarray
+    timed: Mapping[int, float] = dataclass_field(default_factory=dict)  # camera -> s its views were taken later
 
 
 @dataclass(frozen=True, eq=False)
 class LateJob:
     """A resection of the unplaced cameras (``resect_unplaced``) with what it reads: the
     late framesets (camera indices of all cameras), every camera's pose (C, 3, 3), (C, 3)
-    where ``located`` (C,) bool, focal lengths (C,) px, the configs, a seed, and some of
-    the pipeline's own framesets for the placed cameras' floor."""
+    where ``located`` (C,) bool, focal lengths (C,) px, the configs, a seed, some of
+    the pipeline's own framesets for the placed cameras' floor, and the leads (s) of the
+    unplaced cameras whose stamps run apart from the others' (``bootstrap.stamps_apart``):
+    each is resected as stamped and timed by its lead, and keeps the better
+    (``LateResult.timed``)."""
 
     frames: tuple[Frame, ...]
     R: np.ndarray
@@ -462,14 +494,44 @@ class LateJob:
     bootstrap: Any
     seed: int
     floor_frames: tuple[Frame, ...] = ()  # the placed cameras' framesets (all cameras' indices) for their floor
+    leads: Mapping[int, float] = dataclass_field(default_factory=dict)  # unplaced cameras whose stamps run apart: s
 
     def run(self) -> LateResult:
+        located, found = self._resect(list(self.frames))
+        if not self.leads:
+            return LateResult(tuple(found), located)
+        # A lead is a clock's offset or a longer delay (backend/stamp_watch.py): the
+        # resections on the views as stamped and on them that much later tell which, by
+        # the framesets each agrees in less those it disagrees in. Agreeing framesets alone
+        # favour the stamps: the views taken later are interpolated, so fewer (measured:
+        # +200 ms clock, 34 of 49 as stamped, 27 of 28 timed; a 200 ms delay, 61 of 61 as
+        # stamped, 28 of 31 timed; docs/clock_offsets.md, Session 42). A tie: as stamped.
         frames = list(self.frames)
+        for c, lead in self.leads.items():
+            frames = retimed(frames, c, lead)
+        alt_located, alt = self._resect(frames)
+        by_cam = {r.cam: r for r in alt}
+        out, timed = [], {}
+        for r in found:
+            a = by_cam.get(r.cam)
+            if r.cam in self.leads and a is not None and a.accepted and (not r.accepted or _net(a) > _net(r)):
+                out.append(a)
+                located[r.cam], timed[r.cam] = alt_located[r.cam], self.leads[r.cam]
+            else:
+                out.append(r)
+        return LateResult(tuple(out), located, timed)
+
+    def _resect(self, frames: list[Frame]) -> tuple[np.ndarray, list[Resection]]:
         C = len(self.located)
         _, _, located, found = resect_unplaced(frames, self.R, self.t, self.located, self.focal, view_box(frames, C),
                                                self.associate, self.bootstrap, seed=self.seed,
                                                pairs=self.bootstrap.late_pairs, floor_frames=self.floor_frames)
-        return LateResult(tuple(found), located)
+        return located, found
+
+
+def _net(r: Resection) -> int:
+    """A resection's framesets that agree with its pose less those that do not."""
+    return 2 * r.frames - r.seen
 
 
 def run_late_job(job: LateJob) -> LateResult:
@@ -485,6 +547,8 @@ def later_summary(j: Mapping[str, Any]) -> str:
            f"{SCALED_BY.get(j.get('scaled_by', ''), 'its baseline scaled by the people')}), " if j.get("paired_with") else
            f": resected against the online estimate over {j['data_seconds']:.0f} s of data (agrees in "
            f"{j['frames']}/{j['seen']} framesets, spread {j['spread']:.2f} m, {j['residual_px']:.1f} px), ")
+    if j.get("timed"):
+        how += f"timed by its stamps' lead ({1000 * j['timed']:+.0f} ms: its clock's offset, not a delay), "
     return (f"{j['name']} placed after the bootstrap" + how
             + ("joined the running calibration (its cycles and the final batch adjusted it) from a prior std of "
                f"{j['std_translation']:.3f} m / {j['std_rotation']:.2f}°" if j.get("live") else

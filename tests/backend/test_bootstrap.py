@@ -366,6 +366,19 @@ def test_a_camera_s_views_retimed_are_its_views_that_much_later():
     assert len(same[0.4]) == 1 and same[0.4][0].xy[0, 0] == pytest.approx(4.0)  # the two persons: one, between
 
 
+def test_a_sensor_whose_stamps_ran_apart_with_no_pair_either_way_is_not_judged():
+    """A camera that saw nobody with the others yet (placed later, if at all) has no pair
+    to time it by: left as stamped and out of the shifts, so that no header calls its
+    lead a delay (backend/late_join.py times it when it is placed)."""
+    from backend.bootstrap import _timed
+
+    frames = [(0.1 * k, ((Detection(0, np.full((17, 2), 0.01 * k), np.ones(17), 600.0),),
+                         (Detection(1, np.full((17, 2), 0.02 * k), np.ones(17), 600.0),))) for k in range(30)]
+    out, shifts = _timed(frames, ("cam_0", "cam_1", "cam_2"), np.full(3, 600.0), BootstrapConfig(),
+                         {"cam_2": 0.2}, seed=0)
+    assert shifts == {} and out == frames
+
+
 # ------------------------------------------------------------------ whole bootstrap, simulated
 
 WEST = ("cam_11", "cam_12", "cam_13", "cam_14", "cam_15", "cam_16", "cam_17")

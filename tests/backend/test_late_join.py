@@ -135,6 +135,44 @@ def test_a_run_with_every_camera_placed_is_unchanged(west, tmp_path):
     assert "placed after the bootstrap" not in outs[0] and outs[0] == outs[1]
 
 
+def test_a_late_camera_whose_clock_runs_ahead_is_resected_and_adjusted_timed_by_its_lead(lab_dir):
+    """LATE quiet for 45 s of 75 and its clock 0.2 s ahead; the others at their true
+    poses. Its stamps run ~0.2 s ahead of the others' as they arrive, and nobody
+    estimates its offset (it has no pose to associate with). On its views as stamped
+    its resection agrees in fewer framesets, less those it disagrees in, than on them
+    its lead later: it joins timed by its lead, the final batch has its archived views
+    so timed, and it ends within the bars (0.031 m / 0.16°; as stamped, with
+    ``clock.estimate = false``, its pair placed it and it ended 0.20 m / 2.4° off). Its
+    views timed right, with a lead of a delay's (its stamps right): kept as stamped."""
+    from edge_clients.sim import Scene, SimConfig, Simulator
+
+    full = Scene.load(lab_dir)
+    intr = {n: full.intrinsics[n] for n in WEST}
+    scene = Scene.from_cameras(intr, {n: full.poses[n] for n in WEST}, lab_dir / "room.yaml")
+    sim = Simulator(scene, SimConfig(persons=2, duration=75.0, seed=5, heights=(1.85, 1.70), clock_offsets={LATE: 0.2}))
+    seen = [m for _, m in sim.messages()]
+    t0 = min(m.stamp for m in seen if m.sensor != LATE)
+    msgs = [dataclasses.replace(m, persons=()) if m.sensor == LATE and m.stamp - 0.2 - t0 < QUIET else m for m in seen]
+    placed = [n for n in WEST if n != LATE]
+    truth = {n: full.poses[n] for n in WEST}
+    cams = CameraSet.combine({n: intr[n] for n in placed}, {n: Extrinsics(truth[n], intr[n].resolution) for n in placed})
+    cfg = EngineConfig.load(None, ["refine.split_check=false", *SMALL_FINAL])
+    p = _run(cams, cfg, msgs, JoiningPipeline(cams, cfg, intrinsics=intr, names=WEST, seed=3))
+    [j] = p.late
+    assert j.name == LATE and j.adjusted and j.timed == pytest.approx(0.2, abs=0.04), p.late_notes
+    assert "timed by its stamps' lead (+" in j.summary()
+    ev = evaluate(p.state().poses(), truth)
+    assert ev.per_camera[LATE][2] < 0.05 and ev.per_camera[LATE][3] < 0.5, ev.per_camera
+    assert ev.orientation.max < 0.5, ev.per_camera
+    # its archived views are timed by the lead now: as they would be stamped if the lead
+    # were a delay's (the stamps right), the opposite lead is not taken
+    job = p._late_job()
+    c = WEST.index(LATE)
+    assert job.leads.keys() == {c}
+    found = dataclasses.replace(job, leads={c: -j.timed}).run()
+    assert found.timed == {} and [r.accepted for r in found.resections] == [True]
+
+
 def test_a_camera_placed_by_its_pair_says_so_and_what_scaled_it():
     from backend.late_join import later_summary
 
