@@ -290,6 +290,7 @@ class JoiningPipeline(Pipeline):
         """The cameras a resection placed (``late``, ``late_notes``); returns the new ones."""
         names = self.all_names
         self.late_notes = [r.summary(names[r.cam], names) for r in found.resections]
+        self.late_notes += [f"{names[c]}: {line}" for c, line in found.timing.items()]
         ok = [r for r in found.resections if r.accepted and found.located[r.cam] and names[r.cam] in self.unplaced]
         if not ok:
             return []
@@ -473,6 +474,8 @@ class LateResult:
     resections: tuple[Resection, ...]
     located: np.ndarray
     timed: Mapping[int, float] = dataclass_field(default_factory=dict)  # camera -> s its views were taken later
+    timing: Mapping[int, str] = dataclass_field(default_factory=dict)  # camera whose stamps ran apart -> how each
+    # timing agreed and which was taken
 
 
 @dataclass(frozen=True, eq=False)
@@ -511,15 +514,16 @@ class LateJob:
             frames = retimed(frames, c, lead)
         alt_located, alt = self._resect(frames)
         by_cam = {r.cam: r for r in alt}
-        out, timed = [], {}
+        out, timed, timing = [], {}, {}
         for r in found:
             a = by_cam.get(r.cam)
-            if r.cam in self.leads and a is not None and a.accepted and (not r.accepted or _net(a) > _net(r)):
-                out.append(a)
+            taken = (r.cam in self.leads and a is not None and a.accepted and (not r.accepted or _net(a) > _net(r)))
+            out.append(a if taken else r)
+            if taken:
                 located[r.cam], timed[r.cam] = alt_located[r.cam], self.leads[r.cam]
-            else:
-                out.append(r)
-        return LateResult(tuple(out), located, timed)
+            if r.cam in self.leads:
+                timing[r.cam] = _timing_note(r, a, self.leads[r.cam], taken)
+        return LateResult(tuple(out), located, timed, timing)
 
     def _resect(self, frames: list[Frame]) -> tuple[np.ndarray, list[Resection]]:
         C = len(self.located)
@@ -532,6 +536,16 @@ class LateJob:
 def _net(r: Resection) -> int:
     """A resection's framesets that agree with its pose less those that do not."""
     return 2 * r.frames - r.seen
+
+
+def _timing_note(stamped: Resection, timed: Resection | None, lead: float, taken: bool) -> str:
+    """How a camera whose stamps ran apart agreed each way (``LateResult.timing``)."""
+    def agreed(r: Resection | None) -> str:
+        return "no pose" if r is None or r.R is None else f"{r.frames}/{r.seen}" + ("" if r.accepted else " (refused)")
+
+    return (f"its stamps ran {1000 * lead:+.0f} ms from the others': as stamped it agrees in "
+            f"{agreed(stamped)}, timed by that lead in {agreed(timed)}: "
+            + ("timed by it (its clock's offset)" if taken else "as stamped"))
 
 
 def run_late_job(job: LateJob) -> LateResult:

@@ -161,6 +161,7 @@ def test_a_late_camera_whose_clock_runs_ahead_is_resected_and_adjusted_timed_by_
     [j] = p.late
     assert j.name == LATE and j.adjusted and j.timed == pytest.approx(0.2, abs=0.04), p.late_notes
     assert "timed by its stamps' lead (+" in j.summary()
+    assert [n for n in p.late_notes if n.startswith(f"{LATE}: its stamps ran +")][0].endswith("timed by it (its clock's offset)")
     ev = evaluate(p.state().poses(), truth)
     assert ev.per_camera[LATE][2] < 0.05 and ev.per_camera[LATE][3] < 0.5, ev.per_camera
     assert ev.orientation.max < 0.5, ev.per_camera
@@ -171,6 +172,7 @@ def test_a_late_camera_whose_clock_runs_ahead_is_resected_and_adjusted_timed_by_
     assert job.leads.keys() == {c}
     found = dataclasses.replace(job, leads={c: -j.timed}).run()
     assert found.timed == {} and [r.accepted for r in found.resections] == [True]
+    assert found.timing[c].endswith("as stamped"), found.timing
 
 
 def test_a_camera_placed_by_its_pair_says_so_and_what_scaled_it():
