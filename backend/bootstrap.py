@@ -1167,7 +1167,8 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     if mistimed:
         frames, timed = _timed(frames, names, focal, cfg, {n: float(v) for n, v in mistimed.items() if n in names},
                                seed=seed)
-        say(mistimed_summary(timed))
+        if timed:  # none when every such sensor is unjudged (no pair either way)
+            say(mistimed_summary(timed))
     if len(frames) < cfg.min_pair_frames:
         raise BootstrapError(f"{len(frames)} framesets with >= 2 views: too few to start "
                              f"(a pair needs {cfg.min_pair_frames})")
