@@ -53,7 +53,7 @@ def serve(
     Sessions are started over HTTP (POST /sessions); see /docs for the API."""
     import asyncio
 
-    from .service import serve as run
+    from .server import serve as run
 
     settings = _settings(config, http, zenoh_listen, zenoh_connect, zenoh_mode, site, state_dir, token, clock)
     from .logs import setup as setup_logging
@@ -160,7 +160,7 @@ def run_demo(*, speed: float, duration: float, http: str, persons: int, translat
     from .cameras import dump_extrinsics, load_extrinsics
     from .evaluate import evaluate
     from .perturb import perturb_extrinsics
-    from .service import ServiceThread
+    from .server import ServiceThread
     from proto.transport import free_port
     from .settings import ServiceSettings, parse_hostport
 

@@ -11,10 +11,8 @@
     HTTP thread (its own loop): uvicorn; /status and /healthz answered there from what
     the service publishes, every other request run on the service loop (api/bridge.py)
 
-Why a process for the solver: gtsam holds Python's GIL while it optimises, so a solve in
-a thread stalls the loop for about as long as the solve (0.32 s of a 0.37 s solve,
-measured); a ProcessPoolExecutor started with ``spawn`` takes a picklable
-``optimize.Problem`` and returns a ``Solution`` without touching the loop's GIL.
+The solver process is backend/solver.py, the writer backend/writer.py, the event fan-out
+backend/events.py; backend/server.py runs the service with its HTTP server.
 
 One ``asyncio.TaskGroup`` owns every task. SIGTERM/SIGINT: the HTTP server and event
 streams close, the cycle in flight ends and is applied, the session's result, snapshot
@@ -30,16 +28,12 @@ import contextlib
 import functools
 import logging
 import math
-import multiprocessing
 import signal
-import socket
 import time
 from collections import Counter, deque
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
-from typing import TYPE_CHECKING, Any, AsyncIterator, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
@@ -48,6 +42,7 @@ from proto.keys import sensor_of
 
 from .cameras import dump_extrinsics, natural_key, parse_extrinsics, parse_intrinsics
 from .config import ConfigError, EngineConfig
+from .events import EventBus
 from .history import CalibrationHistory
 from .ingest import HandOff, SensorTable, ServiceClock
 from .live_bootstrap import Collector, LiveOptions, late_record, reason_suffix, result_comment
@@ -56,6 +51,8 @@ from .session import (
     SessionState, SessionStore, StopCriteria, clean_json, dumps_json, new_session_id,
 )
 from .settings import ServiceSettings
+from .solver import Solver, failed_solution, finish_pipeline, warm_up
+from .writer import Writer
 
 if TYPE_CHECKING:
     from .pipeline import Pipeline
@@ -64,8 +61,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("extrcal.service")
 
 MAX_CONSECUTIVE_FAILURES = 10  # failed solves in a row before a session is marked failed
-SOLVER_NICE = 5  # the solver process's niceness above the service's (see _worker_init)
-SWITCH_INTERVAL = 0.001  # s: how soon a thread waiting for the GIL gets it (the HTTP thread)
 LINK_CHECK = 1.0  # s between checks of the Zenoh session's links
 STATUS_FRESH = 0.5  # s: a snapshot younger than this is served as it is (_status_loop refreshes it)
 STATUS_ASKED = 5.0  # s after a /status request during which the snapshot is kept fresh
@@ -80,66 +75,6 @@ class UnknownFormat(Exception):
 
 class StorageError(Exception):
     """The state directory cannot be written (503): the service runs on, the request failed."""
-
-
-# ------------------------------------------------------------------ events
-
-
-class EventBus:
-    """Fan-out of progress events to server-sent-event clients.
-
-    Each subscriber has a bounded queue; a slow client loses its oldest events (and is
-    told how many in the next event's ``dropped``) instead of growing memory.
-    """
-
-    KINDS = frozenset({"status", "cycle", "session", "service", "camera_moved", "camera_restarted", "calibration",
-                       "hypotheses"})  # what ``publish`` is called with (and ``hello``, first on every stream)
-
-    def __init__(self, maxlen: int = 256):
-        self._subs: dict[asyncio.Queue, frozenset[str] | None] = {}  # queue -> the kinds it takes (None: all)
-        self._maxlen = maxlen
-        self._id = 0
-        self.closed = False
-
-    def publish(self, kind: str, data: dict[str, Any]) -> None:
-        if self.closed:
-            return
-        self._id += 1
-        item = (self._id, kind, data)
-        for q, kinds in self._subs.items():
-            if kinds is not None and kind not in kinds:
-                continue
-            if q.full():
-                q.get_nowait()
-                q.dropped += 1  # type: ignore[attr-defined]
-            q.put_nowait(item)
-
-    @contextlib.asynccontextmanager
-    async def subscribe(self, kinds: frozenset[str] | None = None) -> AsyncIterator[asyncio.Queue]:
-        """A queue of the events published from now on; ``kinds``: only these (a client
-        that waits for alarms must not lose one to a flood of ``cycle`` and ``hypotheses``)."""
-        assert kinds is None or kinds <= self.KINDS, kinds
-        q: asyncio.Queue = asyncio.Queue(self._maxlen)
-        q.dropped = 0  # type: ignore[attr-defined]
-        if self.closed:
-            q.put_nowait(None)
-        self._subs[q] = kinds
-        try:
-            yield q
-        finally:
-            self._subs.pop(q, None)
-
-    def close(self) -> None:
-        """End every stream (the server can then shut down without waiting on them)."""
-        self.closed = True
-        for q in self._subs:
-            if q.full():
-                q.get_nowait()
-            q.put_nowait(None)
-
-    @property
-    def subscribers(self) -> int:
-        return len(self._subs)
 
 
 # ------------------------------------------------------------------ loop work
@@ -169,157 +104,6 @@ class WorkTimes:
     def to_dict(self) -> dict[str, dict[str, float]]:
         return {k: {"count": v[0], "mean": v[1] / v[0], "max": v[2], "cpu_mean": v[3] / v[0]}
                 for k, v in self._d.items() if v[0]}
-
-
-# ------------------------------------------------------------------ solver process
-
-
-def _worker_init(parent: int) -> None:
-    """The solver process leaves SIGINT/SIGTERM to the service: Ctrl-C in a terminal and
-    systemd's stop signal reach the whole process group, and the cycle in flight must end
-    (the service shuts the pool down itself). If the service dies (kill -9), nothing
-    closes the pool's queue for us (the worker holds both ends), so a watchdog ends it."""
-    import os
-    import threading
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    # A solve can wait; ingest and /status cannot. When the cores are busy (overload, or a
-    # small board running the detector too), the scheduler serves the service process first.
-    try:
-        os.nice(SOLVER_NICE)
-    except OSError:  # a platform or a sandbox without nice: a slower /status, not a failure
-        pass
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(0.5)
-        os._exit(0)
-
-    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
-
-
-def _warm_up() -> int:
-    """Import the optimiser (and gtsam) in the worker before the first cycle needs it."""
-    from . import optimize  # noqa: F401
-
-    import os
-    return os.getpid()
-
-
-def _finish_pipeline(pipeline: "Pipeline") -> "Pipeline":
-    """Final batch adjustment, in the worker: it is a long GTSAM solve."""
-    pipeline.finish()
-    return pipeline
-
-
-class SolverCrashed(RuntimeError):
-    pass
-
-
-class Solver:
-    """One worker process for GTSAM; replaced if it dies."""
-
-    def __init__(self, start_method: str = "spawn"):
-        self._ctx = multiprocessing.get_context(start_method)
-        self._pool: ProcessPoolExecutor | None = None
-        self.restarts = 0
-        self.busy = False
-
-    def _ensure(self) -> ProcessPoolExecutor:
-        if self._pool is None:
-            import os
-
-            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=self._ctx, initializer=_worker_init,
-                                             initargs=(os.getpid(),))
-        return self._pool
-
-    async def run(self, fn: Callable, *args: Any) -> Any:
-        loop = asyncio.get_running_loop()
-        pool = self._ensure()
-        self.busy = True
-        try:
-            return await loop.run_in_executor(pool, fn, *args)
-        except BrokenProcessPool as e:
-            self.restarts += 1
-            self._pool = None
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise SolverCrashed(f"the solver process died ({e}); it was restarted") from None
-        finally:
-            self.busy = False
-
-    def kill(self) -> None:
-        """End the worker now, the job in flight with it (its ``run`` raises SolverCrashed):
-        at shutdown, for a job that may take minutes (a live bootstrap) and is worth
-        nothing after it. The pool has no public way to do this."""
-        pool = self._pool
-        for proc in list(getattr(pool, "_processes", {}).values()) if pool is not None else []:
-            with contextlib.suppress(Exception):
-                proc.kill()  # SIGKILL: the worker ignores SIGTERM (_worker_init)
-
-    def shutdown(self) -> None:
-        """Blocking: from a thread."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
-
-
-def failed_solution(problem: Any, reason: str) -> Any:
-    """A Solution that says the solve did not happen, so that apply() rejects the cycle
-    (and the pipeline has no cycle in flight any more)."""
-    from .optimize import failed
-
-    return failed(problem, reason)
-
-
-# ------------------------------------------------------------------ writer
-
-
-class Writer:
-    """File writes in order, one at a time, in a thread; failures are reported, not raised."""
-
-    def __init__(self) -> None:
-        self._q: asyncio.Queue = asyncio.Queue()
-        self.error: str | None = None
-        self.errors = 0
-        self.writes = 0
-
-    def submit(self, fn: Callable, *args: Any, storage: bool = True) -> None:
-        """``storage``: a write to the state directory, whose success clears ``error``
-        (a Zenoh publication through this queue says nothing about the disk)."""
-        self._q.put_nowait((fn, args, storage))
-
-    async def run(self) -> None:
-        while True:
-            item = await self._q.get()
-            try:
-                if item is None:
-                    return
-                fn, args, storage = item
-                try:
-                    await asyncio.to_thread(fn, *args)
-                    if storage:
-                        self.writes += 1
-                        self.error = None
-                except (OSError, ValueError) as e:
-                    self.errors += 1
-                    self.error = f"{type(e).__name__}: {e}"
-                    log.error("state directory write failed: %s", self.error)
-                except Exception as e:  # a bug in one write must not stop the others
-                    self.errors += 1
-                    self.error = f"{type(e).__name__}: {e}"
-                    log.exception("writer task failed")
-            finally:
-                self._q.task_done()
-
-    async def flush(self) -> None:
-        await self._q.join()
-
-    def close(self) -> None:
-        self._q.put_nowait(None)
-
-    def __len__(self) -> int:
-        return self._q.qsize()
 
 
 # ------------------------------------------------------------------ the running session
@@ -532,7 +316,7 @@ class Service:
 
     async def _warm(self) -> None:
         try:
-            await self.solver.run(_warm_up)
+            await self.solver.run(warm_up)
         except Exception as e:  # the first real cycle reports it again
             log.warning("solver warm-up failed: %s", e)
 
@@ -1459,7 +1243,7 @@ class Service:
                         self.solver.kill()  # the attempt in flight is worth nothing now
                     rec.final_batch = {"ran": False, "error": "stopped while bootstrapping: no camera has a pose"}
                 else:
-                    s.pipeline = await self.solver.run(_finish_pipeline, s.pipeline)
+                    s.pipeline = await self.solver.run(finish_pipeline, s.pipeline)
                     batch = s.pipeline.cycle > before
                     late = late_record(s.pipeline)
                     if late is not None:  # cameras the bootstrap left out, resected now (backend/late_join.py)
@@ -2038,184 +1822,3 @@ def _history_line(report: "CycleReport", state: "CalibrationState", state_name: 
 
 def _finite(x: float) -> float | None:
     return x if math.isfinite(x) else None
-
-
-# ------------------------------------------------------------------ running it
-
-
-def bind_socket(host: str, port: int) -> socket.socket:
-    """The HTTP listening socket, bound before anything else starts: a clear error if taken."""
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    # IPPROTO_TCP, not 0: asyncio sets TCP_NODELAY only on sockets that say they are TCP,
-    # and without it every response (headers, then body) waits ~40 ms for a delayed ACK
-    sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    try:
-        sock.bind((host, port))
-    except OSError as e:
-        sock.close()
-        raise OSError(f"cannot listen on {host}:{port}: {e.strerror or e}") from None
-    sock.listen(128)
-    sock.setblocking(False)
-    return sock
-
-
-def make_server(app: Any, sock: socket.socket, *, log_level: str = "warning") -> Any:
-    """A uvicorn server on a bound socket that leaves signals to the service."""
-    import uvicorn
-
-    class _Server(uvicorn.Server):
-        @contextlib.contextmanager
-        def capture_signals(self):  # the service handles SIGTERM/SIGINT itself
-            yield
-
-    host, port = sock.getsockname()[:2]
-    config = uvicorn.Config(app, host=host, port=port, log_level=log_level, lifespan="off",
-                            timeout_graceful_shutdown=3, access_log=False)
-    server = _Server(config)
-    return server
-
-
-async def serve(settings: ServiceSettings, *, install_signals: bool = True,
-                on_started: Callable[[Service], None] | None = None, log_level: str = "warning",
-                service: Service | None = None) -> Service:
-    """Run the whole service (Zenoh, pipeline, REST) until SIGTERM/SIGINT or request_stop()."""
-    from .api import create_app
-
-    import sys
-
-    from .api.bridge import LoopBridge
-
-    # The HTTP thread waits for the GIL each time it wakes up; the loop thread is CPU-bound
-    # under overload and gives the GIL up every switch interval (5 ms by default).
-    sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL))
-    service = service or Service(settings)
-    sock = bind_socket(settings.http.host, settings.http.port)
-    service.http_address = sock.getsockname()[:2]
-    app = create_app(settings, service)
-    # the HTTP server runs on a thread of its own: see backend/api/bridge.py
-    bridged = LoopBridge(app, asyncio.get_running_loop(), HTTP_LOCAL_PATHS)
-    server = make_server(bridged, sock, log_level=log_level)
-
-    server_proxy = _ServerWithSocket(server, sock)
-    if on_started is not None:
-        async def notify() -> None:
-            await service.started.wait()
-            on_started(service)
-        waiter = asyncio.ensure_future(notify())
-    try:
-        await service.run(server_proxy, install_signals=install_signals)
-    finally:
-        if on_started is not None:
-            waiter.cancel()
-        sock.close()
-    return service
-
-
-HTTP_LOCAL_PATHS = frozenset({"/status", "/healthz"})  # answered on the HTTP thread (Service.status_view)
-
-
-class _ServerWithSocket:
-    """uvicorn.Server serving a socket we bound, on its own thread, as the service's ``server``."""
-
-    def __init__(self, server: Any, sock: socket.socket):
-        self._server, self._sock = server, sock
-
-    async def serve(self) -> None:
-        from .api.bridge import ServerThread
-
-        await ServerThread(self._server, self._sock).run()
-
-    @property
-    def started(self) -> bool:
-        return self._server.started
-
-    @property
-    def should_exit(self) -> bool:
-        return self._server.should_exit
-
-    @should_exit.setter
-    def should_exit(self, value: bool) -> None:
-        self._server.should_exit = value
-
-
-class ServiceThread:
-    """The whole service on its own event loop in a background thread.
-
-    For tests, benchmarks and tools that drive the service from synchronous code::
-
-        with ServiceThread(settings) as st:
-            httpx.get(st.url + "/status")
-
-    ``start`` returns once the service is ``started`` (Zenoh declared, HTTP listening).
-    """
-
-    def __init__(self, settings: ServiceSettings, *, timeout: float = 60.0):
-        import threading
-
-        self.settings = settings
-        self.timeout = timeout
-        self.service: Service | None = None
-        self.loop: asyncio.AbstractEventLoop | None = None
-        self.error: BaseException | None = None
-        self._started = threading.Event()
-        self._thread = threading.Thread(target=self._main, name="extrcal-service", daemon=True)
-
-    def _main(self) -> None:
-        async def main() -> None:
-            self.loop = asyncio.get_running_loop()
-            self.service = Service(self.settings)
-            await serve(self.settings, service=self.service, install_signals=False,
-                        on_started=lambda _: self._started.set())
-
-        try:
-            asyncio.run(main())
-        except BaseException as e:  # handed to the caller by start()/stop()
-            self.error = e
-        finally:
-            self._started.set()
-
-    def start(self) -> "ServiceThread":
-        self._thread.start()
-        if not self._started.wait(self.timeout):
-            raise TimeoutError(f"the service did not start within {self.timeout} s")
-        if self.error is not None:
-            raise RuntimeError(f"the service failed to start: {self.error!r}") from self.error
-        return self
-
-    @property
-    def url(self) -> str:
-        assert self.service is not None and self.service.http_address is not None
-        host, port = self.service.http_address
-        return f"http://{'[' + host + ']' if ':' in host else host}:{port}"
-
-    def call(self, fn: Callable[[], Any], timeout: float = 30.0) -> Any:
-        """Run ``fn`` on the service's loop and return its result (a coroutine is awaited)."""
-        import concurrent.futures
-
-        assert self.loop is not None
-
-        async def wrap() -> Any:
-            r = fn()
-            if asyncio.iscoroutine(r):
-                r = await r
-            return r
-
-        fut: concurrent.futures.Future = asyncio.run_coroutine_threadsafe(wrap(), self.loop)
-        return fut.result(timeout)
-
-    def stop(self, timeout: float = 60.0) -> None:
-        if self.loop is not None and self._thread.is_alive():
-            with contextlib.suppress(RuntimeError):
-                self.loop.call_soon_threadsafe(self.service.request_stop)
-        self._thread.join(timeout)
-        if self._thread.is_alive():
-            raise TimeoutError(f"the service did not stop within {timeout} s")
-        if self.error is not None:
-            raise RuntimeError(f"the service failed: {self.error!r}") from self.error
-
-    def __enter__(self) -> "ServiceThread":
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()

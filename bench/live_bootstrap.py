@@ -67,7 +67,7 @@ def run(seed: int, args, log) -> dict:
 
     from backend.cameras import dump_extrinsics, load_extrinsics, parse_extrinsics
     from backend.evaluate import evaluate
-    from backend.service import ServiceThread
+    from backend.server import ServiceThread
     from proto.transport import free_port
     from backend.settings import ServiceSettings
 

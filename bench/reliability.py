@@ -63,7 +63,7 @@ def fuzz(payloads: int, batch: int) -> dict:
     from hypothesis import strategies as st
 
     from backend.cameras import dump_extrinsics, load_extrinsics
-    from backend.service import ServiceThread
+    from backend.server import ServiceThread
     from proto.transport import free_port
     from backend.settings import ServiceSettings
 

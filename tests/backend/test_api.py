@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 from backend.cameras import parse_extrinsics
-from backend.service import ServiceThread
+from backend.server import ServiceThread
 from proto.transport import free_port
 from backend.settings import ServiceSettings
 from proto import KeypointMessage, Person, encode, keys
@@ -231,7 +231,7 @@ def test_events_of_the_kinds_asked_for_only(svc, client):
     from typing import get_args
 
     from backend.api.routers.events import EventKind
-    from backend.service import EventBus
+    from backend.events import EventBus
 
     assert frozenset(get_args(EventKind)) == EventBus.KINDS
     assert client.get("/events", params={"kind": "cycles"}).status_code == 422

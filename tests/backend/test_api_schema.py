@@ -15,7 +15,7 @@ import pytest
 import schemathesis
 from hypothesis import HealthCheck, given, settings
 
-from backend.service import ServiceThread
+from backend.server import ServiceThread
 from proto.transport import free_port
 from backend.settings import ServiceSettings
 

@@ -11,7 +11,7 @@ import time
 import httpx
 import pytest
 
-from backend.service import ServiceThread, bind_socket
+from backend.server import ServiceThread, bind_socket
 from proto.transport import free_port
 from backend.settings import ServiceSettings
 

@@ -8,7 +8,7 @@ import httpx
 import numpy as np
 
 from backend.cameras import Extrinsics, Pose, dump_extrinsics, parse_extrinsics
-from backend.service import ServiceThread
+from backend.server import ServiceThread
 from proto.transport import free_port
 from backend.settings import ServiceSettings
 from proto import keys

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from backend.api import create_app
-from backend.service import ServiceThread
+from backend.server import ServiceThread
 from proto.transport import free_port
 from backend.settings import ServiceSettings
 

@@ -185,7 +185,7 @@ def fuzz_svc(tmp_path_factory, lab_dir):
     import yaml
 
     from backend.cameras import dump_extrinsics, load_extrinsics
-    from backend.service import ServiceThread
+    from backend.server import ServiceThread
     from proto.transport import free_port
     from backend.settings import ServiceSettings
 

@@ -341,7 +341,7 @@ def _settings(state_dir):
 def test_a_session_without_initial_estimate_starts_collecting_resumes_and_stops(tmp_path, lab_dir):
     import httpx
 
-    from backend.service import ServiceThread
+    from backend.server import ServiceThread
 
     body = {"intrinsics_yaml": (lab_dir / "intrinsics.yaml").read_text(), "person_height": [1.85],
             "config": {"bootstrap": {"max_seconds": 90}}}
@@ -372,7 +372,7 @@ def test_a_session_without_initial_estimate_starts_collecting_resumes_and_stops(
 def test_distrust_initial_bootstraps_a_session_with_an_initial_estimate(tmp_path, lab_dir):
     import httpx
 
-    from backend.service import ServiceThread
+    from backend.server import ServiceThread
 
     body = {"intrinsics_yaml": (lab_dir / "intrinsics.yaml").read_text(),
             "initial_yaml": (lab_dir / "reference.yaml").read_text()}
@@ -437,7 +437,7 @@ def test_a_session_places_the_camera_its_bootstrap_left_out_when_it_stops(tmp_pa
     kept, its final batch places it, the record and the result name it."""
     import httpx
 
-    from backend.service import ServiceThread
+    from backend.server import ServiceThread
 
     with ServiceThread(_settings(tmp_path)) as st, httpx.Client(base_url=st.url, timeout=60) as c:
         sid, s = _bootstrapped_without_cam_14(st, c, collected)
@@ -460,7 +460,7 @@ def test_a_session_whose_bootstrap_left_a_camera_out_resumes_after_a_restart(tmp
     messages (its archive is lost; new data may still place it)."""
     import httpx
 
-    from backend.service import ServiceThread
+    from backend.server import ServiceThread
 
     with ServiceThread(_settings(tmp_path)) as st, httpx.Client(base_url=st.url, timeout=60) as c:
         sid, _ = _bootstrapped_without_cam_14(st, c, collected)
@@ -494,7 +494,7 @@ def test_a_stop_or_shutdown_during_an_attempt_does_not_wait_for_it(tmp_path, lab
 
     import httpx
 
-    from backend.service import ServiceThread
+    from backend.server import ServiceThread
 
     def attempting(c: httpx.Client, sid: str, timeout: float, what: str) -> None:
         deadline = time.monotonic() + timeout
@@ -538,7 +538,7 @@ def test_an_initial_estimate_the_data_agree_with_is_checked_once_and_kept(tmp_pa
 
     from backend.cameras import dump_extrinsics
     from backend.perturb import perturb_extrinsics
-    from backend.service import ServiceThread
+    from backend.server import ServiceThread
 
     full, inputs = collected[:2]
     col, R, t = _collected_whole(collected)
@@ -584,7 +584,7 @@ def test_the_check_of_an_initial_estimate_waits_for_a_clock_offset_and_is_skippe
 
     from backend.cameras import dump_extrinsics
     from backend.perturb import perturb_extrinsics
-    from backend.service import ServiceThread
+    from backend.server import ServiceThread
 
     full, inputs = collected[:2]
     col, R, t = _collected_whole(collected)

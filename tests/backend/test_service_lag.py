@@ -16,7 +16,7 @@ import pytest
 from backend.cameras import CameraSet, load_extrinsics, load_intrinsics
 from backend.config import EngineConfig
 from backend.perturb import perturb_extrinsics
-from backend.service import Solver, _warm_up
+from backend.solver import Solver, warm_up
 
 MAX_LAG = 0.050
 pytestmark = pytest.mark.serial  # a loop's lag: measured alone
@@ -70,7 +70,7 @@ def test_solving_in_the_worker_process_never_stalls_the_loop(problem):
     async def main():
         solver = Solver("spawn")
         try:
-            await solver.run(_warm_up)  # gtsam imported in the worker before we measure
+            await solver.run(warm_up)  # gtsam imported in the worker before we measure
             lag, seconds, sol = await _lag_during(solver.run(solve, problem))
             thread_lag, thread_seconds, _ = await _lag_during(asyncio.to_thread(solve, problem))
         finally:

@@ -20,7 +20,7 @@ pytest.importorskip("gtsam")
 
 from backend.cameras import dump_extrinsics, load_extrinsics  # noqa: E402
 from backend.perturb import perturb_extrinsics  # noqa: E402
-from backend.service import ServiceThread  # noqa: E402
+from backend.server import ServiceThread  # noqa: E402
 from proto.transport import free_port  # noqa: E402
 from backend.settings import ServiceSettings  # noqa: E402
 

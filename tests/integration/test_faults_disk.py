@@ -18,7 +18,7 @@ import pytest
 import yaml
 
 from backend.cameras import parse_extrinsics
-from backend.service import ServiceThread
+from backend.server import ServiceThread
 from proto.transport import free_port
 from backend.settings import ServiceSettings
 from test_faults_live import _live

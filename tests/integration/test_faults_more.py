@@ -19,7 +19,7 @@ import yaml
 
 from backend.cameras import dump_extrinsics, load_extrinsics
 from backend.perturb import perturb_extrinsics
-from backend.service import ServiceThread
+from backend.server import ServiceThread
 from proto.transport import free_port
 from backend.settings import ServiceSettings
 from edge_clients.publisher import SensorPublisher

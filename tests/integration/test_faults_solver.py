@@ -10,7 +10,7 @@ import time
 import httpx
 import pytest
 
-from backend.service import ServiceThread
+from backend.server import ServiceThread
 from proto.transport import free_port
 from backend.settings import ServiceSettings
 from solver_faults import faulty_solve

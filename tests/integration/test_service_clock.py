@@ -15,7 +15,7 @@ import pytest
 
 from backend.cameras import dump_extrinsics, parse_extrinsics
 from backend.evaluate import evaluate
-from backend.service import ServiceThread
+from backend.server import ServiceThread
 from live_sim import WEST, SensorProcess, publish_room, west_room_service
 from live_sim import poll as _poll
 

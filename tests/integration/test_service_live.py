@@ -25,7 +25,7 @@ from backend.cameras import dump_extrinsics, load_extrinsics, parse_extrinsics
 from backend.cli_service import publish_simulation
 from backend.evaluate import evaluate
 from backend.perturb import perturb_extrinsics
-from backend.service import ServiceThread
+from backend.server import ServiceThread
 from proto.transport import free_port
 from backend.settings import ServiceSettings
 from proto import keys

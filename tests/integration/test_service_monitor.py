@@ -21,7 +21,7 @@ import pytest
 from backend.cameras import dump_extrinsics, parse_extrinsics
 from backend.geometry import rotation_angle_deg, umeyama
 from backend.perturb import perturb_extrinsics
-from backend.service import ServiceThread
+from backend.server import ServiceThread
 from edge_clients.sim import SimConfig
 from edge_clients.sim.sensors import bump_poses
 from live_sim import WEST, SensorProcess, publish_room, west_room_service

@@ -28,7 +28,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from backend.cameras import dump_extrinsics, load_extrinsics
-from backend.service import ServiceThread
+from backend.server import ServiceThread
 from proto.transport import free_port
 from backend.settings import ServiceSettings
 from edge_clients.publisher import SensorPublisher

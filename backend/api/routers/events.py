@@ -6,7 +6,7 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
 
-from ...service import EventBus
+from ...events import EventBus
 from ...session import dumps_json
 from ..deps import ReadAuth, ServiceDep
 
