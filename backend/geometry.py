@@ -155,6 +155,19 @@ def pose_local(Ra, ta, Rb, tb) -> np.ndarray:
     return se3_log(R, t)
 
 
+def from_prior(R0: np.ndarray, t0: np.ndarray, P: np.ndarray, R: np.ndarray, t: np.ndarray
+               ) -> tuple[float, float, float]:
+    """How far pose R (3, 3), t (3,) lies from the prior pose R0, t0 with tangent
+    covariance P (6, 6): (m between the centres, deg, Mahalanobis χ² with 6 dof; NaN for
+    a singular P)."""
+    delta = pose_local(R0, t0, R, t)
+    try:
+        chi2 = float(delta @ np.linalg.solve(P, delta))
+    except np.linalg.LinAlgError:
+        chi2 = float("nan")
+    return float(np.linalg.norm(t - t0)), float(np.degrees(np.linalg.norm(delta[:3]))), chi2
+
+
 def project_normalised(R: np.ndarray, t: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(N, 2) normalised projections of world points X (N, 3) (in front of the camera) by
     the pose R (3, 3), t (3,) (world_R_cam, optical centre), and (N, 2, 6) their Jacobian

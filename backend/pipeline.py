@@ -18,6 +18,11 @@ The clock is the caller's: offline it is the recording's data time (the newest s
 live it is the wall clock. ``run_offline`` drives it synchronously; the service drives
 ``advance`` on its event loop, ``optimize.solve`` in a worker process and the clock
 offsets' estimate (``clock_job``) in a thread.
+
+``Pipeline`` is this module with three parts of its own: backend/clock_stage.py (the
+clocks: when the estimate starts, its jobs, the offsets applied, the archive timed
+again), backend/end_of_run.py (the final batch and the checks after it) and
+backend/snapshot.py (its estimate as JSON, to resume from).
 """
 
 from __future__ import annotations
@@ -34,19 +39,21 @@ from proto import KeypointMessage
 
 from .associate import Associator, Hypothesis
 from .cameras import CameraSet
-from .clock_offsets import ClockJob, ClockOffsetEstimator, ClockResult, SensorClock
+from .clock_offsets import ClockOffsetEstimator
+from .clock_stage import ClockStage
 from .config import EngineConfig
-from .floor import Floor, world_frame
-from .geometry import pose_local, pose_std
-from .monitor import Alarm, Monitor
+from .end_of_run import EndOfRun
+from .geometry import from_prior, pose_std
+from .monitor import Monitor
 from .optimize import NOTHING_TO_SOLVE, Problem, Solution, solve
 from .people import relative_size, segments
 from .preprocess import Detection, Preprocessor
 from .refine import Refiner
 from .retime import RawArchive
-from .scale_check import ScaleCheck, check_run
+from .scale_check import ScaleCheck
 from .selection import HypothesisQueue
-from .split_check import SplitCheck, compare_halves, interleaved_halves
+from .snapshot import Snapshots
+from .split_check import SplitCheck
 from .stamp_watch import StampWatch
 from .state import CalibrationState, CameraState, Counters, CycleReport, Lenses, Levelled
 from .sync import Synchronizer
@@ -57,40 +64,12 @@ log = logging.getLogger(__name__)
 _CLOCK_SAMPLES = 16  # offline: messages held back to find a plausible start of time
 
 
-def _added(cov: np.ndarray, more: np.ndarray | None) -> np.ndarray | None:
-    """(C, 6, 6) ``more`` - ``cov``, each made positive semi-definite (the marginals of a
-    graph with more variables hold at least as much uncertainty, up to rounding); None
-    when ``more`` is."""
-    if more is None:
-        return None
-    assert cov.shape == more.shape and cov.shape[1:] == (6, 6)
-    d = 0.5 * ((more - cov) + np.swapaxes(more - cov, 1, 2))
-    out = np.full_like(d, np.nan)
-    ok = np.all(np.isfinite(d), axis=(1, 2))
-    w, V = np.linalg.eigh(d[ok])
-    out[ok] = np.einsum("cij,cj,ckj->cik", V, np.maximum(w, 0.0), V)
-    return out
-
-
-def _from_prior(R0: np.ndarray, t0: np.ndarray, P: np.ndarray, R: np.ndarray, t: np.ndarray
-                ) -> tuple[float, float, float]:
-    """How far pose R (3, 3), t (3,) lies from the prior pose R0, t0 with tangent
-    covariance P (6, 6): (m between the centres, deg, Mahalanobis χ² with 6 dof; NaN for
-    a singular P)."""
-    delta = pose_local(R0, t0, R, t)
-    try:
-        chi2 = float(delta @ np.linalg.solve(P, delta))
-    except np.linalg.LinAlgError:
-        chi2 = float("nan")
-    return float(np.linalg.norm(t - t0)), float(np.degrees(np.linalg.norm(delta[:3]))), chi2
-
-
 Moves = dict[int, tuple[float, float, float]]
 
 
 def _moves(problem: Problem, solution: Solution) -> Moves:
     """Each camera the solution moved: its (m, deg, χ²) from the problem's prior."""
-    return {int(c): _from_prior(problem.prior_R[c], problem.prior_t[c], problem.prior_cov[c], solution.R[c],
+    return {int(c): from_prior(problem.prior_R[c], problem.prior_t[c], problem.prior_cov[c], solution.R[c],
                                 solution.t[c]) for c in np.flatnonzero(solution.active)}
 
 
@@ -109,7 +88,7 @@ def _gated(moves: Moves, C: int, gate: float) -> np.ndarray:
     return far
 
 
-class Pipeline:
+class Pipeline(ClockStage, EndOfRun, Snapshots):
     def __init__(self, cameras: CameraSet, config: EngineConfig | None = None, *, seed: int = 0,
                  start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
                  scale_heights: Sequence[float] | None = None):
@@ -304,157 +283,6 @@ class Pipeline:
             if len(h.cams) >= self.cfg.associate.min_views_unsettled:
                 self.associated_multi[h.cams] += 1
         return len(hyps)
-
-    def _start_estimating(self) -> None:
-        self.estimating = True
-        if self.raw is None and self.cfg.clock.retime_seconds > 0:
-            self.raw = RawArchive(self.names, self.cfg.clock.retime_seconds)
-
-    @property
-    def _watching_stamps(self) -> bool:
-        """``clock.estimate = "auto"`` and the estimate not started yet."""
-        return not self.estimating and self.cfg.clock.estimate == "auto"
-
-    def _watch_stamps(self, now: float) -> None:
-        """``clock.estimate = "auto"``: the estimate starts once a sensor's stamps run
-        ``clock.auto_lead`` apart from the others' as they arrive (backend/stamp_watch.py),
-        live and in a recording alike."""
-        far = self.stamps.sample(now)
-        if far:
-            log.warning("the stamps of %s run %s from the other sensors' as they arrive: estimating the sensors' clock "
-                        "offsets from the data from now on, %.0f s into it (clock.estimate = auto)", ", ".join(far),
-                        ", ".join(f"{1000 * v:+.0f} ms" for v in far.values()),
-                        now - self.stamps.first_stamp)
-            self._far = frozenset(far)
-            self._start_estimating()
-
-    def clock_states(self) -> tuple[SensorClock, ...]:
-        """The sensors' clock offsets as ``state()`` reports them (none while not estimating)."""
-        return self.clocks.clocks() if self.estimating else ()
-
-    def timing_undecided(self) -> list[str]:
-        """Sensors the data say are mistimed whose offset is not applied yet: those whose
-        stamps started the estimate ("auto") while they have no estimate, and those with an
-        estimate of at least ``clock.min_apply`` and a std within ``clock.max_std`` (one
-        that can be applied) awaiting its confirmation. Work on the archived frames that
-        cannot time them again (the check of the initial estimate) waits for them."""
-        if not self.estimating:
-            return []
-        c, cfg = self.clocks, self.cfg.clock
-        out = []
-        for i, n in enumerate(self.names):
-            if c.applied[i] != 0.0:
-                continue
-            if not np.isfinite(c.offset[i]):
-                if n in self._far:
-                    out.append(n)
-            elif abs(c.offset[i]) >= cfg.min_apply and c.std[i] <= cfg.max_std:
-                out.append(n)
-        return out
-
-    def clock_job(self, now: float | None) -> ClockJob | None:
-        """The clock offsets' estimate when due (``clock.estimate``, every
-        ``clock.interval``, after the first adjustment): a job whose ``run`` may go to
-        another thread while push/advance go on; its result goes to ``apply_clock``."""
-        if not self.clocks.due(now) or not self._calibrated():
-            return None
-        return self.clocks.begin(now, self.refiner.R, self.refiner.t, P=self.refiner.S)
-
-    def apply_clock(self, job: ClockJob, result: ClockResult | None) -> list[str]:
-        """Fold a clock job's result in (None: it failed or was cancelled): newly
-        estimated offsets are applied; returns the sensors whose offset changed."""
-        changed = self.clocks.finish(job, result)
-        self._retime(changed)
-        return changed
-
-    def cancel_clock(self) -> None:
-        """Ask the clock job in flight (if any) to end early; ``apply_clock`` still takes it."""
-        self.clocks.cancel()
-
-    def _retime(self, sensors: list[str]) -> None:
-        """Apply newly estimated clock offsets. Archived views stay as they are;
-        ``_timed_frames`` leaves out those timed with an offset that differs from the
-        sensor's current one by more than ``clock.retime_tolerance`` (an offset taken
-        back brings its earlier views back)."""
-        start = self.sync.next_time if self.sync.next_time is not None else -np.inf
-        rf = self.refiner
-        for name in sensors:
-            c = self.names.index(name)
-            new = float(self.clocks.applied[c])
-            if not self._offset_history[c] or self._offset_history[c][-1][1] == 0.0:  # a first offset
-                pose = self.clocks.relocation(c, rf.R[c], rf.t[c], rf.S[c], bool(rf.cycles[c] > 0))
-                if pose is not None:  # the camera where the clock's estimate put it
-                    rf.relocate(c, *pose)
-                    self.relocalized.append(name)
-                    self._restart_noted(c, "relocalized after its clock offset was applied", say=True)
-            self.sync.set_offset(name, new)
-            self._offset_history[c].append((start, new))
-
-    def _stale(self, c: int, times: np.ndarray) -> np.ndarray:
-        """(N,) bool: camera c's views at frameset ``times`` were timed with an offset
-        more than ``clock.retime_tolerance`` from its current one."""
-        hist = self._offset_history[c]  # (start, offset): from which frameset time on each was used; 0 before
-        if not hist:
-            return np.zeros(len(times), bool)
-        starts = np.array([-np.inf] + [h[0] for h in hist])
-        offsets = np.array([0.0] + [h[1] for h in hist])
-        used = offsets[np.searchsorted(starts, times, side="right") - 1]
-        return np.abs(used - hist[-1][1]) > self.cfg.clock.retime_tolerance
-
-    def _timed_frames(self, frames: Iterable[tuple[float, tuple]] | None = None) -> list[tuple[float, tuple]]:
-        """The archived frames (or ``frames``) without the views timed with an offset
-        more than ``clock.retime_tolerance`` from their sensor's current one (the
-        batch adjustments must not use them)."""
-        frames = list(self.frames if frames is None else frames)
-        times = np.array([T for T, _ in frames])
-        stale = {c: self._stale(c, times) for c in range(len(self.names)) if self._offset_history[c]}
-        stale = {c: s for c, s in stale.items() if s.any()}
-        if not stale:
-            return frames
-        return [(T, tuple(v for v in views if not (v[0].cam in stale and stale[v[0].cam][k])))
-                for k, (T, views) in enumerate(frames)]
-
-    def retime_archive(self) -> dict[str, int]:
-        """Interpolate the archived views of every sensor that were timed with another
-        offset than its current one again, at the current one, from the raw messages kept
-        (``clock.retime_seconds``): the batch adjustments then have all of its data, not
-        only the views timed since its offset was last changed. Frames older than the raw
-        messages kept stay as ``_timed_frames`` leaves them. Returns (and adds to
-        ``retimed``) the views timed again per sensor."""
-        if self.raw is None or not self.frames:
-            return {}
-        pre = None  # its own preprocessor: the session's counts are of the live data
-        frames = list(self.frames)
-        times = np.array([T for T, _ in frames])
-        out: dict[str, int] = {}
-        for c, hist in enumerate(self._offset_history):
-            name, span = self.names[c], self.raw.span(self.names[c])
-            if span is None:
-                continue
-            current = hist[-1][1] if hist else 0.0
-            cut = span[0] - current + self.cfg.sync.max_offset  # earlier frames lack a bracketing message
-            idx = np.flatnonzero(self._stale(c, times) & (times >= cut))
-            if not len(idx):
-                continue
-            pre = pre or Preprocessor(self.cfg.preprocess, self.names, self.cameras.intrinsics,
-                                      self.preprocess.confidence)
-            n = 0
-            for k, v in zip(idx, self.raw.views(name, current, times[idx], self.cfg.sync)):
-                T, old = frames[k]
-                dets = tuple(pre.view(v)) if v is not None else ()
-                n += len(dets)
-                keep = [w for w in old if w[0].cam != c] + ([dets] if dets else [])
-                frames[k] = (T, tuple(sorted(keep, key=lambda w: w[0].cam)))
-            # from the cut on, every view of this sensor is timed with the current offset
-            first = float(times[times >= cut][0])
-            self._offset_history[c] = [h for h in hist if h[0] < first] + [(first, current)]
-            out[name] = n
-            log.info("%s: %d archived views timed again with its offset of %+.1f ms", name, n, 1000 * current)
-        if out:
-            self.frames = deque(frames, maxlen=self.frames.maxlen)
-        for k, n in out.items():
-            self.retimed[k] = self.retimed.get(k, 0) + n
-        return out
 
     def _calibrated(self) -> bool:
         """The first adjustment is done: the poses are good enough to time the sensors
@@ -850,7 +678,7 @@ class Pipeline:
         if rf.held[c]:  # watched since its dispute began: the monitor judges it now
             return
         if solution is not None and solution.active[c] and np.all(np.isfinite(solution.cov[c])):
-            m, deg, chi2 = _from_prior(rf.R[c], rf.t[c], rf.predicted_covariance()[c], solution.R[c], solution.t[c])
+            m, deg, chi2 = from_prior(rf.R[c], rf.t[c], rf.predicted_covariance()[c], solution.R[c], solution.t[c])
             if chi2 > self.cfg.select.cycle_gate:
                 log.warning("%s was %.2f m / %.1f° off (χ² %.0f against its std), an adjustment over its archived "
                             "views says: it starts over from there", self.names[c], m, deg, chi2)
@@ -968,136 +796,6 @@ class Pipeline:
         ``JoiningPipeline``; this pipeline has none)."""
         return False
 
-    def far_from_start(self) -> list[tuple[str, float, float, float]]:
-        """The calibrated cameras whose estimate lies beyond ``select.first_gate`` (χ², 6
-        dof) of where they started (the initial estimate with its stated std, or the
-        bootstrap's poses with the hand-over std): (name, m, deg, χ²). Either the start
-        was that wrong for them (a swapped or mislabelled camera), or the data put them
-        there wrongly; a user should look at them."""
-        gate, rf = self.cfg.select.first_gate, self.refiner
-        out = []
-        if gate <= 0:
-            return out
-        for c in np.flatnonzero(rf.cycles > 0):
-            move = _from_prior(rf.prior_R[c], rf.prior_t[c], rf.P0[c], rf.R[c], rf.t[c])
-            if move[2] > gate:
-                out.append((self.names[c], *move))
-        return out
-
-    def check_scale(self) -> ScaleCheck | None:
-        """The initial estimate's scale against the people's on the archived frames, and
-        the correction ``bootstrap.initial_scale`` asks for made to the frame the estimate
-        keeps (``Refiner.rescale_frame``)."""
-        rf = self.refiner
-        self.scale_check = check_run(self.frames, rf.R, rf.t, rf.cycles > 0, rf.t0, self.cfg, self.scale_heights or ())
-        if self.scale_check is not None and self.scale_check.corrected:
-            rf.rescale_frame(self.scale_check.apply)
-        return self.scale_check
-
-    def check_halves_safely(self) -> None:
-        """``check_halves`` once, if ``refine.split_check``: a report on top of the result,
-        whose failure must not cost the final batch."""
-        if not self.cfg.refine.split_check or self.split_check is not None or not self.frames:
-            return
-        try:
-            self.check_halves()
-        except (ValueError, ArithmeticError, np.linalg.LinAlgError) as e:
-            log.warning("the split-half check failed, the stated std is kept: %s", e)
-
-    def check_halves(self) -> SplitCheck | None:
-        """The final batch on each of two interleaved halves of the archived frames, from
-        the result, compared with each other (backend/split_check.py): the cameras they
-        place further apart than their own stds allow get their covariance widened.
-        None when there are too few frames or a half fails."""
-        cfg = self.cfg.refine
-        frames = list(self.frames)
-        half = interleaved_halves(np.array([T for T, _ in frames]), cfg.split_block)
-        if min(int((half == 0).sum()), int((half == 1).sum())) < 10:
-            return None
-        cycle, out = self.cycle, []
-        try:
-            for k in (0, 1):
-                p = self._batch_problem(max(10, cfg.batch_size // 2), self.cfg.select.min_spacing / 2,
-                                        [f for f, h in zip(frames, half) if h == k], final=True, seed=k)
-                sol = solve(p)
-                if not sol.ok:
-                    return None
-                cov = np.where(np.isfinite(sol.cov_shape), sol.cov_shape, sol.cov)
-                out.append((sol.R, sol.t, sol.active & (self.refiner.cycles > 0), cov))
-        finally:
-            self.cycle = cycle  # the check is not a cycle of the calibration
-        rf = self.refiner
-        self.split_check = compare_halves(self.names, rf.S, out, cfg.split_ratio)
-        rf.widen(self.split_check.factor)
-        return self.split_check
-
-    def batch_adjust(self) -> CycleReport:
-        p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2, final=True)
-        # the floor ``_level`` makes the frame on; the std with the lenses' accuracy (``lens_cov``)
-        p = replace(p, level=self.cfg.refine.floor_frame is not None, lens_accuracy=True)
-        sol = solve(p)
-        if sol.ok and sol.phantoms:
-            # Phantoms are judged by their size in the start's scale, and a link of a chain
-            # that the online cycles drew 1.3x too long loses its right hypotheses with them.
-            # Its bones put the link right in this solve: associated and judged again from
-            # there, those come back and the phantoms stay out. The problem kept for the
-            # report is the first: what moved is measured from the online estimate.
-            again = solve(replace(p, R=sol.R.copy(), t=sol.t.copy()))
-            if again.ok:
-                sol = again
-        if self.cfg.refine.final_batch_from_start:
-            p, sol = self._batch_from_start(p, sol)
-        self._inflight = p
-        report = self.apply(p, sol)
-        if report.accepted:  # the final word: a camera it did not place keeps no earlier part
-            self.lens_cov = None
-            self._lens_part(sol, np.ones(len(self.names), bool))
-        if report.accepted and sol.lenses is not None and sol.lens_std is not None:
-            # relative to the intrinsics this pipeline works with: a resumed session's are its lenses already
-            used = np.array([(self.cameras.intrinsics[n].fx, self.cameras.intrinsics[n].fy) for n in self.names])
-            found = Lenses.of(self.names, sol.lenses, sol.lens_std, used)
-            self.lenses = found if self.lenses is None else self.lenses.then(found)
-        if self.cfg.refine.floor_frame is not None:
-            self.levelled = self._level(sol.level) if report.accepted else Levelled(False, "the final batch was rejected")
-        return report
-
-    def _level(self, floor: Floor | None) -> Levelled:
-        """The bootstrap's floor frame (``refine.floor_frame``) made again on ``floor``, the
-        final batch's: the bootstrap's was the floor of the people the cameras it placed
-        saw, one pair's when the others joined later (docs/bootstrap.md, Session 36)."""
-        spec, rf = self.cfg.refine.floor_frame, self.refiner
-        if floor is None:
-            return Levelled(False, "the final batch's lower ankles fit no one floor")
-        if spec.first not in self.names:
-            return Levelled(False, f"{spec.first}, the origin's camera, is not in the network")
-        first = self.names.index(spec.first)
-        rest = [c for c in np.flatnonzero(rf.cycles > 0) if c != first]
-        if spec.second in self.names:  # x towards the same camera where it can
-            rest.insert(0, self.names.index(spec.second))
-        order = [first] + list(dict.fromkeys(rest))
-        found = world_frame(floor.n, floor.d - spec.ankle_height, rf.t[order])
-        if found is None:
-            return Levelled(False, "the cameras' floor points coincide: no x axis")
-        F, o, k = found
-        rf.reframe(F, o)
-        return Levelled(True, "", float(np.degrees(np.arccos(np.clip(floor.n[2], -1.0, 1.0)))), float(np.linalg.norm(o)),
-                        floor.points, floor.spread, spec.first, self.names[order[k]])
-
-    def _batch_from_start(self, p: Problem, sol: Solution) -> tuple[Problem, Solution]:
-        """The same batch (same frames, selection seed, prior) started from the start
-        instead of the estimate; kept when it explains at least as many observations at a
-        lower cost per observation. The batch is a local optimisation that re-associates
-        from where it starts: a camera the online cycles dragged off (few hypotheses, a
-        wide prior) can end in another minimum than from the start the bootstrap found
-        with all the data (docs/bootstrap.md, seed 2's cam_13)."""
-        rf = self.refiner
-        q = replace(p, R=rf.prior_R.copy(), t=rf.prior_t.copy(), pose_px=self._pose_px(start=True))
-        alt = solve(q)
-        n_p, n_q = int(sol.obs_per_camera.sum()), int(alt.obs_per_camera.sum())
-        better = (alt.ok and (not sol.ok or (n_q >= n_p > 0 and alt.final_error / n_q < sol.final_error / n_p)))
-        self.final_batch_start = "start" if better else "estimate"
-        return (q, alt) if better else (p, sol)
-
     # ------------------------------------------------------------ state
 
     def counters(self) -> Counters:
@@ -1138,40 +836,6 @@ class Pipeline:
                                 scale_check=self.scale_check.to_dict() if self.scale_check is not None else None,
                                 split_check=self.split_check.to_dict() if self.split_check is not None else None)
 
-    def _lens_part(self, sol: Solution, cams: np.ndarray) -> None:
-        """Take what the lenses' accuracy adds to the stated covariance of ``cams`` (C,) bool
-        from an adjustment with the start's prior (the first, the final batch): how far a
-        lens off its file moves a pose depends on where the people are in the views more
-        than on how much data there are (the west room's 30 s: 11-20 mm from the first
-        adjustment, 13-24 mm from the final batch), so the first adjustment's part stands
-        for the running session's until the final batch's replaces it (a cycle's, with the
-        filter's prior, would be held down by it)."""
-        add = _added(sol.cov_shape, sol.cov_shape_lenses)
-        if add is None:
-            return
-        if self.lens_cov is None:
-            self.lens_cov = np.full((len(self.names), 6, 6), np.nan)
-        take = cams & np.all(np.isfinite(add), axis=(1, 2))
-        self.lens_cov[take] = add[take]
-
-    def _stated_cov(self, c: int) -> np.ndarray:
-        """(6, 6) camera c's covariance as stated: the solves' (shape), and what its lens's
-        accuracy adds once the first adjustment or a final batch has found it."""
-        S = self.refiner.S[c].copy()
-        if self.lens_cov is not None and np.all(np.isfinite(self.lens_cov[c])):
-            S += self.lens_cov[c]
-        return S
-
-    def std_note(self) -> str | None:
-        """What the stated std holds, once the first adjustment or a final batch added the
-        lenses' accuracy (for a result's header); None before."""
-        if self.lens_cov is None:
-            return None
-        o = self.cfg.optimize
-        return (f"stated std: the keypoints' noise and the calibration files' lens accuracy, "
-                f"{100 * o.lens_accuracy_focal:.2g} % in focal length and {100 * o.lens_accuracy_centre:.2g} % of it in "
-                f"principal point (optimize.lens_accuracy_*)")
-
     def skeletons(self, n: int = 4) -> list[list[list[float] | None]]:
         """The newest ``n`` hypotheses of distinct persons as 3D skeletons (17 joints, world
         frame, None where a joint is not triangulated), for display."""
@@ -1186,94 +850,6 @@ class Pipeline:
                 break
         X = triangulate_hypotheses(chosen, self.refiner.R, self.refiner.t)
         return [[x.tolist() if np.all(np.isfinite(x)) else None for x in person] for person in X]
-
-    def snapshot(self) -> dict:
-        """JSON-able state to resume from: the estimate, not the buffered data."""
-        rf = self.refiner
-        return {
-            "version": 2,
-            "names": list(self.names),
-            "R": rf.R.tolist(), "t": rf.t.tolist(), "P": rf.P.tolist(), "S": rf.S.tolist(),
-            "R0": rf.R0.tolist(), "t0": rf.t0.tolist(),
-            "prior_R": rf.prior_R.tolist(), "prior_t": rf.prior_t.tolist(), "P0": rf.P0.tolist(),
-            "cycles": rf.cycles.tolist(),
-            "history": [[[t.tolist(), R.tolist()] for t, R in h] for h in rf.history],
-            "cycle": self.cycle,
-            "first_passes": self.first_passes,
-            "moved": [[a.time, a.cam, a.chi2, a.translation, a.rotation, a.since] for a in self.monitor.alarms],
-            "restarted": [[c, t, why] for c, (t, why) in self.restarted.items()],
-            "watched": self.watched.tolist(),
-            "batched": rf.batched.tolist(),
-            "observations": self.observations.tolist(),
-            "observations_batch": self.observations_batch.tolist(),
-            "clock": self.clock,
-            "clock_offsets": {n: float(o) for n, o in zip(self.names, self.clocks.applied) if o},
-            "clock_estimating": self.estimating,
-            "scale_heights": None if self.scale_heights is None else list(self.scale_heights),
-            "scale_check": self.scale_check.to_dict() if self.scale_check is not None else None,
-            "split_check": self.split_check.to_dict() if self.split_check is not None else None,
-            "lenses": self.lenses.to_dict() if self.lenses is not None else None,
-            "lens_cov": None if self.lens_cov is None else
-            [x.tolist() if np.all(np.isfinite(x)) else None for x in self.lens_cov],
-        }
-
-    @classmethod
-    def restore(cls, cameras: CameraSet, config: EngineConfig, snapshot: dict, *, seed: int = 0) -> "Pipeline":
-        """A pipeline that goes on from ``snapshot``; ``cameras`` as the session began
-        (the calibration files' lenses: the snapshot's poses fit the lenses it found)."""
-        lenses = Lenses.from_dict(snapshot["lenses"]) if snapshot.get("lenses") else None
-        if lenses is not None and not set(lenses.cameras) <= set(cameras.names):
-            lenses = None  # another camera set: _load says so
-        if lenses is not None:
-            cameras = replace(cameras, intrinsics=lenses.intrinsics(cameras.intrinsics))
-        p = cls(cameras, config, seed=seed)
-        p._load(snapshot)
-        p.lenses = lenses
-        return p
-
-    def _load(self, snapshot: dict) -> None:
-        """The estimate of a ``snapshot`` (of these cameras) into this new pipeline."""
-        if snapshot.get("version") != 2 or list(snapshot.get("names", [])) != list(self.names):
-            raise ValueError("snapshot does not belong to this camera set")
-        p, config = self, self.cfg
-        if snapshot.get("scale_heights") is not None:
-            p.scale_heights = tuple(float(h) for h in snapshot["scale_heights"])
-        if snapshot.get("scale_check") is not None:
-            p.scale_check = ScaleCheck.from_dict(snapshot["scale_check"])
-        if snapshot.get("split_check") is not None:
-            p.split_check = SplitCheck.from_dict(snapshot["split_check"])
-        rf = p.refiner
-        rf.R, rf.t, rf.P, rf.S = (np.array(snapshot[k], dtype=np.float64) for k in ("R", "t", "P", "S"))
-        rf.R0, rf.t0 = np.array(snapshot["R0"]), np.array(snapshot["t0"])
-        # snapshots from before a prior of its own existed: the initial estimate was it
-        rf.prior_R = np.array(snapshot.get("prior_R", snapshot["R0"]), dtype=np.float64)
-        rf.prior_t = np.array(snapshot.get("prior_t", snapshot["t0"]), dtype=np.float64)
-        if "P0" in snapshot:
-            rf.P0 = np.array(snapshot["P0"], dtype=np.float64)
-        rf.cycles = np.array(snapshot["cycles"], dtype=np.int64)
-        for h, items in zip(rf.history, snapshot["history"]):
-            h.extend((np.array(t, dtype=np.float64), np.array(R, dtype=np.float64)) for t, R in items)
-        p.cycle = int(snapshot["cycle"])
-        # a snapshot from before first passes existed had its first cycles long ago
-        p.first_passes = int(snapshot.get("first_passes", 2))
-        p.monitor.alarms = [Alarm(float(a[0]), int(a[1]), *map(float, a[2:])) for a in snapshot.get("moved", [])]
-        p.restarted = {int(c): (float(t), str(why)) for c, t, why in snapshot.get("restarted", [])}
-        p.watched = np.array(snapshot.get("watched", [False] * len(p.names)), dtype=bool)
-        if config.monitor.on:  # held from the first cycle after the restart, not the monitor's first turn
-            rf.held = p.watched & config.monitor.hold
-        rf.batched = np.array(snapshot.get("batched", [False] * len(p.names)), dtype=bool)
-        if snapshot.get("lens_cov") is not None and len(snapshot["lens_cov"]) == len(p.names):
-            p.lens_cov = np.array([np.full((6, 6), np.nan) if x is None else x for x in snapshot["lens_cov"]],
-                                  dtype=np.float64)
-        p.observations = np.array(snapshot["observations"], dtype=np.int64)
-        p.observations_batch = np.array(snapshot.get("observations_batch", [0] * len(p.names)), dtype=np.int64)
-        applied = {n: float(o) for n, o in snapshot.get("clock_offsets", {}).items() if n in p.names}
-        if snapshot.get("clock_estimating", bool(applied)) and config.clock.estimate is not False:
-            p._start_estimating()  # the data timed as before the restart
-        if p.estimating:
-            p.clocks.set_applied(applied)
-            for n, o in applied.items():
-                p.sync.set_offset(n, o)
 
 
 def run_offline(cameras: CameraSet, config: EngineConfig, messages: Iterable[KeypointMessage], *, seed: int = 0,

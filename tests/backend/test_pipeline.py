@@ -237,7 +237,7 @@ def test_the_scale_check_corrects_once_and_survives_a_snapshot(lab, run):
 def test_a_failing_scale_check_costs_nothing_but_itself(lab, run, monkeypatch, caplog):
     import copy
 
-    import backend.pipeline as pl
+    import backend.end_of_run as pl
 
     def broken(*a, **k):
         raise ValueError("no person measured")
@@ -845,7 +845,7 @@ def test_the_split_half_check_widens_the_std_of_a_camera_the_halves_disagree_on(
     others keep theirs, and the poses do not move."""
     import copy
 
-    import backend.pipeline as pl
+    import backend.end_of_run as pl
 
     p = copy.deepcopy(run[0])
     p.split_check = None
