@@ -9,7 +9,8 @@ from fastapi.responses import JSONResponse
 from ..cameras import CameraFileError
 from ..config import ConfigError
 from ..session import NotAvailable, SessionConflict, SessionInputError, SessionNotFound
-from ..service import StorageError, UnknownFormat
+from ..service import StorageError
+from ..service_api import UnknownFormat
 
 STATUS: dict[type[Exception], int] = {
     SessionNotFound: 404,
