@@ -194,15 +194,7 @@ class ServiceApi:
             intr_text = (self.store.dir(sid) / "intrinsics.yaml").read_text()
         if fmt == "yaml":
             return text, "application/yaml"
-        try:
-            from . import export as exporter
-        except ModuleNotFoundError:
-            raise UnknownFormat(f"unknown format {fmt!r}: this build writes json and yaml") from None
-        intr = parse_intrinsics(intr_text, f"session {sid} intrinsics.yaml")
-        try:
-            return exporter.export(ext, intr, fmt)
-        except ValueError as e:  # ExportError: unknown format, or the cameras do not fit it
-            raise UnknownFormat(str(e)) from None
+        return _exported(ext, lambda: parse_intrinsics(intr_text, f"session {sid} intrinsics.yaml"), fmt)
 
     # ------------------------------------------------------------ calibration versions
 
@@ -275,16 +267,8 @@ class ServiceApi:
         text = self.versions.yaml(v)
         if fmt == "yaml":
             return text, "application/yaml"
-        try:
-            from . import export as exporter
-        except ModuleNotFoundError:
-            raise UnknownFormat(f"unknown format {fmt!r}: this build writes json and yaml") from None
-        ext = parse_extrinsics(text, f"calibration version {v}")
-        intr = parse_intrinsics(self.versions.intrinsics(v), f"calibration version {v} intrinsics")
-        try:
-            return exporter.export(ext, intr, fmt)
-        except ValueError as e:
-            raise UnknownFormat(str(e)) from None
+        return _exported(parse_extrinsics(text, f"calibration version {v}"),
+                         lambda: parse_intrinsics(self.versions.intrinsics(v), f"calibration version {v} intrinsics"), fmt)
 
     async def activate_version(self, v: int, reason: str | None) -> dict[str, Any]:
         """Make version ``v`` the active calibration (as a new version, a copy of it) and
@@ -475,3 +459,16 @@ def result_header(s: ActiveSession) -> str:
                                    lenses and lenses["summary"], std) if x)
     return f"{head}\n{extra}" if extra else head
 
+
+def _exported(ext: dict, intrinsics: Callable[[], dict], fmt: str) -> tuple[str | bytes, str]:
+    """A calibration in an export format (backend/export.py): (content, media type);
+    ``intrinsics`` is read only for a format this build can write."""
+    try:
+        from . import export as exporter
+    except ModuleNotFoundError:
+        raise UnknownFormat(f"unknown format {fmt!r}: this build writes json and yaml") from None
+    intr = intrinsics()
+    try:
+        return exporter.export(ext, intr, fmt)
+    except ValueError as e:  # ExportError: unknown format, or the cameras do not fit it
+        raise UnknownFormat(str(e)) from None
