@@ -368,10 +368,6 @@ class BootstrapConfig(_Section):
                              "placed camera (the bootstrap's pair guards; the baseline's length from the floor both "
                              "sides' people stand on, else their bones): the end of a camera chain, which only its "
                              "neighbour sees with it")
-    late_pair_ratio: float = Field(0.5, ge=0, le=1, description="... when it agrees in more than this share of the "
-                                   "frames in which each sees one person (no cycle of pairs checks such a pair: with "
-                                   "fewer, most of those frames show two different people, and a wrong geometry can "
-                                   "fit the rest)")
     level_final: bool = Field(True, description="the world frame is levelled again on the floor of the final batch "
                               "adjustment's people (the bootstrap's floor is that of the cameras it placed: when it "
                               "placed only one pair and the rest joined later, that pair's people's floor tilted the "

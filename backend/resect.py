@@ -399,8 +399,7 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
     only a pair can place it: found as the bootstrap finds its pairs (``pair_poses``, with
     its guards, on every frame given; the bootstrap's pairs had only its first
     ``max_seconds``), and as a bridge of the view graph it must keep one person's size
-    (``bridge_spread``) and agree in most of the frames in which each sees one person
-    (``late_pair_ratio``). The pair fixes the camera's turn and the direction of its
+    (``bridge_spread``). The pair fixes the camera's turn and the direction of its
     baseline; the baseline's length is where the pair's people stand on the floor the
     placed network's people stand on (the lower ankles of both on one plane: camera
     heights, not people's sizes). Without a floor on both sides, the people's bones give
@@ -416,11 +415,7 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
     keep[cam] = True
     sub = [(time_, tuple(v for v in views if keep[v[0].cam])) for time_, views in frames]
     found, _ = pair_poses(sub, C, focal, cfg, seed=seed + 104729 * cam, only=cam)
-    # a majority of the frames in which each sees one person: two cameras that share no
-    # view see two different people there, and a wrong geometry fitted a third of them (a
-    # 12-camera corridor: two cameras apart, 31 of 66 frames, turned 177°; neighbours 69-98 %)
-    found = [p for p in found if located[p.b if p.a == cam else p.a] and p.size_spread <= cfg.bridge_spread
-             and len(p.frames) > cfg.late_pair_ratio * p.candidates]
+    found = [p for p in found if located[p.b if p.a == cam else p.a] and p.size_spread <= cfg.bridge_spread]
     if not found or not len(persons.frame):
         return None
     # the network's bones in metres, measured as the pair's are (each person a "frame")
