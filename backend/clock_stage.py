@@ -16,7 +16,7 @@ from .clock_offsets import ClockJob, ClockResult, SensorClock
 from .preprocess import Preprocessor
 from .retime import RawArchive
 
-log = logging.getLogger("backend.pipeline")
+log = logging.getLogger("backend.pipeline")  # the pipeline's: its messages keep their logger
 
 
 class ClockStage:

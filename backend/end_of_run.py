@@ -18,7 +18,7 @@ from .scale_check import ScaleCheck, check_run
 from .split_check import SplitCheck, compare_halves, interleaved_halves
 from .state import CycleReport, Lenses, Levelled
 
-log = logging.getLogger("backend.pipeline")
+log = logging.getLogger("backend.pipeline")  # the pipeline's: its messages keep their logger
 
 
 def _added(cov: np.ndarray, more: np.ndarray | None) -> np.ndarray | None:

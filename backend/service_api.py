@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from .service import ActiveSession
     from .state import CalibrationState, CycleReport
 
-log = logging.getLogger("extrcal.service")
+log = logging.getLogger("extrcal.service")  # the service's: its messages keep their logger
 
 STATUS_FRESH = 0.5  # s: a snapshot younger than this is served as it is (_status_loop refreshes it)
 STATUS_ASKED = 5.0  # s after a /status request during which the snapshot is kept fresh

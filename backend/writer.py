@@ -7,7 +7,7 @@ import asyncio
 import logging
 from typing import Any, Callable
 
-log = logging.getLogger("extrcal.service")
+log = logging.getLogger("extrcal.service")  # the service's: its messages keep their logger
 
 
 class Writer:
