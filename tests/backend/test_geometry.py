@@ -10,6 +10,7 @@ from backend.geometry import (
     _least_median_start,
     align_poses,
     closest_points_segments,
+    from_prior,
     pose_compose,
     pose_inverse,
     pose_local,
@@ -264,3 +265,19 @@ def test_the_turn_about_a_corridor_comes_from_the_orientations_where_the_centres
         assert np.max(both) < 30
     else:
         assert np.array_equal(centres, both)
+
+
+def test_from_prior_measures_a_move_in_metres_degrees_and_its_chi2():
+    """A pose moved by a known tangent step from its prior: the centre's distance, the
+    turn, and the Mahalanobis χ² under the prior's covariance; NaN χ² for a singular one."""
+    R0, t0 = quat_to_R(np.array([0.1, -0.2, 0.3, 0.9]) / np.linalg.norm([0.1, -0.2, 0.3, 0.9])), np.array([1.0, 2.0, 2.5])
+    xi = np.array([0.0, 0.0, np.radians(2.0), 0.03, 0.0, 0.0])  # 2° about the camera's z, 3 cm along its x
+    R, t = pose_retract(R0, t0, xi)
+    P = np.diag([np.radians(1.0) ** 2] * 3 + [0.01 ** 2] * 3)
+    m, deg, chi2 = from_prior(R0, t0, P, R, t)
+    assert m == pytest.approx(np.linalg.norm(t - t0)) and deg == pytest.approx(2.0, abs=1e-9)
+    local = pose_local(R0, t0, R, t)
+    assert chi2 == pytest.approx(float(local @ np.linalg.solve(P, local)))
+    assert chi2 > 4.0  # 2 std in turn alone
+    assert np.isnan(from_prior(R0, t0, np.zeros((6, 6)), R, t)[2])
+
