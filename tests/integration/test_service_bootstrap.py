@@ -173,7 +173,7 @@ def test_a_camera_the_bootstrap_left_out_joins_the_running_session(tmp_path, lab
             assert set(cams(joined)) == set(WEST) and joined["bootstrap"]["not_placed"] == []
             assert [(j["name"], j["live"]) for j in joined["bootstrap"]["placed_later"]] == [(late, True)]
             assert (tmp_path / "sessions" / sid / "initial.yaml").read_text().count(f"{late}:") == 1  # a resume has it
-            stopped = client.post(f"/sessions/{sid}/stop").json()
+            stopped = client.post(f"/sessions/{sid}/stop", timeout=300).json()  # the final batch: see above
         result_text = client.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text
     assert stopped["state"] == "stopped" and stopped["final_batch"]["ran"]
     assert [(j["name"], j["live"], j["adjusted"]) for j in stopped["bootstrap"]["placed_later"]] == [(late, True, True)]
@@ -232,7 +232,7 @@ def test_an_initial_estimate_is_checked_against_the_data_and_a_rough_one_replace
             more = _poll(client, f"/sessions/{sid}", lambda s: s["data_time"] >= resumed_at + 60 or s["state"] == "failed",
                          120, "no minute of data after the restart", seen)
             assert more["state"] != "failed" and more["initial_check"] == check, more["reason"]
-            stopped = client.post(f"/sessions/{sid}/stop").json()
+            stopped = client.post(f"/sessions/{sid}/stop", timeout=300).json()  # the final batch: see above
             result = parse_extrinsics(client.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text)
 
     assert stopped["state"] == "stopped" and stopped["final_batch"]["ran"]

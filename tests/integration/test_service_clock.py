@@ -51,7 +51,10 @@ def test_a_sensor_with_a_bad_clock_is_timed_and_its_archive_timed_again(tmp_path
                            f"{LATE}'s offset not applied", seen)
             others = {n: (status["sensors"][n].get("time_offset") or {}).get("applied") for n in WEST if n != LATE}
             assert all(not a for a in others.values()), others  # synchronised sensors: nothing applied
-            stopped = client.post(f"/sessions/{sid}/stop").json()
+            # the stop answers when the final batch, the offsets estimated once more and the
+            # split-half check have run in the solver: a bound for liveness (a slow CI run
+            # took over 60 s)
+            stopped = client.post(f"/sessions/{sid}/stop", timeout=300).json()
         result_text = client.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text
     assert stopped["state"] == "stopped" and stopped["final_batch"]["ran"], stopped["final_batch"]
     assert stopped["final_batch"]["retimed"].get(LATE, 0) > 0, stopped["final_batch"]

@@ -87,7 +87,7 @@ def test_live_session_converges_stops_and_has_a_result(tmp_path, lab_dir):
                 assert all(c["converged"] for c in s["cameras"] if c["cycles"] > 0)
                 status = client.get("/status").json()
                 running = client.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text
-                stopped = client.post(f"/sessions/{sid}/stop").json()
+                stopped = client.post(f"/sessions/{sid}/stop", timeout=300).json()  # the final batch runs in it
             sub.undeclare()
         finally:
             zs.close()
