@@ -33,8 +33,7 @@ The numeric core: synchronous, no network.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, replace
-from dataclasses import field as dataclass_field
+from dataclasses import dataclass, field, replace
 from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
@@ -473,8 +472,8 @@ class LateResult:
 
     resections: tuple[Resection, ...]
     located: np.ndarray
-    timed: Mapping[int, float] = dataclass_field(default_factory=dict)  # camera -> s its views were taken later
-    timing: Mapping[int, str] = dataclass_field(default_factory=dict)  # camera whose stamps ran apart -> how each
+    timed: Mapping[int, float] = field(default_factory=dict)  # camera -> s its views were taken later
+    timing: Mapping[int, str] = field(default_factory=dict)  # camera whose stamps ran apart -> how each
     # timing agreed and which was taken
 
 
@@ -497,7 +496,7 @@ class LateJob:
     bootstrap: Any
     seed: int
     floor_frames: tuple[Frame, ...] = ()  # the placed cameras' framesets (all cameras' indices) for their floor
-    leads: Mapping[int, float] = dataclass_field(default_factory=dict)  # unplaced cameras whose stamps run apart: s
+    leads: Mapping[int, float] = field(default_factory=dict)  # unplaced cameras whose stamps run apart: s
 
     def run(self) -> LateResult:
         located, found = self._resect(list(self.frames))
