@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import functools
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -118,14 +118,17 @@ class Resection:
     reason: str
     paired: int = -1
     scaled_by: str = ""
+    third: tuple[int, ...] = ()  # the unplaced cameras whose triangles refused or hold back its pair (``place_by_pair``)
 
     def summary(self, name: str, names: Sequence[str] = ()) -> str:
+        third = ", ".join(names[k] if len(names) > k else f"camera {k}" for k in self.third)
         if self.R is None:
-            return f"{name} not resected ({self.reason})"
+            return f"{name} not {'placed' if self.paired >= 0 else 'resected'} ({self.reason}{': ' * bool(third)}{third})"
         if self.paired >= 0:
             other = names[self.paired] if len(names) > self.paired else f"camera {self.paired}"
-            return (f"{name} placed by its pair with {other}: agrees in {self.frames}/{self.seen} frames in which "
-                    f"each sees one person, {self.residual_px:.1f} px, {SCALED_BY[self.scaled_by]}")
+            return (f"{name} {'' if self.accepted else 'not '}placed by its pair with {other}: agrees in "
+                    f"{self.frames}/{self.seen} frames in which each sees one person, {self.residual_px:.1f} px, "
+                    f"{SCALED_BY[self.scaled_by]}" + ("" if self.accepted else f" ({self.reason}: {third})"))
         return (f"{name} {'resected' if self.accepted else 'not resected'}: agrees in {self.frames}/{self.seen} frames "
                 f"({self.candidates} with candidates), spread {self.spread:.2f} m, rival pose {self.rival} frames, "
                 f"{self.residual_px:.1f} px" + ("" if self.accepted else f" ({self.reason})"))
@@ -331,7 +334,7 @@ def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, bo
 
 def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located: np.ndarray, focal: np.ndarray,
                     boxes: np.ndarray, assoc: AssociateConfig, cfg: BootstrapConfig, *, seed: int = 0,
-                    pairs: bool = False, floor_frames: Sequence[Frame] = ()
+                    pairs: bool = False, floor_frames: Sequence[Frame] = (), wait: bool = False
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[Resection]]:
     """Resect the cameras not ``located`` (C,) bool, one at a time, best evidence first:
     a camera placed joins the network the next ones are resected against (a room that
@@ -340,8 +343,9 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
     placed camera (``place_by_pair``), its baseline's length from the floor of the persons
     the located cameras triangulate in ``frames`` and ``floor_frames`` (more of the
     network's framesets: ``frames`` may hold only those in which the camera sees
-    somebody). Returns copies of (R (C, 3, 3), t (C, 3), located (C,)) and each camera's
-    last Resection."""
+    somebody). ``wait``: more data will come (a live join), so a pair placement that no
+    third camera confirms waits for it (``place_by_pair``). Returns copies of (R (C, 3, 3),
+    t (C, 3), located (C,)) and each camera's last Resection."""
     R0, t0, placed0 = R.copy(), t.copy(), located.copy()
     R, t, located = R.copy(), t.copy(), located.copy()
     last: dict[int, Resection] = {}
@@ -363,8 +367,10 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
             first = persons
         found = [resect(frames, persons, c, float(focal[c]), boxes[c], cfg, seed=seed + c) for c in todo]
         if pairs:
-            found = [r if r.accepted else (place_by_pair(frames, persons, r.cam, R, t, located, focal, cfg, seed=seed,
-                                                         network_floor=floor) or r) for r in found]
+            # the network's bones from the cameras located from the start: the ones placed
+            # by pairs since then triangulate with their pair's std, which shows in the bones
+            found = [r if r.accepted else (place_by_pair(frames, first, r.cam, R, t, located, focal, cfg, seed=seed,
+                                                         network_floor=floor, wait=wait) or r) for r in found]
         for r in found:
             last[r.cam] = r
         ok = [r for r in found if r.accepted]
@@ -385,12 +391,14 @@ PAIR_SCALES_AGREE = 0.2  # the floor's and the bones' scale of a pair: further a
 PAIR_TURN_STD_DEG = 1.5
 PAIR_SPLIT_DEG = 10.0  # two pairs that turn the camera further apart disagree (2x the bootstrap's rotation_outlier)
 PAIR_LENGTH_STD = {"floor": 0.03, "bones": 0.10}
+FLOOR_REACH_M = 2.0  # m along the floor: where the network's people walked, its floor is known
 
 
 def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.ndarray, t: np.ndarray,
                   located: np.ndarray, focal: np.ndarray, cfg: BootstrapConfig, *, seed: int = 0,
-                  network_floor: Callable[[], Floor | None] | None = None) -> Resection | None:
-    """Camera ``cam`` placed by its relative pose to a placed camera, or None.
+                  network_floor: Callable[[], Floor | None] | None = None, wait: bool = False) -> Resection | None:
+    """Camera ``cam`` placed by its relative pose to a placed camera, or None (or a
+    refused Resection that says why, when a third camera's pairs decided).
     ``network_floor``: gives the network's floor when a pair is found (else it is fitted
     to ``persons``, the placed cameras' in ``frames``).
 
@@ -407,71 +415,147 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
     make that a few per cent off). With both, they must agree within PAIR_SCALES_AGREE,
     and the bones must agree among themselves as the bootstrap's bone relations must.
     The best-supported pair that passes wins, unless another with ``split_ratio`` of its
-    frames turns the camera elsewhere (a split camera: none wins)."""
+    frames turns the camera elsewhere (a split camera: none wins).
+
+    A pair of cameras that share no view can fit one too: two walkers on one line, each
+    seen by one camera, fit the camera turned round, looking back (a 12-camera corridor,
+    docs/bootstrap.md, Session 44); nothing in the pair gives it away. A third camera can:
+    where the camera also pairs with a camera not yet placed, the triangle of the three
+    pairs checks the turn (``triangle_check``, PAIR_SPLIT_DEG). A pair that its triangles
+    contradict places nothing; with ``wait`` (more data will come), one that no triangle
+    confirms waits while such a third camera could still confirm it. A camera whose other
+    partners are all placed (the end of a chain) has no third camera to wait for."""
     from .bootstrap import pair_bones, pair_poses, single_views  # it imports this module
 
     C = len(located)
-    keep = located.copy()
-    keep[cam] = True
-    sub = [(time_, tuple(v for v in views if keep[v[0].cam])) for time_, views in frames]
-    found, _ = pair_poses(sub, C, focal, cfg, seed=seed + 104729 * cam, only=cam)
-    found = [p for p in found if located[p.b if p.a == cam else p.a] and p.size_spread <= cfg.bridge_spread]
+
+    def pairs_of(c: int) -> list:
+        """Camera c's pairs with the placed cameras and the other unplaced ones (a seed per camera)."""
+        found, _ = pair_poses(frames, C, focal, cfg, seed=seed + 104729 * c, only=c)
+        return [p for p in found if p.size_spread <= cfg.bridge_spread]
+
+    mine = pairs_of(cam)
+    found = sorted((p for p in mine if located[_partner(p, cam)]), key=lambda p: -len(p.frames))
+    # the turns first, before any guard of the baseline's length: a pair that fails those
+    # still tells where the camera looks
+    keep = agreeing([_turn(p, cam, R) for p in found], [len(p.frames) for p in found], cfg.split_ratio)
+    found = [found[k] for k in keep or ()]
     if not found or not len(persons.frame):
         return None
+    kept, confirmed, others = _third_camera(cam, found, mine, located, pairs_of)
+    if not kept:
+        best = max(found, key=lambda p: len(p.frames))
+        return Resection(cam, None, None, len(best.frames), best.candidates, best.candidates, float("nan"), 0,
+                         best.residual_px, None, False, "its pairs with placed cameras disagree with the triangles "
+                         "through cameras not placed", paired=_partner(best, cam), third=tuple(others))
+    found = kept
+    sub = [(time_, tuple(v for v in views if located[v[0].cam] or v[0].cam == cam)) for time_, views in frames]
     # the network's bones in metres, measured as the pair's are (each person a "frame")
     rows, joints = np.nonzero(np.isfinite(persons.X).all(axis=2))
     ref = pair_bones(rows * 17 + joints, persons.X[rows, joints])
     floor = network_floor() if network_floor is not None else floor_of_persons(persons.X, _FLOOR_SIGMA)
+    walked = persons.X[:, list(ANKLES)].reshape(-1, 3)
+    walked = walked[np.isfinite(walked).all(axis=1)]
     single = single_views(sub)
     placed: list[Resection] = []
-    for p in sorted(found, key=lambda p: -len(p.frames)):
+    for p in found:
         v = np.log(ref / p.bones)
         v = v[np.isfinite(v)]
         if len(v) < 3 or np.median(np.abs(v - np.median(v))) > 0.1:
             continue  # the bones disagree on the scale: the pair's geometry is wrong
         s, by = float(np.exp(np.median(v))), "bones"
-        if cam == p.b:  # x_b = R x_a + t: b in a's frame is turned by R.T, its centre at -R.T t
-            o = p.a
-            Rc = R[o] @ p.R.T
-            step = -R[o] @ p.R.T @ p.t  # the camera's centre from o's for a unit baseline
-        else:
-            o = p.b
-            Rc = R[o] @ p.R
-            step = R[o] @ p.t
+        o, Rc = _partner(p, cam), _turn(p, cam, R)
+        # x_b = R x_a + t: b's centre in a's frame is at -R.T t; the camera's centre from
+        # o's for a unit baseline
+        step = -R[o] @ p.R.T @ p.t if cam == p.b else R[o] @ p.t
         if floor is not None:
-            s_floor = _floor_scale(single, p.frames, cam, o, R, t, Rc, step, floor)
-            if s_floor is not None:
-                if abs(np.log(s_floor / s)) > PAIR_SCALES_AGREE:
-                    continue
+            s_floor, near = _floor_scale(single, p.frames, cam, o, R, t, Rc, step, floor, walked)
+            if s_floor is not None and abs(np.log(s_floor / s)) <= PAIR_SCALES_AGREE:
                 s, by = s_floor, "floor"
+            elif s_floor is not None and near >= 0.5:
+                continue  # on the floor the network's people walked, the bones disagree: the geometry is wrong
+            # else the pair's people stand beyond where the network's walked: a floor
+            # fitted there tilts a few degrees, tens of cm some metres on (a 12-camera
+            # corridor: 4 degrees, 25 % on the baseline 6 m on, docs/bootstrap.md,
+            # Session 44); the bones are the same people's
         turn = np.radians(PAIR_TURN_STD_DEG)
         length = s * float(np.linalg.norm(step))
         cov = np.diag([turn**2] * 3 + [length**2 * (PAIR_LENGTH_STD[by] ** 2 + turn**2)] * 3)
         placed.append(Resection(cam, Rc, t[o] + s * step, len(p.frames), p.candidates, p.candidates, float("nan"), 0,
                                 p.residual_px, cov, True, "", paired=o, scaled_by=by))
-    return one_pose(placed, cfg.split_ratio)
-
-
-def one_pose(placed: Sequence[Resection], ratio: float) -> Resection | None:
-    """The first of a camera's pair placements (best supported first), or None when
-    another with at least ``ratio`` of its frames turns the camera more than
-    PAIR_SPLIT_DEG elsewhere: two walkers who moved alike (as the bootstrap's split
-    cameras, ``split_ratio``), not a pose to pick by the count of frames."""
-    if not placed:
-        return None
-    best = placed[0]
-    for r in placed[1:]:
-        if rotation_angle_deg(r.R, best.R) > PAIR_SPLIT_DEG and r.frames >= ratio * best.frames:
-            return None
+    best = one_pose(placed, cfg.split_ratio)
+    if best is not None and wait and others and best.paired not in confirmed:
+        return replace(best, accepted=False, third=tuple(others), reason="waits for a third camera: no triangle "
+                       "confirms the pair yet through the cameras not placed it also pairs with")
     return best
 
 
+def one_pose(placed: Sequence[Resection], ratio: float) -> Resection | None:
+    """The first of a camera's pair placements (best supported first), or None when they
+    disagree (``agreeing``)."""
+    keep = agreeing([r.R for r in placed], [r.frames for r in placed], ratio)
+    return placed[keep[0]] if keep else None
+
+
+def agreeing(turns: Sequence[np.ndarray], frames: Sequence[int], ratio: float) -> list[int] | None:
+    """Of a camera's turns (3, 3) by its pairs, best supported (``frames``) first: the
+    indices of those within PAIR_SPLIT_DEG of the first, or None when one with at least
+    ``ratio`` of its frames turns the camera elsewhere: two walkers who moved alike (as the
+    bootstrap's split cameras, ``split_ratio``), not a pose to pick by the count of
+    frames. A weaker pair that turns it elsewhere is dropped (two people each seen by
+    one camera of a pair that shares no view, docs/bootstrap.md, Session 44)."""
+    if not len(turns):
+        return []
+    assert list(frames) == sorted(frames, reverse=True), "best supported first"
+    keep = [0]
+    for k in range(1, len(turns)):
+        if rotation_angle_deg(turns[k], turns[0]) <= PAIR_SPLIT_DEG:
+            keep.append(k)
+        elif frames[k] >= ratio * frames[0]:
+            return None
+    return keep
+
+
+def _turn(p, cam: int, R: np.ndarray) -> np.ndarray:
+    """(3, 3) camera ``cam``'s orientation by its pair ``p`` with a placed camera (``R`` (C, 3, 3))."""
+    return R[p.a] @ p.R.T if cam == p.b else R[p.b] @ p.R  # x_b = R x_a + t
+
+
+def _partner(p, cam: int) -> int:
+    """The other camera of pair ``p``."""
+    return p.b if p.a == cam else p.a
+
+
+def _third_camera(cam: int, found: list, mine: list, located: np.ndarray, pairs_of: Callable[[int], list]
+                  ) -> tuple[list, frozenset[int], list[int]]:
+    """The triangles through camera ``cam``'s unplaced partners (its pairs: ``mine``) on
+    its pairs with placed cameras (``found``): returns those no triangle contradicts, the
+    placed partners whose pair a triangle confirms, and the unplaced partners (empty: no
+    third camera to wait for; ``place_by_pair``)."""
+    from .bootstrap import triangle_check  # it imports this module
+
+    others = sorted(_partner(p, cam) for p in mine if not located[_partner(p, cam)])
+    if not others:
+        return found, frozenset(), []
+    pool = {(p.a, p.b): p for p in mine}
+    for y in others:  # their pairs with the placed cameras close the triangles
+        pool.update({(p.a, p.b): p for p in pairs_of(y) if located[_partner(p, y)]})
+    pairs = list(pool.values())
+    good, bad = triangle_check(pairs, PAIR_SPLIT_DEG)
+    verdict = {(p.a, p.b): (int(g), int(b)) for p, g, b in zip(pairs, good, bad)}
+    kept = [p for p in found if verdict[(p.a, p.b)][0] or not verdict[(p.a, p.b)][1]]
+    confirmed = frozenset(_partner(p, cam) for p in kept if verdict[(p.a, p.b)][0])
+    return kept, confirmed, others
+
+
 def _floor_scale(single: Sequence[dict[int, Detection]], agreeing: np.ndarray, cam: int, o: int, R: np.ndarray,
-                 t: np.ndarray, Rc: np.ndarray, step: np.ndarray, floor: Floor) -> float | None:
+                 t: np.ndarray, Rc: np.ndarray, step: np.ndarray, floor: Floor, walked: np.ndarray
+                 ) -> tuple[float | None, float]:
     """The baseline length that puts the pair's lower ankles on ``floor``: triangulated
     with a unit baseline, the pair's points scale about camera o's centre, so each lower
-    ankle P gives s = (d - n.C_o) / n.(P - C_o). Their median; None from fewer than
-    MIN_POINTS // 3."""
+    ankle P gives s = (d - n.C_o) / n.(P - C_o). Their median (None from fewer than
+    MIN_POINTS // 3), and the share of the ankles it puts there within FLOOR_REACH_M along
+    the floor of one of ``walked`` (N, 3), the ankles the floor was fitted to."""
     Rs = np.stack([R[o], Rc])
     ts = np.stack([t[o], t[o] + step])
     low = []
@@ -483,10 +567,20 @@ def _floor_scale(single: Sequence[dict[int, Detection]], agreeing: np.ndarray, c
         if len(a):
             low.append(a[np.argmin(a @ floor.n)])
     if len(low) < MIN_POINTS // 3:
-        return None
+        return None, 0.0
     den = (np.array(low) - t[o]) @ floor.n
     num = floor.d - float(t[o] @ floor.n)
     ok = np.abs(den) > 1e-9
     s = num / den[ok]
-    s = s[s > 0]
-    return float(np.median(s)) if len(s) >= MIN_POINTS // 3 else None
+    good = s > 0
+    if good.sum() < MIN_POINTS // 3:
+        return None, 0.0
+    scale = float(np.median(s[good]))
+    if not len(walked):
+        return scale, 0.0
+    from scipy.spatial import cKDTree
+
+    flat = np.eye(3) - np.outer(floor.n, floor.n)  # distances along the floor
+    P = t[o] + scale * (np.array(low)[ok][good] - t[o])
+    near, _ = cKDTree(walked @ flat).query(P @ flat, distance_upper_bound=FLOOR_REACH_M)
+    return scale, float(np.mean(np.isfinite(near)))
