@@ -258,14 +258,13 @@ class JoiningPipeline(Pipeline):
     def _join(self) -> None:
         """Resect the unplaced cameras against the online estimate over the archived
         framesets; build ``joined`` when any passes the guards."""
-        job = self._late_job(live=False)
+        job = self._late_job()
         if self._accept(job, job.run()):
             self.joined = self._joined_pipeline()
 
-    def _late_job(self, live: bool) -> "LateJob":
+    def _late_job(self) -> "LateJob":
         """The resection of the unplaced cameras against the current estimate, over the
-        archived framesets in which they see somebody (a job for another process);
-        ``live``: the run goes on, so a pair placement may wait for more data."""
+        archived framesets in which they see somebody (a job for another process)."""
         names, C = self.all_names, len(self.all_names)
         idx = {n: k for k, n in enumerate(self.names)}
         rf = self.refiner
@@ -284,7 +283,7 @@ class JoiningPipeline(Pipeline):
         floor_frames = tuple(remap(own, {c: names.index(n) for c, n in enumerate(self.names)}))
         leads = {names.index(n): v for n, v in stamps_apart(self.late_stamps, self.cfg, C).items() if n in self.unplaced}
         return LateJob(frames, R, t, located, focal, self.cfg.associate, self.cfg.bootstrap, self.cycle,
-                       floor_frames, leads, live)
+                       floor_frames, leads)
 
     def _accept(self, job: "LateJob", found: "LateResult", live: bool = False) -> list[Joined]:
         """The cameras a resection placed (``late``, ``late_notes``); returns the new ones."""
@@ -332,7 +331,7 @@ class JoiningPipeline(Pipeline):
         """The job of a due resection (``LateJob.run`` in another process; its result to
         ``join_live``)."""
         self._late_tried, self._late_seen = now, self.late_archived
-        return self._late_job(live=True)
+        return self._late_job()
 
     def join_live(self, job: "LateJob", found: "LateResult") -> "JoiningPipeline | None":
         """The cameras the job placed join: returns the pipeline to go on with (this one's
@@ -498,7 +497,6 @@ class LateJob:
     seed: int
     floor_frames: tuple[Frame, ...] = ()  # the placed cameras' framesets (all cameras' indices) for their floor
     leads: Mapping[int, float] = field(default_factory=dict)  # unplaced cameras whose stamps run apart: s
-    live: bool = False  # the run goes on: a pair no third camera confirms yet waits (``resect.place_by_pair``)
 
     def run(self) -> LateResult:
         located, found = self._resect(list(self.frames))
@@ -530,8 +528,7 @@ class LateJob:
         C = len(self.located)
         _, _, located, found = resect_unplaced(frames, self.R, self.t, self.located, self.focal, view_box(frames, C),
                                                self.associate, self.bootstrap, seed=self.seed,
-                                               pairs=self.bootstrap.late_pairs, floor_frames=self.floor_frames,
-                                               wait=self.live)
+                                               pairs=self.bootstrap.late_pairs, floor_frames=self.floor_frames)
         return located, found
 
 

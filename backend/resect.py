@@ -118,7 +118,7 @@ class Resection:
     reason: str
     paired: int = -1
     scaled_by: str = ""
-    third: tuple[int, ...] = ()  # the unplaced cameras whose triangles refused or hold back its pair (``place_by_pair``)
+    third: tuple[int, ...] = ()  # the cameras whose pairs refused its pair (``place_by_pair``, ``resect_unplaced``)
 
     def summary(self, name: str, names: Sequence[str] = ()) -> str:
         third = ", ".join(names[k] if len(names) > k else f"camera {k}" for k in self.third)
@@ -334,7 +334,7 @@ def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, bo
 
 def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located: np.ndarray, focal: np.ndarray,
                     boxes: np.ndarray, assoc: AssociateConfig, cfg: BootstrapConfig, *, seed: int = 0,
-                    pairs: bool = False, floor_frames: Sequence[Frame] = (), wait: bool = False
+                    pairs: bool = False, floor_frames: Sequence[Frame] = ()
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[Resection]]:
     """Resect the cameras not ``located`` (C,) bool, one at a time, best evidence first:
     a camera placed joins the network the next ones are resected against (a room that
@@ -343,13 +343,23 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
     placed camera (``place_by_pair``), its baseline's length from the floor of the persons
     the located cameras triangulate in ``frames`` and ``floor_frames`` (more of the
     network's framesets: ``frames`` may hold only those in which the camera sees
-    somebody). ``wait``: more data will come (a live join), so a pair placement that no
-    third camera confirms waits for it (``place_by_pair``). Returns copies of (R (C, 3, 3),
-    t (C, 3), located (C,)) and each camera's last Resection."""
+    somebody). The cameras placed by pairs must hold together: when one of them has a
+    pair with a camera placed after it that turns it elsewhere (``split_ratio`` of the
+    frames of the pair that placed it, PAIR_SPLIT_DEG), or a camera left unplaced has
+    pairs with them and the others that turn it apart (``agreeing``), every camera placed
+    from the first pair placement on is taken back (a wrong pair turns its camera round,
+    and the cameras after it with it, docs/bootstrap.md, Session 44). Returns copies of (R (C, 3, 3), t (C,
+    3), located (C,)) and each camera's last Resection."""
     R0, t0, placed0 = R.copy(), t.copy(), located.copy()
     R, t, located = R.copy(), t.copy(), located.copy()
     last: dict[int, Resection] = {}
     first: Persons | None = None  # the persons of the cameras located from the start
+    order: list[int] = []  # the cameras placed, in turn
+
+    @functools.cache
+    def pairs_of(c: int) -> tuple:
+        """Camera c's pairs with every camera (placed or not: they do not depend on the poses)."""
+        return tuple(camera_pairs(frames, c, focal, cfg, seed=seed))
 
     @functools.cache
     def floor() -> Floor | None:
@@ -370,7 +380,8 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
             # the network's bones from the cameras located from the start: the ones placed
             # by pairs since then triangulate with their pair's std, which shows in the bones
             found = [r if r.accepted else (place_by_pair(frames, first, r.cam, R, t, located, focal, cfg, seed=seed,
-                                                         network_floor=floor, wait=wait) or r) for r in found]
+                                                         network_floor=floor, pairs_of=pairs_of) or r)
+                     for r in found]
         for r in found:
             last[r.cam] = r
         ok = [r for r in found if r.accepted]
@@ -378,7 +389,33 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
             break
         best = max(ok, key=lambda r: r.frames)
         R[best.cam], t[best.cam], located[best.cam] = best.R, best.t, True
+        order.append(best.cam)
+    by_pair = [k for k, c in enumerate(order) if last[c].paired >= 0]
+    split = [c for c in order if last[c].paired >= 0 and not _holds(c, last[c], R, located, pairs_of(c), cfg)]
+    if by_pair:  # a camera left unplaced whose pairs with those and the others turn it apart
+        new = {order[k] for k in by_pair}
+        for u in np.flatnonzero(~located):
+            ps = sorted((p for p in pairs_of(int(u)) if located[_partner(p, u)]), key=lambda p: -len(p.frames))
+            if ({_partner(p, u) for p in ps} & new
+                    and agreeing([_turn(p, u, R) for p in ps], [len(p.frames) for p in ps], cfg.split_ratio) is None):
+                split.append(int(u))
+    if split:
+        for c in order[by_pair[0]:]:
+            R[c], t[c], located[c] = R0[c], t0[c], False
+            last[c] = replace(last[c], accepted=False, third=tuple(split),
+                              reason="taken back: the cameras placed by pairs do not hold together, the pairs of these "
+                                     "with the cameras placed turn them apart")
     return R, t, located, [last[c] for c in sorted(last)]
+
+
+def _holds(cam: int, placed: Resection, R: np.ndarray, located: np.ndarray, pairs: Sequence,
+           cfg: BootstrapConfig) -> bool:
+    """Whether camera ``cam``'s pose, placed by a pair (``placed``), agrees with its pairs
+    with every camera placed now (none with ``split_ratio`` of that pair's frames turns it
+    more than PAIR_SPLIT_DEG elsewhere)."""
+    return all(rotation_angle_deg(_turn(p, cam, R), R[cam]) <= PAIR_SPLIT_DEG
+               or len(p.frames) < cfg.split_ratio * placed.frames
+               for p in pairs if located[_partner(p, cam)])
 
 
 SCALED_BY = {"floor": "its baseline's length from the floor both sides' people stand on",
@@ -396,11 +433,13 @@ FLOOR_REACH_M = 2.0  # m along the floor: where the network's people walked, its
 
 def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.ndarray, t: np.ndarray,
                   located: np.ndarray, focal: np.ndarray, cfg: BootstrapConfig, *, seed: int = 0,
-                  network_floor: Callable[[], Floor | None] | None = None, wait: bool = False) -> Resection | None:
+                  network_floor: Callable[[], Floor | None] | None = None,
+                  pairs_of: Callable[[int], Sequence] | None = None) -> Resection | None:
     """Camera ``cam`` placed by its relative pose to a placed camera, or None (or a
     refused Resection that says why, when a third camera's pairs decided).
     ``network_floor``: gives the network's floor when a pair is found (else it is fitted
-    to ``persons``, the placed cameras' in ``frames``).
+    to ``persons``, the placed cameras' in ``frames``); ``pairs_of``: a camera's pairs
+    (``camera_pairs``; a caller placing several cameras keeps them).
 
     A resection needs persons that two placed cameras triangulate in the camera's view. At
     the end of a camera chain (a corridor) only its one neighbour sees where it sees, so
@@ -421,18 +460,13 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
     seen by one camera, fit the camera turned round, looking back (a 12-camera corridor,
     docs/bootstrap.md, Session 44); nothing in the pair gives it away. A third camera can:
     where the camera also pairs with a camera not yet placed, the triangle of the three
-    pairs checks the turn (``triangle_check``, PAIR_SPLIT_DEG). A pair that its triangles
-    contradict places nothing; with ``wait`` (more data will come), one that no triangle
-    confirms waits while such a third camera could still confirm it. A camera whose other
-    partners are all placed (the end of a chain) has no third camera to wait for."""
-    from .bootstrap import pair_bones, pair_poses, single_views  # it imports this module
+    pairs checks the turn (PAIR_SPLIT_DEG). A pair that is the weakest of a triangle that
+    disagrees places nothing."""
+    from .bootstrap import pair_bones, single_views  # it imports this module
 
-    C = len(located)
-
-    def pairs_of(c: int) -> list:
-        """Camera c's pairs with the placed cameras and the other unplaced ones (a seed per camera)."""
-        found, _ = pair_poses(frames, C, focal, cfg, seed=seed + 104729 * c, only=c)
-        return [p for p in found if p.size_spread <= cfg.bridge_spread]
+    if pairs_of is None:
+        def pairs_of(c: int) -> list:
+            return camera_pairs(frames, c, focal, cfg, seed=seed)
 
     mine = pairs_of(cam)
     found = sorted((p for p in mine if located[_partner(p, cam)]), key=lambda p: -len(p.frames))
@@ -442,12 +476,12 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
     found = [found[k] for k in keep or ()]
     if not found or not len(persons.frame):
         return None
-    kept, confirmed, others = _third_camera(cam, found, mine, located, pairs_of)
+    kept, others = _third_camera(cam, found, mine, located, pairs_of)
     if not kept:
         best = max(found, key=lambda p: len(p.frames))
         return Resection(cam, None, None, len(best.frames), best.candidates, best.candidates, float("nan"), 0,
-                         best.residual_px, None, False, "its pairs with placed cameras disagree with the triangles "
-                         "through cameras not placed", paired=_partner(best, cam), third=tuple(others))
+                         best.residual_px, None, False, "its pairs with placed cameras are the weakest of triangles "
+                         "that disagree, through cameras not placed", paired=_partner(best, cam), third=tuple(others))
     found = kept
     sub = [(time_, tuple(v for v in views if located[v[0].cam] or v[0].cam == cam)) for time_, views in frames]
     # the network's bones in metres, measured as the pair's are (each person a "frame")
@@ -483,11 +517,7 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
         cov = np.diag([turn**2] * 3 + [length**2 * (PAIR_LENGTH_STD[by] ** 2 + turn**2)] * 3)
         placed.append(Resection(cam, Rc, t[o] + s * step, len(p.frames), p.candidates, p.candidates, float("nan"), 0,
                                 p.residual_px, cov, True, "", paired=o, scaled_by=by))
-    best = one_pose(placed, cfg.split_ratio)
-    if best is not None and wait and others and best.paired not in confirmed:
-        return replace(best, accepted=False, third=tuple(others), reason="waits for a third camera: no triangle "
-                       "confirms the pair yet through the cameras not placed it also pairs with")
-    return best
+    return one_pose(placed, cfg.split_ratio)
 
 
 def one_pose(placed: Sequence[Resection], ratio: float) -> Resection | None:
@@ -526,26 +556,49 @@ def _partner(p, cam: int) -> int:
     return p.b if p.a == cam else p.a
 
 
-def _third_camera(cam: int, found: list, mine: list, located: np.ndarray, pairs_of: Callable[[int], list]
-                  ) -> tuple[list, frozenset[int], list[int]]:
+def _third_camera(cam: int, found: list, mine: Sequence, located: np.ndarray, pairs_of: Callable[[int], Sequence]
+                  ) -> tuple[list, list[int]]:
     """The triangles through camera ``cam``'s unplaced partners (its pairs: ``mine``) on
-    its pairs with placed cameras (``found``): returns those no triangle contradicts, the
-    placed partners whose pair a triangle confirms, and the unplaced partners (empty: no
-    third camera to wait for; ``place_by_pair``)."""
-    from .bootstrap import triangle_check  # it imports this module
-
-    others = sorted(_partner(p, cam) for p in mine if not located[_partner(p, cam)])
+    its pairs with placed cameras (``found``): returns those a triangle confirms or none
+    blames (a triangle that disagrees blames its weakest pair), and the unplaced partners
+    (``place_by_pair``)."""
+    mine_by = {_partner(p, cam): p for p in mine}
+    others = sorted(c for c in mine_by if not located[c])
     if not others:
-        return found, frozenset(), []
-    pool = {(p.a, p.b): p for p in mine}
-    for y in others:  # their pairs with the placed cameras close the triangles
-        pool.update({(p.a, p.b): p for p in pairs_of(y) if located[_partner(p, y)]})
-    pairs = list(pool.values())
-    good, bad = triangle_check(pairs, PAIR_SPLIT_DEG)
-    verdict = {(p.a, p.b): (int(g), int(b)) for p, g, b in zip(pairs, good, bad)}
-    kept = [p for p in found if verdict[(p.a, p.b)][0] or not verdict[(p.a, p.b)][1]]
-    confirmed = frozenset(_partner(p, cam) for p in kept if verdict[(p.a, p.b)][0])
-    return kept, confirmed, others
+        return found, []
+    kept = []
+    for p in found:
+        o, good, bad = _partner(p, cam), 0, 0
+        for y in others:  # y's pair with o closes the triangle cam-o-y
+            q = next((q for q in pairs_of(y) if _partner(q, y) == o), None)
+            if q is None:
+                continue
+            py = mine_by[y]
+            err = rotation_angle_deg(_rel(p, o, cam), _rel(py, y, cam) @ _rel(q, o, y))
+            if err <= PAIR_SPLIT_DEG:
+                good += 1
+            elif len(p.frames) < min(len(py.frames), len(q.frames)):
+                bad += 1  # the weakest of a triangle that disagrees is the likeliest wrong
+        if good or not bad:
+            kept.append(p)
+    return kept, others
+
+
+def _rel(p, src: int, dst: int) -> np.ndarray:
+    """(3, 3) pair ``p``'s rotation from camera ``src``'s frame to ``dst``'s (x_b = R x_a)."""
+    return p.R if (p.a, p.b) == (src, dst) else p.R.T
+
+
+def camera_pairs(frames: Sequence[Frame], cam: int, focal: np.ndarray, cfg: BootstrapConfig, *, seed: int = 0
+                 ) -> list:
+    """Camera ``cam``'s pairs with every camera in ``frames`` (``bootstrap.pair_poses``,
+    one seed per camera) whose person keeps one size as a bridge pair's must
+    (``bridge_spread``)."""
+    from .bootstrap import pair_poses  # it imports this module
+
+    C = len(focal)
+    found, _ = pair_poses(frames, C, focal, cfg, seed=seed + 104729 * cam, only=cam)
+    return [p for p in found if p.size_spread <= cfg.bridge_spread]
 
 
 def _floor_scale(single: Sequence[dict[int, Detection]], agreeing: np.ndarray, cam: int, o: int, R: np.ndarray,

@@ -167,7 +167,7 @@ def test_a_late_camera_whose_clock_runs_ahead_is_resected_and_adjusted_timed_by_
     assert ev.orientation.max < 0.5, ev.per_camera
     # its archived views are timed by the lead now: as they would be stamped if the lead
     # were a delay's (the stamps right), the opposite lead is not taken
-    job = p._late_job(live=False)
+    job = p._late_job()
     c = WEST.index(LATE)
     assert job.leads.keys() == {c}
     found = dataclasses.replace(job, leads={c: -j.timed}).run()
