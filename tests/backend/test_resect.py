@@ -255,3 +255,36 @@ def test_a_floor_beyond_where_the_network_walked_gives_way_to_the_bones(corridor
     assert abs(np.linalg.norm(r.t - t[1]) / base - 1) < 0.15  # the walkers' bones: 1.85 and 1.65 m
     good = place_by_pair(frames, far, 0, R, t, located, focal, cfg.bootstrap, network_floor=lambda: true)
     assert good.scaled_by == "floor"  # a floor that agrees with the bones scales it, wherever
+
+
+def test_pair_placements_that_do_not_hold_together_are_taken_back(corridor2, monkeypatch):
+    """A pair that turns its camera round (two people each seen by one camera, docs/
+    bootstrap.md, Session 44) chains the cameras after it: cam_1 placed turned, cam_0 by
+    its pair with it. cam_1's pair with cam_2 (placed) turns it elsewhere: every camera
+    placed from the first pair placement on is taken back."""
+    import dataclasses
+
+    import backend.resect as resect_module
+    from backend.geometry import so3_exp
+
+    frames, R, t, focal, cfg = corridor2
+    names = [f"cam_{k}" for k in range(6)]
+    located = np.array([0, 0, 1, 1, 1, 1], bool)
+    args = (frames, R, t, located, focal, view_box(frames, 6), cfg.associate, cfg.bootstrap)
+    _, _, loc, out = resect_unplaced(*args, pairs=True)
+    assert loc.all() and [r.paired for r in out] == [1, 2]  # as they are: both placed by their pairs
+    real = resect_module.place_by_pair
+
+    def turned(frames, persons, cam, *a, **kw):
+        r = real(frames, persons, cam, *a, **kw)
+        if cam == 1 and r is not None and r.accepted:
+            return dataclasses.replace(r, R=r.R @ so3_exp([0.0, np.pi, 0.0]))
+        return r
+
+    monkeypatch.setattr(resect_module, "place_by_pair", turned)
+    R1, t1, loc, out = resect_unplaced(*args, pairs=True)
+    assert not loc[0] and not loc[1] and loc[2:].all()
+    assert np.array_equal(R1[2:], R[2:]) and np.array_equal(t1[2:], t[2:])
+    r1 = out[1]
+    assert r1.cam == 1 and not r1.accepted and 1 in r1.third
+    assert "taken back: the cameras placed by pairs do not hold together" in r1.summary("cam_1", names)
