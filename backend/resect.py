@@ -122,16 +122,17 @@ class Resection:
 
     def summary(self, name: str, names: Sequence[str] = ()) -> str:
         third = ", ".join(names[k] if len(names) > k else f"camera {k}" for k in self.third)
+        why = "" if self.accepted else f" ({self.reason}" + (f": {third}" if third else "") + ")"
         if self.R is None:
-            return f"{name} not {'placed' if self.paired >= 0 else 'resected'} ({self.reason}{': ' * bool(third)}{third})"
+            return f"{name} not {'placed' if self.paired >= 0 else 'resected'}{why}"
         if self.paired >= 0:
             other = names[self.paired] if len(names) > self.paired else f"camera {self.paired}"
             return (f"{name} {'' if self.accepted else 'not '}placed by its pair with {other}: agrees in "
                     f"{self.frames}/{self.seen} frames in which each sees one person, {self.residual_px:.1f} px, "
-                    f"{SCALED_BY[self.scaled_by]}" + ("" if self.accepted else f" ({self.reason}: {third})"))
+                    f"{SCALED_BY[self.scaled_by]}{why}")
         return (f"{name} {'resected' if self.accepted else 'not resected'}: agrees in {self.frames}/{self.seen} frames "
                 f"({self.candidates} with candidates), spread {self.spread:.2f} m, rival pose {self.rival} frames, "
-                f"{self.residual_px:.1f} px" + ("" if self.accepted else f" ({self.reason})"))
+                f"{self.residual_px:.1f} px{why}")
 
 
 def _project(X: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -348,8 +349,8 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
     frames of the pair that placed it, PAIR_SPLIT_DEG), or a camera left unplaced has
     pairs with them and the others that turn it apart (``agreeing``), every camera placed
     from the first pair placement on is taken back (a wrong pair turns its camera round,
-    and the cameras after it with it, docs/bootstrap.md, Session 44). Returns copies of (R (C, 3, 3), t (C,
-    3), located (C,)) and each camera's last Resection."""
+    and the cameras after it with it, docs/bootstrap.md, Session 44). Returns copies of
+    (R (C, 3, 3), t (C, 3), located (C,)) and each camera's last Resection."""
     R0, t0, placed0 = R.copy(), t.copy(), located.copy()
     R, t, located = R.copy(), t.copy(), located.copy()
     last: dict[int, Resection] = {}
@@ -608,7 +609,7 @@ def _floor_scale(single: Sequence[dict[int, Detection]], agreeing: np.ndarray, c
     with a unit baseline, the pair's points scale about camera o's centre, so each lower
     ankle P gives s = (d - n.C_o) / n.(P - C_o). Their median (None from fewer than
     MIN_POINTS // 3), and the share of the ankles it puts there within FLOOR_REACH_M along
-    the floor of one of ``walked`` (N, 3), the ankles the floor was fitted to."""
+    the floor of one of ``walked`` (N, 3), the network's people's ankles."""
     Rs = np.stack([R[o], Rc])
     ts = np.stack([t[o], t[o] + step])
     low = []
