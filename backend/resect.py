@@ -344,12 +344,11 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
     placed camera (``place_by_pair``), its baseline's length from the floor of the persons
     the located cameras triangulate in ``frames`` and ``floor_frames`` (more of the
     network's framesets: ``frames`` may hold only those in which the camera sees
-    somebody). The cameras placed by pairs must hold together: when one of them has a
-    pair with a camera placed after it that turns it elsewhere (``split_ratio`` of the
-    frames of the pair that placed it, PAIR_SPLIT_DEG), or a camera left unplaced has
-    pairs with them and the others that turn it apart (``agreeing``), every camera placed
-    from the first pair placement on is taken back (a wrong pair turns its camera round,
-    and the cameras after it with it, docs/bootstrap.md, Session 44). Returns copies of
+    somebody). The cameras placed by pairs must hold together: when a camera outside the
+    network given (placed here or not) has a pair with one placed here and a pair, about
+    as strong, with the network that turn it apart (``_apart``), every camera placed from
+    the first pair placement on is taken back (a wrong pair turns its camera round, and
+    the cameras chained to it with it, docs/bootstrap.md, Session 44). Returns copies of
     (R (C, 3, 3), t (C, 3), located (C,)) and each camera's last Resection."""
     R0, t0, placed0 = R.copy(), t.copy(), located.copy()
     R, t, located = R.copy(), t.copy(), located.copy()
@@ -392,14 +391,7 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
         R[best.cam], t[best.cam], located[best.cam] = best.R, best.t, True
         order.append(best.cam)
     by_pair = [k for k, c in enumerate(order) if last[c].paired >= 0]
-    split = [c for c in order if last[c].paired >= 0 and not _holds(c, last[c], R, located, pairs_of(c), cfg)]
-    if by_pair:  # a camera left unplaced whose pairs with those and the others turn it apart
-        new = {order[k] for k in by_pair}
-        for u in np.flatnonzero(~located):
-            ps = sorted((p for p in pairs_of(int(u)) if located[_partner(p, u)]), key=lambda p: -len(p.frames))
-            if ({_partner(p, u) for p in ps} & new
-                    and agreeing([_turn(p, u, R) for p in ps], [len(p.frames) for p in ps], cfg.split_ratio) is None):
-                split.append(int(u))
+    split = _apart(order[by_pair[0]:], R, located, placed0, pairs_of, cfg) if by_pair else []
     if split:
         for c in order[by_pair[0]:]:
             R[c], t[c], located[c] = R0[c], t0[c], False
@@ -409,14 +401,23 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
     return R, t, located, [last[c] for c in sorted(last)]
 
 
-def _holds(cam: int, placed: Resection, R: np.ndarray, located: np.ndarray, pairs: Sequence,
-           cfg: BootstrapConfig) -> bool:
-    """Whether camera ``cam``'s pose, placed by a pair (``placed``), agrees with its pairs
-    with every camera placed now (none with ``split_ratio`` of that pair's frames turns it
-    more than PAIR_SPLIT_DEG elsewhere)."""
-    return all(rotation_angle_deg(_turn(p, cam, R), R[cam]) <= PAIR_SPLIT_DEG
-               or len(p.frames) < cfg.split_ratio * placed.frames
-               for p in pairs if located[_partner(p, cam)])
+def _apart(new: Sequence[int], R: np.ndarray, located: np.ndarray, network: np.ndarray,
+           pairs_of: Callable[[int], Sequence], cfg: BootstrapConfig) -> list[int]:
+    """The cameras outside the ``network`` (C,) bool, placed or not, whose best pair with a
+    camera ``new`` and whose best pair with the network, about as strong (``split_ratio``),
+    turn them more than PAIR_SPLIT_DEG apart (``resect_unplaced``)."""
+    out = []
+    for c in map(int, np.flatnonzero(~network)):
+        ps = [p for p in pairs_of(c) if located[_partner(p, c)]]
+        a = max((p for p in ps if _partner(p, c) in new), key=lambda p: len(p.frames), default=None)
+        b = max((p for p in ps if network[_partner(p, c)]), key=lambda p: len(p.frames), default=None)
+        if a is None or b is None:
+            continue
+        fa, fb = len(a.frames), len(b.frames)
+        if min(fa, fb) >= cfg.split_ratio * max(fa, fb) and rotation_angle_deg(_turn(a, c, R),
+                                                                               _turn(b, c, R)) > PAIR_SPLIT_DEG:
+            out.append(c)
+    return out
 
 
 SCALED_BY = {"floor": "its baseline's length from the floor both sides' people stand on",
@@ -471,10 +472,12 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
 
     mine = pairs_of(cam)
     found = sorted((p for p in mine if located[_partner(p, cam)]), key=lambda p: -len(p.frames))
-    # the turns first, before any guard of the baseline's length: a pair that fails those
-    # still tells where the camera looks
-    keep = agreeing([_turn(p, cam, R) for p in found], [len(p.frames) for p in found], cfg.split_ratio)
-    found = [found[k] for k in keep or ()]
+    # the turns first: a far weaker pair that turns the camera elsewhere is dropped before
+    # the guards of the baseline's length (those may drop the stronger, right one); one
+    # about as strong is left to the guards, then to ``one_pose``
+    turns = [_turn(p, cam, R) for p in found]
+    found = [p for p, turn in zip(found, turns) if rotation_angle_deg(turn, turns[0]) <= PAIR_SPLIT_DEG
+             or len(p.frames) >= cfg.split_ratio * len(found[0].frames)]
     if not found or not len(persons.frame):
         return None
     kept, others = _third_camera(cam, found, mine, located, pairs_of)
