@@ -390,10 +390,10 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
         best = max(ok, key=lambda r: r.frames)
         R[best.cam], t[best.cam], located[best.cam] = best.R, best.t, True
         order.append(best.cam)
-    by_pair = [k for k, c in enumerate(order) if last[c].paired >= 0]
-    split = _apart(order[by_pair[0]:], R, located, placed0, pairs_of, cfg) if by_pair else []
+    start = next((k for k, c in enumerate(order) if last[c].paired >= 0), None)  # the first pair placement
+    split = _apart(set(order[start:]), R, located, placed0, pairs_of, cfg) if start is not None else []
     if split:
-        for c in order[by_pair[0]:]:
+        for c in order[start:]:
             R[c], t[c], located[c] = R0[c], t0[c], False
             last[c] = replace(last[c], accepted=False, third=tuple(split),
                               reason="taken back: the cameras placed by pairs do not hold together, the pairs of these "
@@ -401,7 +401,7 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
     return R, t, located, [last[c] for c in sorted(last)]
 
 
-def _apart(new: Sequence[int], R: np.ndarray, located: np.ndarray, network: np.ndarray,
+def _apart(new: set[int], R: np.ndarray, located: np.ndarray, network: np.ndarray,
            pairs_of: Callable[[int], Sequence], cfg: BootstrapConfig) -> list[int]:
     """The cameras outside the ``network`` (C,) bool, placed or not, whose best pair with a
     camera ``new`` and whose best pair with the network, about as strong (``split_ratio``),
@@ -466,6 +466,8 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
     disagrees places nothing."""
     from .bootstrap import pair_bones, single_views  # it imports this module
 
+    if not len(persons.frame):
+        return None
     if pairs_of is None:
         def pairs_of(c: int) -> list:
             return camera_pairs(frames, c, focal, cfg, seed=seed)
@@ -478,7 +480,7 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
     turns = [_turn(p, cam, R) for p in found]
     found = [p for p, turn in zip(found, turns) if rotation_angle_deg(turn, turns[0]) <= PAIR_SPLIT_DEG
              or len(p.frames) >= cfg.split_ratio * len(found[0].frames)]
-    if not found or not len(persons.frame):
+    if not found:
         return None
     kept, others = _third_camera(cam, found, mine, located, pairs_of)
     if not kept:
@@ -525,34 +527,23 @@ def place_by_pair(frames: Sequence[Frame], persons: Persons, cam: int, R: np.nda
 
 
 def one_pose(placed: Sequence[Resection], ratio: float) -> Resection | None:
-    """The first of a camera's pair placements (best supported first), or None when they
-    disagree (``agreeing``)."""
-    keep = agreeing([r.R for r in placed], [r.frames for r in placed], ratio)
-    return placed[keep[0]] if keep else None
-
-
-def agreeing(turns: Sequence[np.ndarray], frames: Sequence[int], ratio: float) -> list[int] | None:
-    """Of a camera's turns (3, 3) by its pairs, best supported (``frames``) first: the
-    indices of those within PAIR_SPLIT_DEG of the first, or None when one with at least
-    ``ratio`` of its frames turns the camera elsewhere: two walkers who moved alike (as the
-    bootstrap's split cameras, ``split_ratio``), not a pose to pick by the count of
-    frames. A weaker pair that turns it elsewhere is dropped (two people each seen by
-    one camera of a pair that shares no view, docs/bootstrap.md, Session 44)."""
-    if not len(turns):
-        return []
-    assert list(frames) == sorted(frames, reverse=True), "best supported first"
-    keep = [0]
-    for k in range(1, len(turns)):
-        if rotation_angle_deg(turns[k], turns[0]) <= PAIR_SPLIT_DEG:
-            keep.append(k)
-        elif frames[k] >= ratio * frames[0]:
+    """The first of a camera's pair placements (best supported first), or None when
+    another with at least ``ratio`` of its frames turns the camera more than
+    PAIR_SPLIT_DEG elsewhere: two walkers who moved alike (as the bootstrap's split
+    cameras, ``split_ratio``), not a pose to pick by the count of frames."""
+    if not placed:
+        return None
+    best = placed[0]
+    for r in placed[1:]:
+        if rotation_angle_deg(r.R, best.R) > PAIR_SPLIT_DEG and r.frames >= ratio * best.frames:
             return None
-    return keep
+    return best
 
 
 def _turn(p, cam: int, R: np.ndarray) -> np.ndarray:
     """(3, 3) camera ``cam``'s orientation by its pair ``p`` with a placed camera (``R`` (C, 3, 3))."""
-    return R[p.a] @ p.R.T if cam == p.b else R[p.b] @ p.R  # x_b = R x_a + t
+    o = _partner(p, cam)
+    return R[o] @ _rel(p, cam, o)
 
 
 def _partner(p, cam: int) -> int:
@@ -570,11 +561,12 @@ def _third_camera(cam: int, found: list, mine: Sequence, located: np.ndarray, pa
     others = sorted(c for c in mine_by if not located[c])
     if not others:
         return found, []
+    placed_by = {y: {_partner(q, y): q for q in pairs_of(y) if located[_partner(q, y)]} for y in others}
     kept = []
     for p in found:
         o, good, bad = _partner(p, cam), 0, 0
         for y in others:  # y's pair with o closes the triangle cam-o-y
-            q = next((q for q in pairs_of(y) if _partner(q, y) == o), None)
+            q = placed_by[y].get(o)
             if q is None:
                 continue
             py = mine_by[y]
