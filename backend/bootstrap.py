@@ -1294,13 +1294,30 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                     + ", ".join(check_notes))
             found = 0
             if cfg.resect:
+                # A camera no triangle and no check verified stands on its bridge pairs
+                # alone, and two wrong pairs can agree: in a hall of 40 cameras and 4
+                # walkers two pairs, each of two people seen one by each camera, turned
+                # cam_30 round alike, and the check saw nobody in the view they gave it
+                # (docs/bootstrap.md, Session 45). The resection against the others'
+                # persons decides where it can; where it cannot, the pairs' pose stays.
+                unchecked = np.zeros(C, bool)
+                unchecked[[ch.cam for ch in checks if ch.outcome == "unchecked"]] = True
+                R_pairs, t_pairs = R, t
                 R, t, now_located, resections = resect_unplaced(frames, R, t, located, focal, view_box(frames, C),
-                                                                config.associate, cfg, seed=seed)
-                found = int(now_located.sum() - located.sum())
+                                                                config.associate, cfg, seed=seed, provisional=unchecked)
+                moved = [f"{names[r.cam]} {np.linalg.norm(t[r.cam] - t_pairs[r.cam]):.2f} m / "
+                         f"{rotation_angle_deg(R[r.cam], R_pairs[r.cam]):.1f}°"
+                         for r in resections if r.accepted and unchecked[r.cam]]
+                found = int(now_located.sum() - located.sum()) + len(moved)
                 located = now_located
-                resect_notes = tuple(r.summary(names[r.cam], names) for r in resections)
+                resect_notes = tuple(r.summary(names[r.cam], names)
+                                     + ("; kept where its bridge pairs put it" if unchecked[r.cam] and not r.accepted else "")
+                                     for r in resections)
                 if resections:
-                    say("cameras no pair placed, resected against the placed cameras' persons: " + "; ".join(resect_notes))
+                    say("cameras not placed or only over unchecked bridge pairs, resected against the others' persons: "
+                        + "; ".join(resect_notes))
+                if moved:
+                    say("moved from where their bridge pairs put them: " + ", ".join(moved))
             else:
                 for c in np.flatnonzero(~located):
                     rl = relocalize(frames, int(c), R, t, float(focal[c]), config.associate,

@@ -335,7 +335,7 @@ def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, bo
 
 def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located: np.ndarray, focal: np.ndarray,
                     boxes: np.ndarray, assoc: AssociateConfig, cfg: BootstrapConfig, *, seed: int = 0,
-                    pairs: bool = False, floor_frames: Sequence[Frame] = ()
+                    pairs: bool = False, floor_frames: Sequence[Frame] = (), provisional: np.ndarray | None = None
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[Resection]]:
     """Resect the cameras not ``located`` (C,) bool, one at a time, best evidence first:
     a camera placed joins the network the next ones are resected against (a room that
@@ -348,10 +348,14 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
     network given (placed here or not) has a pair with one placed here and a pair, about
     as strong, with the network that turn it apart (``_apart``), every camera placed from
     the first pair placement on is taken back (a wrong pair turns its camera round, and
-    the cameras chained to it with it, docs/bootstrap.md, Session 44). Returns copies of
+    the cameras chained to it with it, docs/bootstrap.md, Session 44). ``provisional``
+    (C,) bool: located cameras nothing verified (reached over pairs that no triangle and
+    no check confirmed): resected as if not located, against the others' persons only,
+    and kept where they were where the resection does not place them. Returns copies of
     (R (C, 3, 3), t (C, 3), located (C,)) and each camera's last Resection."""
+    keep = np.zeros_like(located) if provisional is None else provisional & located
+    R, t, located = R.copy(), t.copy(), located & ~keep
     R0, t0, placed0 = R.copy(), t.copy(), located.copy()
-    R, t, located = R.copy(), t.copy(), located.copy()
     last: dict[int, Resection] = {}
     first: Persons | None = None  # the persons of the cameras located from the start
     order: list[int] = []  # the cameras placed, in turn
@@ -398,6 +402,7 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
             last[c] = replace(last[c], accepted=False, third=tuple(split),
                               reason="taken back: the cameras placed by pairs do not hold together, the pairs of these "
                                      "with the cameras placed turn them apart")
+    located[keep & ~located] = True  # not resected: where their pairs put them (R0, t0 hold that)
     return R, t, located, [last[c] for c in sorted(last)]
 
 

@@ -78,6 +78,31 @@ def test_a_camera_among_two_walkers_is_resected_near_its_pose(west2):
     assert np.array_equal(R1[:LOST], R[:LOST]) and np.array_equal(t1[:LOST], t[:LOST])  # the network is not touched
 
 
+def test_a_provisional_camera_is_resected_where_it_can_be_and_kept_where_it_cannot(west2):
+    """A camera placed over bridge pairs nothing checked (``provisional``): two wrong pairs
+    that agree put it turned round; the resection against the others' persons, without
+    its own, puts it back. Where the resection cannot place it, its pose stays."""
+    frames, R, t, focal = west2
+    cfg = EngineConfig()
+    turned = np.diag([-1.0, 1.0, -1.0])  # 180° about its y axis: looking back
+    R0, t0 = R.copy(), t.copy()
+    R0[LOST], t0[LOST] = R[LOST] @ turned, t[LOST] + np.array([2.0, -1.0, 0.0])
+    provisional = np.zeros(7, bool)
+    provisional[LOST] = True
+    R1, t1, loc1, out = resect_unplaced(frames, R0, t0, np.ones(7, bool), focal, view_box(frames, 7), cfg.associate,
+                                        cfg.bootstrap, seed=1, provisional=provisional)
+    assert [r.cam for r in out] == [LOST] and out[0].accepted, out[0].summary("cam_17")
+    assert loc1.all()
+    assert np.linalg.norm(t1[LOST] - t[LOST]) < 0.05 and rotation_angle_deg(R1[LOST], R[LOST]) < 0.5
+    assert np.array_equal(R1[:LOST], R[:LOST]) and np.array_equal(t1[:LOST], t[:LOST])
+    # without its detections in the frames the resection has nothing: kept where it was
+    blind = [(time_, tuple(v for v in vs if v[0].cam != LOST)) for time_, vs in frames]
+    R2, t2, loc2, out = resect_unplaced(blind, R0, t0, np.ones(7, bool), focal, view_box(frames, 7), cfg.associate,
+                                        cfg.bootstrap, seed=1, provisional=provisional)
+    assert loc2.all() and not out[0].accepted
+    assert np.array_equal(R2, R0) and np.array_equal(t2, t0)
+
+
 def test_one_spot_or_detections_of_other_instants_are_refused(west2):
     frames, R, t, focal = west2
     cfg = EngineConfig()
