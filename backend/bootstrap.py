@@ -1153,7 +1153,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     than 2 cameras can be placed."""
     from .optimize import Problem, solve
     from .relocalize import relocalize
-    from .resect import resect_unplaced
+    from .resect import PAIR_SPLIT_DEG, block_witnesses, follow_moved, resect_unplaced
 
     cfg = config.bootstrap
     say = progress or (lambda _m: None)
@@ -1318,6 +1318,32 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                         + "; ".join(resect_notes))
                 if moved:
                     say("moved from where their bridge pairs put them: " + ", ".join(moved))
+                for _ in range(3):
+                    witnessed = block_witnesses(pairs, R, located, cfg)
+                    if not witnessed.any():
+                        break
+                    R1, t1, _, again = resect_unplaced(frames, R, t, located, focal, view_box(frames, C),
+                                                       config.associate, cfg, seed=seed, provisional=witnessed)
+                    # a camera the resection puts about where it was keeps the adjustment's pose
+                    far = [r.cam for r in again if r.accepted and witnessed[r.cam]
+                           and rotation_angle_deg(R1[r.cam], R[r.cam]) > PAIR_SPLIT_DEG]
+                    if not far:
+                        break
+                    block = ("pairs that turn a group of cameras alike; resected against the others' persons, moved: "
+                             + ", ".join(f"{names[c]} {np.linalg.norm(t1[c] - t[c]):.2f} m / "
+                                         f"{rotation_angle_deg(R1[c], R[c]):.1f}°" for c in far))
+                    say(block)
+                    resect_notes += (block,)
+                    before = {c: (R[c].copy(), t[c].copy()) for c in far}
+                    for c in far:
+                        R[c], t[c] = R1[c], t1[c]
+                    found += len(far)
+                    rest = follow_moved(pairs, R, t, located, before)
+                    if rest:
+                        block = "moved with them, as their pairs hold them together: " + ", ".join(names[c] for c in rest)
+                        say(block)
+                        resect_notes += (block,)
+                        found += len(rest)
             else:
                 for c in np.flatnonzero(~located):
                     rl = relocalize(frames, int(c), R, t, float(focal[c]), config.associate,

@@ -40,7 +40,7 @@ import numpy as np
 from .associate import Associator
 from .config import AssociateConfig, BootstrapConfig, OptimizeConfig
 from .floor import ANKLES, MIN_POINTS, Floor, floor_of_persons
-from .geometry import rotation_angle_deg, triangulate_views
+from .geometry import project_so3, rotation_angle_deg, triangulate_views
 from .preprocess import Detection
 
 Frame = tuple[float, tuple[tuple[Detection, ...], ...]]
@@ -638,3 +638,86 @@ def _floor_scale(single: Sequence[dict[int, Detection]], agreeing: np.ndarray, c
     P = t[o] + scale * (np.array(low)[ok][good] - t[o])
     near, _ = cKDTree(walked @ flat).query(P @ flat, distance_upper_bound=FLOOR_REACH_M)
     return scale, float(np.mean(np.isfinite(near)))
+
+
+def block_witnesses(pairs: Sequence, R: np.ndarray, located: np.ndarray, cfg: BootstrapConfig) -> np.ndarray:
+    """(C,) bool: the located cameras of pairs that say a block of the network was chained
+    turned, and the cameras that witness it. A camera c whose pairs with two or more
+    located cameras agree with each other on c's turn, disagree with its pose by more than
+    PAIR_SPLIT_DEG, and are about as strong (``split_ratio``) as its pairs that agree with
+    it: either those pairs are wrong, or their cameras are placed turned as a group
+    (two walkers crossing a hall the opposite ways, each seen by other cameras, give
+    pairs that turn one side of the network round alike; docs/bootstrap.md, Session 45).
+    The resection against the others' persons tells which."""
+    C = len(located)
+    out = np.zeros(C, bool)
+    by_cam: dict[int, list] = {}
+    for p in pairs:
+        if located[p.a] and located[p.b]:
+            by_cam.setdefault(p.a, []).append(p)
+            by_cam.setdefault(p.b, []).append(p)
+    for c, ps in by_cam.items():
+        agree = sum(len(p.frames) for p in ps if rotation_angle_deg(_turn(p, c, R), R[c]) <= PAIR_SPLIT_DEG)
+        off = [p for p in ps if rotation_angle_deg(_turn(p, c, R), R[c]) > PAIR_SPLIT_DEG]
+        best: list = []
+        for p in off:  # the largest group of disagreeing pairs that agree on one turn
+            group = [q for q in off if rotation_angle_deg(_turn(q, c, R), _turn(p, c, R)) <= PAIR_SPLIT_DEG]
+            if sum(len(q.frames) for q in group) > sum(len(q.frames) for q in best):
+                best = group
+        if len(best) >= 2 and sum(len(q.frames) for q in best) >= cfg.split_ratio * agree:
+            out[c] = True
+            for q in best:
+                out[_partner(q, c)] = True
+    return out
+
+
+def follow_moved(pairs: Sequence, R: np.ndarray, t: np.ndarray, located: np.ndarray,
+                 before: dict[int, tuple[np.ndarray, np.ndarray]]) -> list[int]:
+    """The rest of a block the resection moved part of (``block_witnesses``): the cameras
+    ``before`` (camera -> its (R (3, 3), t (3,)) before the move) moved as one rigid
+    motion; a group of located cameras that the pairs agreeing with the poses hold
+    together, apart from the largest group, whose pairs with the others agree best on a
+    turn, and on the motion's turn, is moved by it too (the chain of cameras beyond the
+    ones resected: their own pairs held them to the moved ones). R, t (C, 3, 3), (C, 3)
+    are changed in place; returns the cameras moved."""
+    if not before:
+        return []
+    motion = {c: (R[c] @ Ro.T, t[c] - R[c] @ Ro.T @ to) for c, (Ro, to) in before.items()}
+    group = max(([k for k in motion if rotation_angle_deg(motion[k][0], motion[c][0]) <= PAIR_SPLIT_DEG]
+                 for c in motion), key=len)
+    Q = project_so3(sum(motion[c][0] for c in group))
+    d = np.median([motion[c][1] for c in group], axis=0)
+    held = [p for p in pairs if located[p.a] and located[p.b]
+            and rotation_angle_deg(_turn(p, p.b, R), R[p.b]) <= PAIR_SPLIT_DEG]
+    parent = list(range(len(located)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for p in held:
+        parent[root(p.a)] = root(p.b)
+    comps: dict[int, list[int]] = {}
+    for c in map(int, np.flatnonzero(located)):
+        comps.setdefault(root(c), []).append(c)
+    main = max(comps.values(), key=len)
+    moved: list[int] = []
+    for comp in comps.values():
+        if comp is main:
+            continue
+        inside = set(comp)
+        # each pair with a camera outside the group: the turn it asks of the group
+        turns = [(_turn(p, k, R) @ R[k].T, len(p.frames)) for p in pairs
+                 for k in (p.a, p.b) if k in inside and located[_partner(p, k)] and _partner(p, k) not in inside]
+        if len(turns) < 2:
+            continue
+        best = max(([(Qp, n) for Qp, n in turns if rotation_angle_deg(Qp, Qc) <= PAIR_SPLIT_DEG] for Qc, _ in turns),
+                   key=lambda g: sum(n for _, n in g))
+        if len(best) < 2 or rotation_angle_deg(project_so3(sum(Qp * n for Qp, n in best)), Q) > PAIR_SPLIT_DEG:
+            continue
+        for k in comp:
+            R[k], t[k] = Q @ R[k], Q @ t[k] + d
+            moved.append(k)
+    return sorted(moved)
