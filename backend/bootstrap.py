@@ -1293,6 +1293,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                 say("cameras reached only over bridge pairs, checked against the others' persons: "
                     + ", ".join(check_notes))
             found = 0
+            refused = np.zeros(C, bool)  # located cameras the resection took out
             if cfg.resect:
                 # A camera no triangle and no check verified stands on its bridge pairs
                 # alone, and two wrong pairs can agree: in a hall of 40 cameras and 4
@@ -1308,10 +1309,12 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                 moved = [f"{names[r.cam]} {np.linalg.norm(t[r.cam] - t_pairs[r.cam]):.2f} m / "
                          f"{rotation_angle_deg(R[r.cam], R_pairs[r.cam]):.1f}°"
                          for r in resections if r.accepted and unchecked[r.cam]]
+                refused = located & ~now_located
                 found = int(now_located.sum() - located.sum()) + len(moved)
                 located = now_located
+                kept = unchecked & now_located
                 resect_notes = tuple(r.summary(names[r.cam], names)
-                                     + ("; kept where its bridge pairs put it" if unchecked[r.cam] and not r.accepted else "")
+                                     + ("; kept where its bridge pairs put it" if kept[r.cam] and not r.accepted else "")
                                      for r in resections)
                 if resections:
                     say("cameras not placed or only over unchecked bridge pairs, resected against the others' persons: "
@@ -1355,7 +1358,9 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                     say(f"re-localised {found} camera(s) by PnP")
             added = np.zeros(C, bool)
             if bones_at is not None:
-                R, t, added = _place_by_bones(R, t, located, *bones_at)
+                # not a camera whose pairs' pose the persons in its view refused: the bones
+                # place it by the same pairs
+                R, t, added = _place_by_bones(R, t, located, bones_at[0], bones_at[1], bones_at[2] & ~refused)
             if added.any():
                 located |= added
                 if bones_auto:

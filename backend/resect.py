@@ -119,6 +119,7 @@ class Resection:
     paired: int = -1
     scaled_by: str = ""
     third: tuple[int, ...] = ()  # the cameras whose pairs refused its pair (``place_by_pair``, ``resect_unplaced``)
+    held: int = -1  # agreeing frames of the pose it had (``resect(at=)``), -1: none given
 
     def summary(self, name: str, names: Sequence[str] = ()) -> str:
         third = ", ".join(names[k] if len(names) > k else f"camera {k}" for k in self.third)
@@ -222,10 +223,13 @@ def _covariance(X: np.ndarray, x: np.ndarray, frame: np.ndarray, R: np.ndarray, 
 
 
 def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, box: np.ndarray,
-           cfg: BootstrapConfig, *, seed: int = 0, iterations: int = 200) -> Resection:
+           cfg: BootstrapConfig, *, seed: int = 0, iterations: int = 200,
+           at: tuple[np.ndarray, np.ndarray] | None = None) -> Resection:
     """The pose of camera ``cam`` from the persons the placed cameras triangulate
     (``triangulate_persons``) and its own detections in the same frames; ``box`` (2, 2):
-    where its detections lie in its image (``bootstrap.view_box``). See the module doc."""
+    where its detections lie in its image (``bootstrap.view_box``); ``at``: a pose it has
+    (R (3, 3), t (3,)) whose agreeing frames are counted too (``Resection.held``). See the
+    module doc."""
     tol = cfg.resect_px / focal
     # candidates: (person, detection) in the same frame
     cand_P, cand_x, cand_f = [], [], []
@@ -330,7 +334,8 @@ def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, bo
         reasons.append(f"the persons it agrees with spread {spread:.2f} m, {cfg.resect_min_spread:g} m needed")
     if rival > cfg.resect_ambiguity * n:
         reasons.append(f"a different pose agrees in {rival} frames")
-    return Resection(cam, R, t, n, seen, nf, spread, rival, res_px, cov, not reasons, "; ".join(reasons))
+    held = score(*at)[0] if at is not None else -1
+    return Resection(cam, R, t, n, seen, nf, spread, rival, res_px, cov, not reasons, "; ".join(reasons), held=held)
 
 
 def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located: np.ndarray, focal: np.ndarray,
@@ -351,7 +356,9 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
     the cameras chained to it with it, docs/bootstrap.md, Session 44). ``provisional``
     (C,) bool: located cameras nothing verified (reached over pairs that no triangle and
     no check confirmed): resected as if not located, against the others' persons only,
-    and kept where they were where the resection does not place them. Returns copies of
+    and kept where they were where the resection does not place them, unless the persons
+    in their view agree with another pose (in ``resect_min_frames`` frames) and with
+    theirs in fewer than ``resect_ambiguity`` times as many: then not placed. Returns copies of
     (R (C, 3, 3), t (C, 3), located (C,)) and each camera's last Resection."""
     keep = np.zeros_like(located) if provisional is None else provisional & located
     R, t, located = R.copy(), t.copy(), located & ~keep
@@ -379,7 +386,8 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
         persons = triangulate_persons(frames, R, t, located, assoc)
         if first is None:
             first = persons
-        found = [resect(frames, persons, c, float(focal[c]), boxes[c], cfg, seed=seed + c) for c in todo]
+        found = [resect(frames, persons, c, float(focal[c]), boxes[c], cfg, seed=seed + c,
+                        at=(R0[c], t0[c]) if keep[c] else None) for c in todo]
         if pairs:
             # the network's bones from the cameras located from the start: the ones placed
             # by pairs since then triangulate with their pair's std, which shows in the bones
@@ -402,7 +410,15 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
             last[c] = replace(last[c], accepted=False, third=tuple(split),
                               reason="taken back: the cameras placed by pairs do not hold together, the pairs of these "
                                      "with the cameras placed turn them apart")
-    located[keep & ~located] = True  # not resected: where their pairs put them (R0, t0 hold that)
+    for c in map(int, np.flatnonzero(keep & ~located)):  # not resected: where their pairs put them (R0, t0)
+        r = last.get(c)
+        if (r is not None and r.R is not None and r.frames >= cfg.resect_min_frames
+                and r.held < cfg.resect_ambiguity * r.frames and rotation_angle_deg(r.R, R0[c]) > PAIR_SPLIT_DEG):
+            # the persons in its view agree with another pose, not with its pairs': a
+            # wrong pair's, which sees nobody where it looks (a camera seen little)
+            last[c] = replace(r, reason=f"{r.reason}; the pose its pairs gave agrees in {r.held} frames: not placed")
+            continue
+        located[c] = True
     return R, t, located, [last[c] for c in sorted(last)]
 
 

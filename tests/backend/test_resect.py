@@ -257,6 +257,51 @@ def test_triangles_through_a_camera_not_placed_confirm_or_refuse_a_pair():
     assert _third_camera(0, [wrong], [wrong], located, lambda y: [r12]) == ([wrong], [])
 
 
+def test_a_group_chained_turned_is_witnessed_and_follows_the_cameras_resected():
+    """Cameras 0-3 placed right; 4-7 chained turned round as a group by two wrong pairs
+    that agree with each other (0-4 and 1-5: two walkers who crossed the hall the opposite
+    ways, each seen by one camera). The right pairs 3-4, 3-5 and 2-4 disagree with the
+    placement alike: cameras 3, 4 and 5 witness it. Once the resection puts 4 and 5
+    right, 6 and 7, held to them by their own pairs, follow by the same motion; cameras
+    whose pairs do not agree on that turn stay."""
+    from backend.geometry import so3_exp
+    from backend.resect import block_witnesses, follow_moved
+
+    rng = np.random.default_rng(3)
+    C = 8
+    Rt = np.array([so3_exp(rng.normal(size=3)) for _ in range(C)])  # world_R_cam, the truth
+    tt = rng.uniform(-5, 5, size=(C, 3))
+    Q0, d0 = so3_exp([0.0, 0.0, np.radians(178.0)]), np.array([3.0, -2.0, 0.0])
+    R, t = Rt.copy(), tt.copy()
+    for k in range(4, 8):
+        R[k], t[k] = Q0 @ Rt[k], Q0 @ tt[k] + d0
+
+    def right(a, b, n):
+        return _pair(a, b, Rt[b].T @ Rt[a], n)
+
+    pairs = [right(0, 1, 90), right(1, 2, 80), right(2, 3, 60), right(0, 3, 60),
+             right(4, 5, 70), right(5, 6, 80), right(6, 7, 90), right(4, 7, 50),
+             right(3, 4, 80), right(2, 4, 60), right(3, 5, 70),
+             _pair(0, 4, R[4].T @ Rt[0], 90), _pair(1, 5, R[5].T @ Rt[1], 80)]
+    located = np.ones(C, bool)
+    assert np.flatnonzero(block_witnesses(pairs, R, located, EngineConfig().bootstrap)).tolist() == [2, 3, 4, 5]
+    # placed right, nothing witnesses anything: the wrong pairs alone do not agree on a turn
+    assert not block_witnesses(pairs, Rt, located, EngineConfig().bootstrap).any()
+
+    before = {k: (R[k].copy(), t[k].copy()) for k in (4, 5)}
+    R[4], t[4], R[5], t[5] = Rt[4], tt[4], Rt[5], tt[5]  # as the resection puts them
+    assert follow_moved(pairs, R, t, located, before) == [6, 7]
+    for k in range(C):
+        assert rotation_angle_deg(R[k], Rt[k]) < 1e-6 and np.linalg.norm(t[k] - tt[k]) < 1e-9
+    # a group whose pairs with the rest ask another turn than the motion's stays
+    R2, t2 = Rt.copy(), tt.copy()
+    for k in (6, 7):
+        R2[k], t2[k] = Q0 @ Rt[k], Q0 @ tt[k] + d0
+    other = {k: (so3_exp([0.0, 0.0, 0.5]) @ Rt[k], tt[k] + 1.0) for k in (4, 5)}
+    assert follow_moved(pairs, R2, t2, located, other) == []
+    assert np.array_equal(R2[6], Q0 @ Rt[6])
+
+
 def test_a_floor_beyond_where_the_network_walked_gives_way_to_the_bones(corridor2):
     """A floor fitted where the network's people walked is known there; a few degrees'
     tilt is tens of cm some metres on. A floor 0.8 m off the truth: where the pair's people
