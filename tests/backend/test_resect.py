@@ -101,6 +101,20 @@ def test_a_provisional_camera_is_resected_where_it_can_be_and_kept_where_it_cann
                                         cfg.bootstrap, seed=1, provisional=provisional)
     assert loc2.all() and not out[0].accepted
     assert np.array_equal(R2, R0) and np.array_equal(t2, t0)
+    # the persons of a few seconds at one spot: the resection finds a pose but cannot take
+    # it (they spread too little); the turned pose agrees with none of them: not placed.
+    # At its true pose it is kept: that pose agrees with the persons it sees
+    seen = [k for k, (_, vs) in enumerate(frames) if any(v[0].cam == LOST for v in vs)]
+    t_mid = frames[seen[len(seen) // 2]][0]
+    spot = [f for f in frames if abs(f[0] - t_mid) <= 2.5]
+    _, _, loc3, out = resect_unplaced(spot, R0, t0, np.ones(7, bool), focal, view_box(frames, 7), cfg.associate,
+                                      cfg.bootstrap, seed=1, provisional=provisional)
+    r = out[0]
+    assert not r.accepted and r.R is not None and r.frames >= cfg.bootstrap.resect_min_frames, r.summary("cam_17")
+    assert not loc3[LOST] and r.reason.endswith("not placed") and r.held < r.frames
+    R4, t4, loc4, out = resect_unplaced(spot, R, t, np.ones(7, bool), focal, view_box(frames, 7), cfg.associate,
+                                        cfg.bootstrap, seed=1, provisional=provisional)
+    assert loc4.all() and rotation_angle_deg(R4[LOST], R[LOST]) < 0.5, out[0].summary("cam_17")
 
 
 def test_one_spot_or_detections_of_other_instants_are_refused(west2):
