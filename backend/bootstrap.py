@@ -32,7 +32,10 @@ intervals in a known world). This module finds one from the preprocessed framese
    re-associated with the estimate, outlier views dropped, a few rounds. Cameras the view
    graph reached only over bridge pairs (no triangle checked them) are checked against
    the persons the other cameras triangulate without them (``check_bridged``). Cameras no
-   pair placed are re-localised by PnP against the persons the others triangulate.
+   pair placed are re-localised by PnP against the persons the others triangulate, and so
+   are the cameras that check left unchecked and a group of cameras chained turned, which
+   right pairs that disagree with it alike witness (``resect.block_witnesses``; the rest
+   of the group follows the ones resected, ``resect.follow_moved``).
 6. The scale from people again (now with multi-view persons, told apart by tracking) and
    the world frame from the floor: the plane of the ankles over time, z up, origin under
    the first camera, x towards the second.
