@@ -703,8 +703,8 @@ def follow_moved(pairs: Sequence, R: np.ndarray, t: np.ndarray, located: np.ndar
                  for c in motion), key=len)
     Q = project_so3(sum(motion[c][0] for c in group))
     d = np.median([motion[c][1] for c in group], axis=0)
-    held = [p for p in pairs if located[p.a] and located[p.b]
-            and rotation_angle_deg(_turn(p, p.b, R), R[p.b]) <= PAIR_SPLIT_DEG]
+    agreeing = [p for p in pairs if located[p.a] and located[p.b]
+                and rotation_angle_deg(_turn(p, p.b, R), R[p.b]) <= PAIR_SPLIT_DEG]
     parent = list(range(len(located)))
 
     def root(i: int) -> int:
@@ -713,7 +713,7 @@ def follow_moved(pairs: Sequence, R: np.ndarray, t: np.ndarray, located: np.ndar
             i = parent[i]
         return i
 
-    for p in held:
+    for p in agreeing:
         parent[root(p.a)] = root(p.b)
     comps: dict[int, list[int]] = {}
     for c in map(int, np.flatnonzero(located)):
