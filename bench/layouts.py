@@ -6,7 +6,9 @@ strong barrel distortion, 640 x 480), variations of them (``hall``: 8 HD cameras
 high round a 16 x 10 m hall; ``warehouse``: 8 of them 5 m high round 24 x 16 m through
 55° lenses; ``low``: 4 cameras at head height; ``steep``: 4 cameras
 under a 3.4 m ceiling of a 4 x 4 m room looking steeply down; ``rolled``: room8's cameras
-mounted rolled about their optical axes, portrait and upside down) and the corridor; people walking
+mounted rolled about their optical axes, portrait and upside down), the corridor and halls
+of 30 or 40 cameras on a 3 m grid, each looking down a random way (``grid30``, ``grid40``:
+``scenes.grid``, a new grid for each seed; run them with ``--persons 3`` or 4); people walking
 (``--persons``, heights 1.80 / 1.65 m). Each case runs the command a user runs,
 ``extrcal calibrate`` in a subprocess, from a perturbed initial estimate (the paper's
 protocol, ``--starts`` m/deg) or from none (``none``: bootstrap, metric scale from the
@@ -18,6 +20,7 @@ result; a run that left cameras out or uncalibrated names them and counts as "sh
     python bench/layouts.py --layouts room4 --starts none,height --seeds 5 --jobs 2
     python bench/layouts.py --starts 0.75/20,0.75/20+height --set bootstrap.initial_scale=combine
     python bench/layouts.py --starts none --sim noise_scale=2 --sim swap_prob=0.03   # a harsher detector
+    python bench/layouts.py --layouts grid30 --persons 3 --starts none --seeds 4 --jobs 2   # ~1 h
 """
 
 from __future__ import annotations
@@ -56,6 +59,10 @@ LAYOUTS = {
     "rolled": ("room", {"cameras": 8, "roll": (0.0, 90.0, 180.0, -90.0, 30.0, 135.0, -60.0, 180.0)}),
     # a small room's cameras near a high ceiling looking steeply down: people foreshortened
     "steep": ("room", {"cameras": 4, "width": 4.0, "depth": 4.0, "height": 3.4, "aim": 0.3, "hfov": 110.0}),
+    # many cameras on a grid under a hall's ceiling, turned every way (a new grid each seed):
+    # most pairs share no view, pairs of cameras seeing different walkers fit wrong poses
+    "grid30": ("grid", {"cameras": 30, "seed": None}),
+    "grid40": ("grid", {"cameras": 40, "seed": None}),
 }
 
 
@@ -66,6 +73,8 @@ def simulate(layout: str, persons: int, duration: float, seed: int, cache: Path,
     from edge_clients.sim.scenes import make, write_scene
 
     name, kw = LAYOUTS[layout]
+    if "seed" in kw and kw["seed"] is None:  # a layout drawn anew for each seed
+        kw = {**kw, "seed": seed}
     h = hashlib.sha1()
     for f in sorted((REPO / "edge_clients" / "sim").glob("*.py")):
         h.update(f.read_bytes())

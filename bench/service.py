@@ -42,7 +42,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from backend.cameras import Extrinsics, Intrinsics, Pose, dump_extrinsics, load_extrinsics, load_intrinsics  # noqa: E402
+from backend.cameras import Extrinsics, Intrinsics, dump_extrinsics, load_extrinsics, load_intrinsics  # noqa: E402
 from backend.config import apply_override  # noqa: E402
 from backend.perturb import perturb_extrinsics  # noqa: E402
 from proto.transport import free_port  # noqa: E402
@@ -58,27 +58,12 @@ def lab_cameras() -> tuple[dict[str, Intrinsics], dict[str, Extrinsics]]:
 
 
 def hall_cameras(n: int, seed: int = 0) -> tuple[dict[str, Intrinsics], dict[str, Extrinsics]]:
-    """``n`` cameras on a grid under the ceiling of a hall, looking down at ~35°,
-    each towards a random direction: overlapping views everywhere, like a big lab."""
-    intr0 = next(iter(load_intrinsics(LAB / "intrinsics.yaml").values()))
-    rng = np.random.default_rng(seed)
-    cols = int(math.ceil(math.sqrt(n * 1.5)))
-    intr, ext = {}, {}
-    for i in range(n):
-        r, c = divmod(i, cols)
-        centre = np.array([c * 3.0, r * 3.0, 2.6 + 0.3 * rng.random()])
-        yaw = rng.uniform(0, 2 * np.pi)
-        pitch = np.radians(rng.uniform(25, 45))
-        # camera axes (OpenCV): z forward, x right, y down
-        fwd = np.array([np.cos(yaw) * np.cos(pitch), np.sin(yaw) * np.cos(pitch), -np.sin(pitch)])
-        right = np.cross(fwd, [0, 0, 1.0])
-        right /= np.linalg.norm(right)
-        down = np.cross(fwd, right)
-        R = np.stack([right, down, fwd], axis=1)  # world_R_cam: columns are the camera axes
-        name = f"cam_{i}"
-        intr[name] = replace(intr0, name=name)
-        ext[name] = Extrinsics(Pose(R, centre), tuple(intr0.resolution))
-    return intr, ext
+    """``n`` cameras of a hall (``edge_clients.sim.scenes.grid``): on a 3 m grid under the
+    ceiling, looking down at 25-45°, each towards a random direction."""
+    from edge_clients.sim.scenes import grid
+
+    scene = grid(n, seed=seed)
+    return dict(scene.intrinsics), {k: Extrinsics(p, scene.intrinsics[k].resolution) for k, p in scene.poses.items()}
 
 
 def simulate(cameras: int, rate: float, seconds: float, persons: int, out: Path) -> tuple[dict, dict, int]:

@@ -12,6 +12,12 @@ its walls), each looking at the room's centre through a wide, distorted lens: th
 small installation, and a layout the lab does not have (every camera sees most of the
 floor; baselines across the room; no camera looks the same way as another).
 
+``grid``: a hall with many cameras (30, 40...) on a grid under its ceiling, each looking
+down towards a random direction: more cameras than the lab, each seeing a few metres of
+floor, half the pairs (30 cameras) or more (40) sharing none of it, walkers seen by a handful at a time (the layout where
+pairs of cameras that each see a different walker fit wrong relative poses,
+docs/bootstrap.md, Session 45).
+
 ``write_scene`` writes a scene as a camera directory (intrinsics.yaml, reference.yaml,
 room.yaml, floorplan.pgm) that ``Scene.load``, ``extrcal simulate --cameras`` and
 ``extrcal calibrate`` read like the lab's.
@@ -31,7 +37,7 @@ from backend.cameras import Extrinsics, Intrinsics, Pose, dump_extrinsics, dump_
 from .area import CELL, fov_limit, in_fov, wall_map
 from .scene import Floor, FloorPlan, Scene
 
-SCENES = ("corridor", "room")
+SCENES = ("corridor", "room", "grid")
 
 _MPP = 0.05  # m per floor plan pixel
 _WALL = 0.2  # m wall thickness in the plan
@@ -134,12 +140,43 @@ def room(cameras: int = 4, *, width: float = 7.0, depth: float = 5.0, height: fl
     return _walled(names, intr, poses, (0.0, 0.0), (width, depth))
 
 
+def grid(cameras: int = 30, *, spacing: float = 3.0, height: float = 2.6, pitch: tuple[float, float] = (25.0, 45.0),
+         seed: int = 0) -> Scene:
+    """``cameras`` cameras on a square-ish grid (columns = ceil(sqrt(1.5 cameras))),
+    ``spacing`` m apart, ``height`` to ``height`` + 0.3 m high, each pitched ``pitch``
+    (uniform, deg) down towards a yaw drawn uniformly (``seed``), image rows horizontal.
+    The lab's cam_0 lens (848x480, about 90° wide). No walls: people walk wherever a
+    camera sees them (``area``). World frame = floor frame, z up, camera 0 above the origin."""
+    if cameras < 2:
+        raise ValueError(f"a grid needs at least 2 cameras, got {cameras}")
+    if not (spacing > 0 and height > 1.8 and 0 < pitch[0] <= pitch[1] < 90):
+        raise ValueError("grid: spacing > 0, height > 1.8 m, 0 < pitch[0] <= pitch[1] < 90 deg expected")
+    rng = np.random.default_rng(seed)
+    cols = int(math.ceil(math.sqrt(cameras * 1.5)))
+    names = tuple(f"cam_{i}" for i in range(cameras))
+    intr, poses = {}, {}
+    for i, n in enumerate(names):
+        r, c = divmod(i, cols)
+        centre = np.array([c * spacing, r * spacing, height + 0.3 * rng.random()])
+        yaw = rng.uniform(0, 2 * np.pi)
+        th = np.radians(rng.uniform(*pitch))
+        z = np.array([np.cos(yaw) * np.cos(th), np.sin(yaw) * np.cos(th), -np.sin(th)])
+        x = np.cross(z, [0, 0, 1.0])
+        x /= np.linalg.norm(x)
+        poses[n] = Pose(np.stack([x, np.cross(z, x), z], axis=1), centre)
+        intr[n] = Intrinsics(n, 426.366, 426.948, 425.388, 245.035,
+                             np.array([-0.053925, 0.063101, 0.000206, -0.000723, -0.020201]), (848, 480))
+    return Scene(names, intr, poses, Floor.make(np.zeros(3), [1.0, 0, 0], [0, 0, 1.0]), None)
+
+
 def make(name: str, **kw) -> Scene:
     """A generated scene by name (``SCENES``)."""
     if name == "corridor":
         return corridor(**kw)
     if name == "room":
         return room(**kw)
+    if name == "grid":
+        return grid(**kw)
     raise ValueError(f"unknown scene {name!r} (known: {', '.join(SCENES)})")
 
 

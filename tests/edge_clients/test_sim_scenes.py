@@ -7,7 +7,7 @@ import pytest
 from typer.testing import CliRunner
 
 from edge_clients.sim import Scene, SimConfig, Simulator
-from edge_clients.sim.scenes import corridor, floor_views, make, room, write_scene
+from edge_clients.sim.scenes import corridor, floor_views, grid, make, room, write_scene
 
 # a standing person's torso as the association needs it (both hips and both shoulders),
 # for statures 1.55-2.0 m: hips 0.53 H, shoulders 0.818 H
@@ -74,6 +74,30 @@ def test_a_rolled_camera_turns_about_its_optical_axis_only():
         assert np.allclose(a.t, b.t) and np.allclose(a.R[:, 2], b.R[:, 2])  # same place, same view
         turn = np.degrees(np.arctan2(a.R[:, 1] @ b.R[:, 0], a.R[:, 0] @ b.R[:, 0]))
         assert np.isclose(turn, (0.0, 90.0, 180.0, 0.0)[k]) or np.isclose(abs(turn), 180.0) and k == 2
+
+
+def test_a_grid_hall_has_many_cameras_half_the_pairs_sharing_no_floor():
+    s = grid(30, seed=3)
+    c = s.centres()
+    assert len(s.names) == 30 and c[:, 2].min() >= 2.6 and c[:, 2].max() <= 2.9
+    # a grid 3 m apart: 7 columns for 30 cameras, camera 0 above the floor's origin
+    assert np.allclose(c[:7, 1], 0.0) and np.allclose(np.diff(c[:7, 0]), 3.0) and np.allclose(c[0, :2], 0.0)
+    pitch = [np.degrees(np.arcsin(-s.poses[n].R[2, 2])) for n in s.names]
+    assert min(pitch) >= 25.0 and max(pitch) <= 45.0
+    for n in s.names:  # proper rotations, image rows horizontal
+        R = s.poses[n].R
+        assert np.allclose(R.T @ R, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0) and abs(R[2, 0]) < 1e-12
+    yaws = np.degrees(np.arctan2([s.poses[n].R[1, 2] for n in s.names], [s.poses[n].R[0, 2] for n in s.names]))
+    assert np.ptp(yaws) > 270  # every way
+    _, seen = floor_views(s)
+    shared = seen.astype(np.int32) @ seen.T.astype(np.int32) >= 100  # >= 1 m² of floor (0.1 m cells)
+    pairs = shared[np.triu_indices(30, 1)]
+    assert 0.25 < pairs.mean() < 0.65, pairs.mean()  # unlike a room's, where every pair shares most of it
+    assert (shared.sum(1) >= 3).all()  # itself and two others at least
+    assert grid(30, seed=3).poses["cam_7"] == s.poses["cam_7"] and grid(30, seed=4).poses["cam_7"] != s.poses["cam_7"]
+    assert make("grid", cameras=5).names == grid(5).names
+    with pytest.raises(ValueError, match="at least 2"):
+        grid(1)
 
 
 def test_written_scene_loads_and_simulates(tmp_path):
