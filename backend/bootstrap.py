@@ -1156,7 +1156,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     than 2 cameras can be placed."""
     from .optimize import Problem, solve
     from .relocalize import relocalize
-    from .resect import PAIR_SPLIT_DEG, block_witnesses, follow_moved, resect_unplaced
+    from .resect import EVENT_S, PAIR_SPLIT_DEG, block_witnesses, follow_moved, move_block, resect_unplaced, turned_blocks
 
     cfg = config.bootstrap
     say = progress or (lambda _m: None)
@@ -1189,7 +1189,9 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     # 2. rotations, 3. scales and centres
     t0 = _time.perf_counter()
     ok_tri, bad_tri = triangle_check(pairs, 2 * cfg.rotation_outlier)
-    pairs = [p for p, g, b in zip(pairs, ok_tri, bad_tri) if g > 0 or b == 0]
+    # the pairs the triangles refuse are kept for ``turned_blocks``: where wrong pairs
+    # chained a group turned, its right pairs with the rest are the ones refused
+    every_pair, pairs = pairs, [p for p, g, b in zip(pairs, ok_tri, bad_tri) if g > 0 or b == 0]
     R, connected, rres = average_rotations(C, pairs, sigma_deg=cfg.rotation_outlier / 2)
     inl = rres <= cfg.rotation_outlier
     good = [p for p, ok in zip(pairs, inl) if ok]
@@ -1326,30 +1328,49 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                     say("moved from where their bridge pairs put them: " + ", ".join(moved))
                 for _ in range(3):
                     witnessed = block_witnesses(pairs, R, located, cfg)
-                    if not witnessed.any():
-                        break
-                    R1, t1, _, again = resect_unplaced(frames, R, t, located, focal, view_box(frames, C),
-                                                       config.associate, cfg, seed=seed, provisional=witnessed)
-                    # a camera the resection puts about where it was keeps the adjustment's pose
-                    far = [r.cam for r in again if r.accepted and witnessed[r.cam]
-                           and rotation_angle_deg(R1[r.cam], R[r.cam]) > PAIR_SPLIT_DEG]
-                    if not far:
-                        break
-                    block = ("pairs that turn a group of cameras alike; resected against the others' persons, moved: "
-                             + ", ".join(f"{names[c]} {np.linalg.norm(t1[c] - t[c]):.2f} m / "
-                                         f"{rotation_angle_deg(R1[c], R[c]):.1f}°" for c in far))
-                    say(block)
-                    resect_notes += (block,)
-                    before = {c: (R[c].copy(), t[c].copy()) for c in far}
-                    for c in far:
-                        R[c], t[c] = R1[c], t1[c]
-                    found += len(far)
-                    rest = follow_moved(pairs, R, t, located, before)
-                    if rest:
-                        block = "moved with them, as their pairs hold them together: " + ", ".join(names[c] for c in rest)
+                    far: list[int] = []
+                    if witnessed.any():
+                        R1, t1, _, again = resect_unplaced(frames, R, t, located, focal, view_box(frames, C),
+                                                           config.associate, cfg, seed=seed, provisional=witnessed)
+                        # a camera the resection puts about where it was keeps the adjustment's pose
+                        far = [r.cam for r in again if r.accepted and witnessed[r.cam]
+                               and rotation_angle_deg(R1[r.cam], R[r.cam]) > PAIR_SPLIT_DEG]
+                    if far:
+                        block = ("pairs that turn a group of cameras alike; resected against the others' persons, "
+                                 "moved: " + ", ".join(f"{names[c]} {np.linalg.norm(t1[c] - t[c]):.2f} m / "
+                                                       f"{rotation_angle_deg(R1[c], R[c]):.1f}°" for c in far))
                         say(block)
                         resect_notes += (block,)
-                        found += len(rest)
+                        before = {c: (R[c].copy(), t[c].copy()) for c in far}
+                        for c in far:
+                            R[c], t[c] = R1[c], t1[c]
+                        found += len(far)
+                        rest = follow_moved(pairs, R, t, located, before)
+                        if rest:
+                            block = ("moved with them, as their pairs hold them together: "
+                                     + ", ".join(names[c] for c in rest))
+                            say(block)
+                            resect_notes += (block,)
+                            found += len(rest)
+                        continue
+                    # no camera witnesses it: a group each of whose cameras its own pairs
+                    # hold, turned as one, found by the pairs across its border
+                    for group, cut, turn in turned_blocks(every_pair, R, located):
+                        mv = move_block(frames, R, t, located, group, turn, focal, config.associate, cfg, seed=seed)
+                        if mv is not None and mv.accepted:
+                            break
+                    else:
+                        break
+                    block = (f"a group of cameras turned as one against the others (the pairs across its border "
+                             f"{', '.join(f'{names[p.a]}-{names[p.b]}' for p in cut)} wrong): moved "
+                             f"{rotation_angle_deg(mv.Q, np.eye(3)):.0f}°, its cameras agree with the others' "
+                             f"persons in {mv.windows} windows of {EVENT_S:g} s ({mv.held_windows} before): "
+                             + ", ".join(names[c] for c in np.flatnonzero(group)))
+                    say(block)
+                    resect_notes += (block,)
+                    for c in np.flatnonzero(group):
+                        R[c], t[c] = mv.Q @ R[c], mv.Q @ t[c] + mv.d
+                    found += int(group.sum())
             else:
                 for c in np.flatnonzero(~located):
                     rl = relocalize(frames, int(c), R, t, float(focal[c]), config.associate,

@@ -737,3 +737,198 @@ def follow_moved(pairs: Sequence, R: np.ndarray, t: np.ndarray, located: np.ndar
             R[k], t[k] = Q @ R[k], Q @ t[k] + d
             moved.append(k)
     return sorted(moved)
+
+
+def turned_blocks(pairs: Sequence, R: np.ndarray, located: np.ndarray, *, limit: int = 3
+                  ) -> list[tuple[np.ndarray, list, np.ndarray]]:
+    """Groups of located cameras that the pairs disagreeing with the placement say are
+    turned as one against the rest, where each camera's own pairs hold it (so no camera
+    witnesses it, ``block_witnesses``). A pair that disagrees asks one of its cameras to
+    turn by Q (world frame) against the other; the pairs that ask one turn (Q or Q^T:
+    which side turns a turn near 180° does not say; two pairs at least) are the edges
+    the group's border should cross. The border: the split of the located cameras that
+    parts the fewest agreeing pair frames and the most of those pairs' frames (two-sided
+    correlation clustering, ``_two_sides``; near ties are common, so the few cheapest
+    splits), if it beats no split. The agreeing pairs it parts are the
+    wrong ones that chained the group so: two walkers crossing a hall the opposite ways
+    at one time, each seen by cameras of one side, give many (docs/bootstrap.md, Session
+    46). Up to ``limit`` groups, the turn most disagreeing frames ask first, each
+    (the smaller side (C,) bool, the agreeing pairs across its border, the turn (3, 3)
+    or its inverse). Which is right ``move_block`` tells."""
+    from scipy.sparse import csr_array
+    from scipy.sparse.csgraph import shortest_path
+
+    C = len(located)
+    agree, votes = [], []
+    for p in pairs:
+        if located[p.a] and located[p.b]:
+            Q = _turn(p, p.b, R) @ R[p.b].T
+            (agree if rotation_angle_deg(Q, np.eye(3)) <= PAIR_SPLIT_DEG else votes).append((p, Q))
+    idx = np.flatnonzero(located)
+    pos = {c: k for k, c in enumerate(idx)}
+    n = len(idx)
+    W = np.zeros((n, n))  # agreeing frames: keep together
+    for p, _ in agree:
+        W[pos[p.a], pos[p.b]] += len(p.frames)
+    W = W + W.T
+    out: list[tuple[np.ndarray, list, np.ndarray]] = []
+    while len(out) < limit and len(votes) >= 2:
+        best: list = []
+        turn = np.eye(3)
+        for _, Q in votes:
+            group = [(p, Qb) for p, Qb in votes
+                     if min(rotation_angle_deg(Qb, Q), rotation_angle_deg(Qb.T, Q)) <= PAIR_SPLIT_DEG]
+            if sum(len(p.frames) for p, _ in group) > sum(len(p.frames) for p, _ in best):
+                best, turn = group, Q
+        if len(best) < 2:
+            break
+        votes = [v for v in votes if not any(v[0] is p for p, _ in best)]
+        N = np.zeros((n, n))  # the group's frames: part
+        for p, _ in best:
+            N[pos[p.a], pos[p.b]] += len(p.frames)
+        N = N + N.T
+        # starts: each camera on the side of the group pair's end it is nearer to
+        hops = shortest_path(csr_array(W), unweighted=True)
+        starts = [hops[pos[p.a]] < hops[pos[p.b]] for p, _ in best]
+        for _, x in _two_sides(W, N, starts)[:limit - len(out)]:
+            side = np.zeros(C, bool)
+            side[idx[x]] = True
+            cut = [p for p, _ in agree if side[p.a] != side[p.b]]
+            out.append(((side if x.sum() <= n - x.sum() else located & ~side), cut, turn))
+    return out
+
+
+def _two_sides(W: np.ndarray, N: np.ndarray, starts: Sequence[np.ndarray] = ()) -> list[tuple[float, np.ndarray]]:
+    """Splits (cost, (n,) bool) of n nodes that cut little of W and keep little of N within
+    a side (both (n, n) symmetric, >= 0), cheaper than no split, cheapest first: single
+    nodes moved across while that helps, from the signed graph Laplacian's split and
+    from ``starts`` (the optimum is hard to find; near ties go to ``move_block``)."""
+    S = W - N
+    L = np.diag(np.abs(S).sum(1)) - S
+
+    def cost(x: np.ndarray) -> float:
+        same = x[:, None] == x[None, :]
+        return 0.5 * float((W * ~same).sum() + (N * same).sum())
+
+    out: list[tuple[float, np.ndarray]] = []
+    for x in [np.linalg.eigh(L)[1][:, 0] >= 0, *starts]:
+        x = x.copy()
+        c = cost(x)
+        while True:
+            trials = [cost(np.where(np.arange(len(x)) == k, ~x, x)) for k in range(len(x))]
+            k = int(np.argmin(trials))
+            if trials[k] >= c:
+                break
+            x[k], c = ~x[k], trials[k]
+        if c < 0.5 * N.sum() and x.any() and not x.all() and not any(np.array_equal(x, y) or np.array_equal(x, ~y)
+                                                                        for _, y in out):
+            out.append((c, x))
+    return sorted(out, key=lambda cx: cx[0])
+
+
+EVENT_S = 5.0  # s: the agreement of a group's pose is counted in windows this long
+
+
+@dataclass(frozen=True)
+class BlockMove:
+    """A rigid motion of a group of cameras (``move_block``): R' = Q R, t' = Q t + d.
+
+    windows / frames: the EVENT_S windows and frames in which a camera of the group agrees
+    with the others' persons after the motion; held_windows / held_frames: before it."""
+
+    Q: np.ndarray
+    d: np.ndarray
+    windows: int
+    frames: int
+    held_windows: int
+    held_frames: int
+    accepted: bool
+
+
+def move_block(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located: np.ndarray, block: np.ndarray,
+               turn: np.ndarray, focal: np.ndarray, assoc: AssociateConfig, cfg: BootstrapConfig, *,
+               seed: int = 0, iterations: int = 300) -> BlockMove | None:
+    """Where a group of cameras (``block`` (C,) bool, from ``turned_blocks``) belongs if it
+    is turned by ``turn`` (3, 3) or its inverse against the rest: the persons the other
+    located cameras triangulate against the group's detections, with each camera's
+    orientation fixed by the turn, so that only the group's shift d (3,) is sought (RANSAC,
+    one candidate's joints a model). A pose is scored by the EVENT_S windows in which one
+    of the group's cameras agrees with those persons, not by frames: pairs that chained a
+    group wrong (two walkers crossing a hall the opposite ways, each seen by one side)
+    make the persons agree with the wrong pose in many frames of one crossing, the right
+    pose agrees whenever somebody walks where both sides see (docs/bootstrap.md, Session
+    46). Accepted when the moved group agrees in ``resect_min_frames`` frames and the pose
+    it has in fewer than ``resect_ambiguity`` times its windows. None: no candidates."""
+    persons = triangulate_persons(frames, R, t, located & ~block, assoc)
+    times = np.array([f[0] for f in frames])
+    cams, P, x, fr = [], [], [], []
+    for c in map(int, np.flatnonzero(block)):
+        mine: dict[int, list[np.ndarray]] = {}
+        for fi, (_, views) in enumerate(frames):
+            for v in views:
+                for det in v:
+                    if det.cam == c:
+                        mine.setdefault(fi, []).append(det.xy)
+        for k in range(len(persons.frame)):
+            for xy in mine.get(int(persons.frame[k]), ()):
+                if (np.all(np.isfinite(persons.X[k]), 1) & np.all(np.isfinite(xy), 1)).sum() >= 6:
+                    cams.append(c)
+                    P.append(persons.X[k])
+                    x.append(xy)
+                    fr.append(int(persons.frame[k]))
+    if len(P) < cfg.resect_min_frames:
+        return None
+    cams_a, P_a, x_a, fr_a = np.array(cams), np.stack(P), np.stack(x), np.array(fr)
+    tol = cfg.resect_px / focal[cams_a]
+
+    def score(Q: np.ndarray, d: np.ndarray) -> tuple[int, int]:
+        f = np.unique(fr_a[agreeing(Q, d)])
+        return len(np.unique(np.floor((times[f] - times[0]) / EVENT_S))), len(f)
+
+    def shift(Q: np.ndarray, ks: np.ndarray) -> np.ndarray | None:
+        """d that puts candidates ``ks``' detections on their persons (the orientation
+        known: linear in each camera's centre, one d for all)."""
+        rows, rhs = [], []
+        for k in ks:
+            c = cams_a[k]
+            ok = np.all(np.isfinite(P_a[k]), 1) & np.all(np.isfinite(x_a[k]), 1)
+            b = np.c_[x_a[k][ok], np.ones(ok.sum())] @ (Q @ R[c]).T  # bearings in the world
+            z = np.zeros(len(b))
+            bx = np.stack([np.stack([z, -b[:, 2], b[:, 1]], 1), np.stack([b[:, 2], z, -b[:, 0]], 1),
+                           np.stack([-b[:, 1], b[:, 0], z], 1)], 1)  # (N, 3, 3) [b]x
+            # [b]x (Q t_c + d) = [b]x X: the centre on each joint's ray
+            rows.append(bx.reshape(-1, 3))
+            rhs.append((np.cross(b, P_a[k][ok]) - np.cross(b, Q @ t[c])).reshape(-1))
+        d, *_ = np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)
+        return d if np.all(np.isfinite(d)) else None
+
+    def agreeing(Q: np.ndarray, d: np.ndarray) -> np.ndarray:
+        ok = np.zeros(len(P_a), bool)
+        for c in set(cams):
+            m = cams_a == c
+            ok[m] = _frame_errors(P_a[m], x_a[m], Q @ R[c], Q @ t[c] + d) < tol[m]
+        return np.flatnonzero(ok)
+
+    held = score(np.eye(3), np.zeros(3))
+    turns = [turn] + ([turn.T] if rotation_angle_deg(turn, turn.T) > PAIR_SPLIT_DEG else [])
+    rng = np.random.default_rng(seed)
+    best = (-1, -1, np.eye(3), np.zeros(3))
+    for k in rng.choice(len(P_a), size=min(iterations, len(P_a)), replace=False):
+        for Q in turns:
+            d = shift(Q, np.array([k]))
+            if d is not None:
+                w, n = score(Q, d)
+                if (w, n) > best[:2]:
+                    best = (w, n, Q, d)
+    w, n, Q, d = best
+    if w < 0:
+        return None
+    for _round in range(3):  # on every agreeing candidate
+        sel = agreeing(Q, d)
+        d1 = shift(Q, sel) if len(sel) else None
+        if d1 is None or score(Q, d1) < (w, n):
+            break
+        d = d1
+        w, n = score(Q, d)
+    ok = n >= cfg.resect_min_frames and held[0] < cfg.resect_ambiguity * w
+    return BlockMove(Q, d, w, n, held[0], held[1], bool(ok))
