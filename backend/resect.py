@@ -749,7 +749,8 @@ def turned_blocks(pairs: Sequence, R: np.ndarray, located: np.ndarray, *, limit:
     the group's border should cross. The border: the split of the located cameras that
     parts the fewest agreeing pair frames and the most of those pairs' frames (two-sided
     correlation clustering, ``_two_sides``; near ties are common, so the few cheapest
-    splits), if it beats no split. The agreeing pairs it parts are the
+    splits), where it parts most of them: the wrong pairs may well have more frames
+    than the right ones (that is how they won). The agreeing pairs it parts are the
     wrong ones that chained the group so: two walkers crossing a hall the opposite ways
     at one time, each seen by cameras of one side, give many (docs/bootstrap.md, Session
     46). Up to ``limit`` groups, the turn most disagreeing frames ask first, each
@@ -800,7 +801,7 @@ def turned_blocks(pairs: Sequence, R: np.ndarray, located: np.ndarray, *, limit:
 
 def _two_sides(W: np.ndarray, N: np.ndarray, starts: Sequence[np.ndarray] = ()) -> list[tuple[float, np.ndarray]]:
     """Splits (cost, (n,) bool) of n nodes that cut little of W and keep little of N within
-    a side (both (n, n) symmetric, >= 0), cheaper than no split, cheapest first: single
+    a side (both (n, n) symmetric, >= 0), that part most of N, cheapest first: single
     nodes moved across while that helps, from the signed graph Laplacian's split and
     from ``starts`` (the optimum is hard to find; near ties go to ``move_block``)."""
     S = W - N
@@ -820,7 +821,8 @@ def _two_sides(W: np.ndarray, N: np.ndarray, starts: Sequence[np.ndarray] = ()) 
             if trials[k] >= c:
                 break
             x[k], c = ~x[k], trials[k]
-        if c < 0.5 * N.sum() and x.any() and not x.all() and not any(np.array_equal(x, y) or np.array_equal(x, ~y)
+        same = x[:, None] == x[None, :]
+        if (N * same).sum() < 0.5 * N.sum() and x.any() and not x.all() and not any(np.array_equal(x, y) or np.array_equal(x, ~y)
                                                                         for _, y in out):
             out.append((c, x))
     return sorted(out, key=lambda cx: cx[0])
