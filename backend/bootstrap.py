@@ -35,7 +35,10 @@ intervals in a known world). This module finds one from the preprocessed framese
    pair placed are re-localised by PnP against the persons the others triangulate, and so
    are the cameras that check left unchecked and a group of cameras chained turned, which
    right pairs that disagree with it alike witness (``resect.block_witnesses``; the rest
-   of the group follows the ones resected, ``resect.follow_moved``).
+   of the group follows the ones resected, ``resect.follow_moved``). A group each of whose
+   cameras its own pairs hold is found by the pairs across its border that ask one turn
+   (``resect.turned_blocks``) and moved as one where its cameras agree with the others'
+   persons in the most 5 s windows (``resect.move_block``).
 6. The scale from people again (now with multi-view persons, told apart by tracking) and
    the world frame from the floor: the plane of the ankles over time, z up, origin under
    the first camera, x towards the second.
