@@ -772,6 +772,7 @@ def turned_blocks(pairs: Sequence, R: np.ndarray, located: np.ndarray, *, limit:
     for p, _ in agree:
         W[pos[p.a], pos[p.b]] += len(p.frames)
     W = W + W.T
+    hops = shortest_path(csr_array(W), unweighted=True)
     out: list[tuple[np.ndarray, list, np.ndarray]] = []
     while len(out) < limit and len(votes) >= 2:
         best: list = []
@@ -789,7 +790,6 @@ def turned_blocks(pairs: Sequence, R: np.ndarray, located: np.ndarray, *, limit:
             N[pos[p.a], pos[p.b]] += len(p.frames)
         N = N + N.T
         # starts: each camera on the side of the group pair's end it is nearer to
-        hops = shortest_path(csr_array(W), unweighted=True)
         starts = [hops[pos[p.a]] < hops[pos[p.b]] for p, _ in best]
         for _, x in _two_sides(W, N, starts)[:limit - len(out)]:
             side = np.zeros(C, bool)
@@ -821,9 +821,9 @@ def _two_sides(W: np.ndarray, N: np.ndarray, starts: Sequence[np.ndarray] = ()) 
             if trials[k] >= c:
                 break
             x[k], c = ~x[k], trials[k]
-        same = x[:, None] == x[None, :]
-        if (N * same).sum() < 0.5 * N.sum() and x.any() and not x.all() and not any(np.array_equal(x, y) or np.array_equal(x, ~y)
-                                                                        for _, y in out):
+        kept = float((N * (x[:, None] == x[None, :])).sum())
+        seen = any(np.array_equal(x, y) or np.array_equal(x, ~y) for _, y in out)
+        if kept < 0.5 * N.sum() and x.any() and not x.all() and not seen:
             out.append((c, x))
     return sorted(out, key=lambda cx: cx[0])
 
@@ -863,25 +863,27 @@ def move_block(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located: n
     it has in fewer than ``resect_ambiguity`` times its windows. None: no candidates."""
     persons = triangulate_persons(frames, R, t, located & ~block, assoc)
     times = np.array([f[0] for f in frames])
+    mine: dict[int, list[tuple[int, np.ndarray]]] = {}  # frame -> the group's (camera, detection)
+    for fi, (_, views) in enumerate(frames):
+        for v in views:
+            for det in v:
+                if block[det.cam]:
+                    mine.setdefault(fi, []).append((det.cam, det.xy))
     cams, P, x, fr = [], [], [], []
-    for c in map(int, np.flatnonzero(block)):
-        mine: dict[int, list[np.ndarray]] = {}
-        for fi, (_, views) in enumerate(frames):
-            for v in views:
-                for det in v:
-                    if det.cam == c:
-                        mine.setdefault(fi, []).append(det.xy)
-        for k in range(len(persons.frame)):
-            for xy in mine.get(int(persons.frame[k]), ()):
-                if (np.all(np.isfinite(persons.X[k]), 1) & np.all(np.isfinite(xy), 1)).sum() >= 6:
-                    cams.append(c)
-                    P.append(persons.X[k])
-                    x.append(xy)
-                    fr.append(int(persons.frame[k]))
+    for k in range(len(persons.frame)):
+        fi = int(persons.frame[k])
+        for c, xy in mine.get(fi, ()):
+            if (np.all(np.isfinite(persons.X[k]), 1) & np.all(np.isfinite(xy), 1)).sum() >= 6:
+                cams.append(c)
+                P.append(persons.X[k])
+                x.append(xy)
+                fr.append(fi)
     if len(P) < cfg.resect_min_frames:
         return None
-    cams_a, P_a, x_a, fr_a = np.array(cams), np.stack(P), np.stack(x), np.array(fr)
+    order = np.argsort(cams, kind="stable")  # camera by camera: the RANSAC's draws depend on the order
+    cams_a, P_a, x_a, fr_a = np.array(cams)[order], np.stack(P)[order], np.stack(x)[order], np.array(fr)[order]
     tol = cfg.resect_px / focal[cams_a]
+    per_cam = [(c, cams_a == c) for c in np.unique(cams_a)]
 
     def score(Q: np.ndarray, d: np.ndarray) -> tuple[int, int]:
         f = np.unique(fr_a[agreeing(Q, d)])
@@ -906,8 +908,7 @@ def move_block(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located: n
 
     def agreeing(Q: np.ndarray, d: np.ndarray) -> np.ndarray:
         ok = np.zeros(len(P_a), bool)
-        for c in set(cams):
-            m = cams_a == c
+        for c, m in per_cam:
             ok[m] = _frame_errors(P_a[m], x_a[m], Q @ R[c], Q @ t[c] + d) < tol[m]
         return np.flatnonzero(ok)
 
@@ -928,9 +929,11 @@ def move_block(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located: n
     for _round in range(3):  # on every agreeing candidate
         sel = agreeing(Q, d)
         d1 = shift(Q, sel) if len(sel) else None
-        if d1 is None or score(Q, d1) < (w, n):
+        if d1 is None:
             break
-        d = d1
-        w, n = score(Q, d)
+        w1, n1 = score(Q, d1)
+        if (w1, n1) < (w, n):
+            break
+        d, w, n = d1, w1, n1
     ok = n >= cfg.resect_min_frames and held[0] < cfg.resect_ambiguity * w
     return BlockMove(Q, d, w, n, held[0], held[1], bool(ok))

@@ -60,7 +60,7 @@ LAYOUTS = {
     # a small room's cameras near a high ceiling looking steeply down: people foreshortened
     "steep": ("room", {"cameras": 4, "width": 4.0, "depth": 4.0, "height": 3.4, "aim": 0.3, "hfov": 110.0}),
     # many cameras on a grid under a hall's ceiling, turned every way (a new grid each seed):
-    # most pairs share no view, pairs of cameras seeing different walkers fit wrong poses
+    # half the pairs share no floor, pairs of cameras seeing different walkers fit wrong poses
     "grid30": ("grid", {"cameras": 30, "seed": None}),
     "grid40": ("grid", {"cameras": 40, "seed": None}),
 }

@@ -14,9 +14,9 @@ floor; baselines across the room; no camera looks the same way as another).
 
 ``grid``: a hall with many cameras (30, 40...) on a grid under its ceiling, each looking
 down towards a random direction: more cameras than the lab, each seeing a few metres of
-floor, half the pairs (30 cameras) or more (40) sharing none of it, walkers seen by a handful at a time (the layout where
-pairs of cameras that each see a different walker fit wrong relative poses,
-docs/bootstrap.md, Session 45).
+floor, half the pairs (30 cameras) or more (40) sharing none of it, walkers seen by a
+handful at a time (the layout where pairs of cameras that each see a different walker
+fit wrong relative poses, docs/bootstrap.md, Session 45).
 
 ``write_scene`` writes a scene as a camera directory (intrinsics.yaml, reference.yaml,
 room.yaml, floorplan.pgm) that ``Scene.load``, ``extrcal simulate --cameras`` and
@@ -160,10 +160,8 @@ def grid(cameras: int = 30, *, spacing: float = 3.0, height: float = 2.6, pitch:
         centre = np.array([c * spacing, r * spacing, height + 0.3 * rng.random()])
         yaw = rng.uniform(0, 2 * np.pi)
         th = np.radians(rng.uniform(*pitch))
-        z = np.array([np.cos(yaw) * np.cos(th), np.sin(yaw) * np.cos(th), -np.sin(th)])
-        x = np.cross(z, [0, 0, 1.0])
-        x /= np.linalg.norm(x)
-        poses[n] = Pose(np.stack([x, np.cross(z, x), z], axis=1), centre)
+        ahead = np.array([np.cos(yaw) * np.cos(th), np.sin(yaw) * np.cos(th), -np.sin(th)])
+        poses[n] = Pose(_look_at(centre, centre + ahead), centre)
         intr[n] = Intrinsics(n, 426.366, 426.948, 425.388, 245.035,
                              np.array([-0.053925, 0.063101, 0.000206, -0.000723, -0.020201]), (848, 480))
     return Scene(names, intr, poses, Floor.make(np.zeros(3), [1.0, 0, 0], [0, 0, 1.0]), None)
