@@ -217,3 +217,17 @@ def test_the_end_of_a_corridor_joins_by_its_pair(tmp_path):
     # the world's z is the floor's up: levelled on the final batch's floor, of every camera's people
     assert "# world frame levelled again on the final batch adjustment's floor" in out.read_text()
     assert up_tilt({n: e.pose for n, e in res.items()}, scene.poses, scene.floor.up) < 0.5
+
+
+def test_a_camera_joined_live_that_no_cycle_adjusted_is_said_unconfirmed():
+    """A camera placed by a late pair that then never got a cycle (too few views with the
+    others: a wrong pair's camera looks where they see nobody) is not said to be adjusted."""
+    from backend.late_join import later_summary
+
+    j = {"name": "cam_22", "paired_with": "cam_2", "data_seconds": 151.0, "frames": 40, "seen": 42,
+         "residual_px": 1.9, "spread": 1.33, "scaled_by": "", "std_translation": 0.223, "std_rotation": 2.0, "live": True,
+         "adjusted": False}
+    line = later_summary(j)
+    assert "its pair's pose is its result, unconfirmed" in line and "adjusted it) from" not in line
+    assert "its cycles and the final batch adjusted it" in later_summary({**j, "adjusted": True})
+    assert "its resection's pose" in later_summary({**j, "paired_with": ""})
