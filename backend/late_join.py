@@ -94,7 +94,8 @@ class JoiningPipeline(Pipeline):
     cameras without a pose (the rest of ``intrinsics``) archived beside it, and their
     resection when it finishes (see the module doc). After ``finish``: ``joined`` is the
     pipeline that ran the final batch with the cameras placed late (None when none was),
-    ``late`` their records and ``late_notes`` one line per camera tried."""
+    ``late`` their records, ``taken_back`` the ones left out of the result and
+    ``late_notes`` one line per camera tried."""
 
     def __init__(self, cameras: CameraSet, config: EngineConfig | None = None, *,
                  intrinsics: Mapping[str, Intrinsics], names: Sequence[str], seed: int = 0,
@@ -114,6 +115,7 @@ class JoiningPipeline(Pipeline):
         self._releasing = False
         self.joined: Pipeline | None = None
         self.late: list[Joined] = []
+        self.taken_back: list[Joined] = []  # placed by a late pair that no cycle confirmed (``finish``)
         self.late_notes: list[str] = []
         self.late_archived = 0  # framesets ever archived in late_frames (a full deque stops growing)
         # every sensor's stamps as they arrive: the unplaced cameras' clocks are estimated by nobody
@@ -212,6 +214,16 @@ class JoiningPipeline(Pipeline):
         final = self.joined if self.joined is not None else self
         self.late = [replace(x, adjusted=bool(final.refiner.cycles[final.names.index(x.name)] > 0))
                      if x.name in final.names else x for x in self.late]
+        # A pair of cameras that each saw one person, two people, places a camera where it
+        # looks at nobody the others see: no cycle takes it (too few views with them), and
+        # its pose is the wrong pair's (a hall of 30, cam_22: 13.6 m / 70° off;
+        # docs/bootstrap.md, Session 46). A right pair's camera sees the pair's person
+        # with its partner again. Such a camera is left out, as one never placed.
+        self.taken_back = [x for x in self.late if x.paired_with and x.live and not x.adjusted]
+        if self.taken_back:
+            gone = {x.name for x in self.taken_back}
+            self.late = [x for x in self.late if x.name not in gone]
+            state = self.state()
         return state
 
     def _finish(self):
@@ -240,14 +252,16 @@ class JoiningPipeline(Pipeline):
 
     @property
     def not_placed(self) -> list[str]:
-        """The unplaced cameras not placed late either."""
+        """The unplaced cameras not placed late either, or taken back."""
         placed = {j.name for j in self.late}
-        return [n for n in self.unplaced if n not in placed]
+        return [n for n in self.unplaced if n not in placed] + [x.name for x in self.taken_back]
 
     def state(self):
-        """The joined pipeline's state once cameras joined (all of its cameras), else the
-        placed cameras'."""
-        return self.joined.state() if self.joined is not None else super().state()
+        """The joined pipeline's state once cameras joined at the end, else this one's (the
+        cameras that joined while it ran among them); not the ones ``taken_back``."""
+        state = self.joined.state() if self.joined is not None else super().state()
+        gone = {x.name for x in self.taken_back}
+        return replace(state, cameras=tuple(c for c in state.cameras if c.name not in gone)) if gone else state
 
     def snapshot(self) -> dict:
         return self.joined.snapshot() if self.joined is not None else super().snapshot()
@@ -580,6 +594,8 @@ def late_comment(p: Pipeline) -> list[str]:
     if not isinstance(p, JoiningPipeline):
         return []
     lines = [j.summary() for j in p.late]
+    lines += [f"{j.name} placed by its pair with {j.paired_with} after the bootstrap, then taken back: no cycle took "
+              "it (too few views with the others, as where a pair of two people put a camera)" for j in p.taken_back]
     if p.not_placed:
         lines.append(f"not placed by the bootstrap nor later (not calibrated): {', '.join(p.not_placed)}")
     return lines
