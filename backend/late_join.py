@@ -219,7 +219,7 @@ class JoiningPipeline(Pipeline):
         # its pose is the wrong pair's (a hall of 30, cam_22: 13.6 m / 70° off;
         # docs/bootstrap.md, Session 46). A right pair's camera sees the pair's person
         # with its partner again. Such a camera is left out, as one never placed.
-        self.taken_back = [x for x in self.late if x.paired_with and x.live and not x.adjusted]
+        self.taken_back = unconfirmed(self.late)
         if self.taken_back:
             gone = {x.name for x in self.taken_back}
             self.late = [x for x in self.late if x.name not in gone]
@@ -564,6 +564,13 @@ def _timing_note(stamped: Resection, timed: Resection | None, lead: float, taken
 def run_late_job(job: LateJob) -> LateResult:
     """``job.run()``, for a worker process."""
     return job.run()
+
+
+def unconfirmed(late: Sequence[Joined]) -> list[Joined]:
+    """The cameras a late pair placed while the run went on (``Joined.live``) that no
+    cycle and not the final batch took (``Joined.adjusted``): where the pair put them
+    they see nobody the others see (``JoiningPipeline.finish`` takes them back)."""
+    return [x for x in late if x.paired_with and x.live and not x.adjusted]
 
 
 def later_summary(j: Mapping[str, Any]) -> str:

@@ -231,3 +231,32 @@ def test_a_camera_joined_live_that_no_cycle_adjusted_is_said_unconfirmed():
     assert "its pair's pose is its result, unconfirmed" in line and "adjusted it) from" not in line
     assert "its cycles and the final batch adjusted it" in later_summary({**j, "adjusted": True})
     assert "its resection's pose" in later_summary({**j, "paired_with": ""})
+
+
+def test_a_camera_a_late_pair_placed_that_no_cycle_took_is_taken_back(west):
+    """The rule (``unconfirmed``): placed by a pair while the run went on and not adjusted
+    by a cycle or the final batch. The plumbing, on a finished pipeline: such a camera is
+    not in the state (nor the result), is among the cameras not placed, and the header
+    says why."""
+    from backend.late_join import Joined, late_comment, unconfirmed
+    from backend.resect import Resection
+
+    r = Resection(6, np.eye(3), np.zeros(3), 40, 42, 42, 0.5, 0, 1.9, None, True, "")
+    pair = Joined(LATE, r, 150.0, 0.2, 2.0, live=True, paired_with="cam_12")
+    assert unconfirmed([pair]) == [pair]
+    assert unconfirmed([dataclasses.replace(pair, adjusted=True)]) == []  # its cycles took it
+    assert unconfirmed([dataclasses.replace(pair, paired_with="")]) == []  # resected: the persons confirm it
+    assert unconfirmed([dataclasses.replace(pair, live=False)]) == []  # joined at the end: no cycle to take it
+
+    _, intr, truth, msgs = west
+    cams = CameraSet.combine(intr, {n: Extrinsics(truth[n], intr[n].resolution) for n in WEST})
+    cfg = EngineConfig.load(None, ["bootstrap.late_pairs=false", *SMALL_FINAL])
+    joining = JoiningPipeline(cams, cfg, intrinsics=intr, names=WEST, seed=3)
+    _run(cams, cfg, msgs[: len(msgs) // 3], joining)
+    assert LATE in [c.name for c in joining.state().cameras] and joining.not_placed == []
+    joining.taken_back = [pair]
+    assert [c.name for c in joining.state().cameras] == [n for n in WEST if n != LATE]
+    assert joining.not_placed == [LATE]
+    lines = late_comment(joining)
+    assert any(ln.startswith(f"{LATE} placed by its pair with cam_12 after the bootstrap, then taken back") for ln in lines)
+    assert lines[-1] == f"not placed by the bootstrap nor later (not calibrated): {LATE}"
