@@ -42,6 +42,12 @@ class SyncConfig(_Section):
 
 class PreprocessConfig(_Section):
     min_confidence: float = Field(0.6, ge=0, le=1)
+    partial_torso: bool = Field(
+        True, description="a detection needs a shoulder and a hip at min_confidence (one side may be hidden: "
+        "a person seen in profile hides the far shoulder and hip behind the body); false: all four, as the "
+        "paper. A camera that sees people mostly side-on kept a fifth of its detections with all four: "
+        "the lab's cam_13 (seed 2) ended 0.119 m off from no initial estimate, 0.050 m with this "
+        "(docs/bootstrap.md, Session 47)")
     confidence_reference: float | None = Field(
         0.9, gt=0, le=1, description="the 90th percentile of a sensor's detected torso-joint confidences that "
         "min_confidence is stated for (the paper's detector; the simulator's run 0.93-0.98). A detector's scores "

@@ -194,7 +194,10 @@ class Preprocessor:
         if (kp[..., 2] > 0).any(axis=1).sum() > self.cfg.max_persons:
             self.rejected["crowded_view"] += P
             return []
-        keep = np.all(confident, axis=1)
+        if self.cfg.partial_torso:  # TORSO is (L_SHOULDER, R_SHOULDER, L_HIP, R_HIP)
+            keep = confident[:, :2].any(axis=1) & confident[:, 2:].any(axis=1)
+        else:
+            keep = np.all(confident, axis=1)
         self.rejected["no_torso"] += int((~keep).sum())
         close = self._too_close(kp, v.boxes, v.size) & keep
         self.rejected["too_close"] += int(close.sum())

@@ -65,7 +65,7 @@ def detection(R, t, c, J, index=-1) -> Detection:
 # ------------------------------------------------------------------ depth interval
 
 
-def _sample_depths(seed, n, *, max_radius, tilt_deg=15.0, fx=426.0, size=(848, 480)):
+def _sample_depths(seed, n, *, max_radius, tilt_deg=15.0, fx=426.0, size=(848, 480), hidden=()):
     """n random persons (1.70-2.00 m, random yaw, tilted by N(0, tilt_deg) about each
     axis) whose torso is inside a wide-lens image (the lab's 848x480, fx 426: ~90°
     across), seen by a camera pitched down 20-45°, with the torso centre's ray within
@@ -106,6 +106,7 @@ def _sample_depths(seed, n, *, max_radius, tilt_deg=15.0, fx=426.0, size=(848, 4
     for k in np.flatnonzero(ok)[:n]:
         xy = np.full((17, 2), np.nan)
         xy[list(TORSO)] = xy4[k]
+        xy[[TORSO[i] for i in hidden]] = np.nan
         lo, hi = depth_interval(xy, AssociateConfig())
         out.append((Xc[k, :, 2].mean(), lo, hi, np.linalg.norm(c[k])))
     assert len(out) == n
@@ -131,6 +132,18 @@ def test_depth_interval_contains_the_true_depth_anywhere_in_a_wide_lens_image():
     assert inside.all(), (f"{(~inside).sum()} of {len(z)} persons outside their depth interval; worst: "
                           f"true depth {z[worst]:.2f} m > upper bound {hi[worst]:.2f} m "
                           f"at |xy| = {r[worst]:.2f} off the axis")
+
+
+def test_depth_interval_with_one_side_of_the_torso_hidden_still_contains_the_true_depth():
+    """A profile view's far shoulder and hip are hidden (preprocess.partial_torso): no
+    width bounds the depth, the torso alone must, loosely."""
+    s = _sample_depths(2, 2000, max_radius=np.inf, hidden=(1, 3))
+    z, lo, hi = s[:, 0], s[:, 1], s[:, 2]
+    inside = (lo <= z) & (z <= hi)
+    assert inside.all(), f"{(~inside).sum()} of {len(z)} outside"
+    full = _sample_depths(2, 2000, max_radius=np.inf)
+    assert np.all(lo <= full[:, 1])  # looser than with both widths ...
+    assert np.median(hi / z) < 1.25 * np.median(full[:, 2] / full[:, 0])  # ... but bounded above as well
 
 
 def test_depth_interval_scales_with_the_person():

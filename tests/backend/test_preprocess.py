@@ -91,7 +91,7 @@ def test_a_message_at_another_resolution_with_the_same_aspect_is_scaled(pre, lab
     assert p.rejected["resolution_mismatch"] == 2
 
 
-def test_confidence_threshold_drops_joints_and_a_missing_torso_joint_drops_the_person(pre, lab_intrinsics):
+def test_confidence_threshold_drops_joints_and_a_person_needs_a_shoulder_and_a_hip(pre, lab_intrinsics):
     p = pre()
     intr = lab_intrinsics["cam_4"]
     uv = _pixels(intr, _body([0.0, 0.0, 4.0]))
@@ -101,12 +101,29 @@ def test_confidence_threshold_drops_joints_and_a_missing_torso_joint_drops_the_p
     assert np.all(np.isnan(d.xy[[9, 10]])) and np.all(np.isnan(d.sigma[[9, 10]]))
     keep = np.setdiff1d(np.arange(17), [9, 10])
     assert np.all(np.isfinite(d.xy[keep])) and np.all(np.isfinite(d.sigma[keep]))
+    # one side hidden (a profile view): kept, the hidden joints missing
+    c = np.full(17, 0.9)
+    c[[6, 12]] = 0.3
+    [d] = p.view(_view("cam_4", [uv], intr.resolution, conf=c))
+    assert np.all(np.isnan(d.xy[[6, 12]])) and np.all(np.isfinite(d.xy[[5, 11]]))
+    # no shoulder, or no hip: nobody the association can place
+    for gone in ([5, 6], [11, 12], [5, 6, 11]):
+        c = np.full(17, 0.9)
+        c[gone] = 0.5
+        assert p.view(_view("cam_4", [uv], intr.resolution, conf=c)) == []
+    assert p.rejected["no_torso"] == 3
+    assert p.accepted == 2
+
+
+def test_as_the_paper_a_missing_torso_joint_drops_the_person(pre, lab_intrinsics):
+    p = pre(PreprocessConfig(partial_torso=False))
+    intr = lab_intrinsics["cam_4"]
+    uv = _pixels(intr, _body([0.0, 0.0, 4.0]))
     for j in TORSO:
         c = np.full(17, 0.9)
         c[j] = 0.5
         assert p.view(_view("cam_4", [uv], intr.resolution, conf=c)) == []
-    assert p.rejected["no_torso"] == 4
-    assert p.accepted == 1
+    assert p.rejected["no_torso"] == 4 and p.accepted == 0
 
 
 def test_a_sensor_whose_torso_confidences_run_below_the_threshold_is_warned_about(pre, lab_intrinsics):
@@ -170,13 +187,13 @@ def test_joints_outside_the_image_are_dropped_and_a_wrong_size_is_warned_about(p
     [d] = p.view(_view("cam_4", [guessed], intr.resolution))
     assert np.all(np.isnan(d.xy[[9, 15]])) and np.all(np.isnan(d.sigma[[9, 15]]))
     assert np.all(np.isfinite(d.xy[16]))
-    # a torso joint outside: the person has no torso
+    # both hips outside: the person has no torso to place
     cut = uv.copy()
-    cut[11] = [uv[11, 0], H + 5.0]
+    cut[[11, 12], 1] = H + 5.0
     assert p.view(_view("cam_4", [cut], intr.resolution)) == []
     assert p.rejected["no_torso"] == 1
     rep = p.confidence_report()
-    assert rep["cam_4"]["outside_image"] == pytest.approx(3 / 34, abs=1e-4)
+    assert rep["cam_4"]["outside_image"] == pytest.approx(4 / 34, abs=1e-4)
     assert rep["cam_4"]["warning"] is None  # too few joints to judge, and few outside
 
     # a sensor that reports half its keypoints' resolution: most joints lie outside
