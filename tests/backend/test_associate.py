@@ -188,6 +188,32 @@ def test_two_persons_far_apart_in_three_cameras():
     assert np.allclose(h.sigma[k][np.isfinite(h.sigma[k])], 2.0 / F)
 
 
+def test_a_person_seen_in_profile_joins_the_other_views_of_that_person():
+    """Each person's far shoulder and hip hidden from one camera (preprocess.partial_torso):
+    its views still go to the right persons."""
+    R, t = rig(3)
+    A = body([-1.2, 0.4], heading=0.3)
+    B = body([1.3, -0.6], heading=2.0)
+
+    def profile(c, J, hide):
+        d = detection(R, t, c, J)
+        xy = d.xy.copy()
+        xy[hide] = np.nan
+        return Detection(c, xy, np.where(np.isfinite(xy[:, 0]), 2.0, np.nan), F, 0, -1)
+
+    views = [[detection(R, t, 0, A), detection(R, t, 0, B)],
+             [detection(R, t, 1, B), detection(R, t, 1, A)],
+             [profile(2, A, [6, 8, 10, 12]), profile(2, B, [5, 7, 9, 11])]]
+    hyps = Associator(AssociateConfig())(0.0, views, R, t)
+    assert len(hyps) == 2
+    for h in hyps:
+        assert _cams_of(h) == [0, 1, 2]
+        J = A if np.linalg.norm(h.com - A[list(TORSO)].mean(0)) < 0.3 else B
+        k = list(h.cams).index(2)
+        seen = np.isfinite(h.xy[k, :, 0])
+        assert np.allclose(h.xy[k, seen], observe(R, t, 2, J)[seen])  # camera 2's view of this person
+
+
 def test_a_detection_is_never_used_twice_and_cameras_are_distinct():
     """Crowded scenes (persons 0.6-1.5 m apart, closer than the 1 m segment threshold):
     whatever the grouping, one detection goes to one hypothesis, one view per camera."""
