@@ -185,8 +185,12 @@ class PairPose:
 
 
 def single_views(frames: Sequence[Frame]) -> list[dict[int, Detection]]:
-    """Per frame: camera → its detection, for the cameras that see exactly one person."""
-    return [{v[0].cam: v[0] for v in views if len(v) == 1} for _, views in frames]
+    """Per frame: camera → its detection, for the cameras that see exactly one person,
+    with the whole torso. A person seen in profile (``preprocess.partial_torso``) is
+    someone, so a camera that also sees another is ambiguous; but geometry from
+    scratch is not made of such views: kept, they doubled the wrong pairs of a hall of
+    30 cameras whose cameras mostly see different walkers (Session 47)."""
+    return [{v[0].cam: v[0] for v in views if len(v) == 1 and v[0].whole_torso} for _, views in frames]
 
 
 def sampson_px(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, focal: float) -> np.ndarray:

@@ -65,6 +65,11 @@ class Detection:
     def __post_init__(self) -> None:
         assert self.xy.shape == (17, 2) and self.sigma.shape == (17,)
 
+    @property
+    def whole_torso(self) -> bool:
+        """Both shoulders and both hips seen (else one side is hidden: a profile view)."""
+        return bool(np.isfinite(self.xy[list(TORSO), 0]).all())
+
 
 class ConfidenceScale:
     """Per sensor, the factor that brings its detector's confidences to the scale that
