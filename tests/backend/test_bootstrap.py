@@ -21,7 +21,7 @@ import pytest
 
 from backend.bootstrap import (
     BootstrapError, PairPose, average_rotations, bootstrap, camera_set, collect_frames, handover, pair_bones,
-    pair_scales, relative_pose, split_cameras, triangle_check,
+    pair_scales, relative_pose, single_views, split_cameras, triangle_check,
 )
 from backend.cameras import CameraSet, Extrinsics
 from backend.config import BootstrapConfig, EngineConfig
@@ -86,6 +86,18 @@ def test_relative_pose_recovers_the_pose_and_drops_frames_of_another_person():
     assert np.degrees(np.arccos(np.clip(t @ t_true, -1, 1))) < 0.5
     assert not np.isin(np.arange(0, F, 4), good).any(), "frames of another person must not agree"
     assert len(good) >= 0.9 * (F - F // 4)
+
+
+def test_pairs_from_scratch_take_single_views_with_the_whole_torso():
+    """A profile view (one side of the torso hidden) is someone, not a correspondence."""
+    def det(cam, hide=()):
+        xy = np.zeros((17, 2))
+        xy[list(hide)] = np.nan
+        return Detection(cam, xy, np.full(17, 2.0), 500.0)
+
+    frames = [(0.0, ((det(0),), (det(1, hide=(6, 12)),), (det(2), det(2, hide=(5,))), (det(3, hide=(9,)),)))]
+    [single] = single_views(frames)
+    assert sorted(single) == [0, 3]  # a hidden wrist is no matter; cam_1 in profile, cam_2 two persons
 
 
 @pytest.mark.parametrize("still", [False, True])
