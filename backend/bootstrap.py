@@ -598,6 +598,18 @@ def _related(P: int, rel: Sequence[tuple[int, int, float, float]]) -> np.ndarray
     return label
 
 
+def _busiest(cameras: int, pairs: Sequence[PairPose], use: np.ndarray) -> int | None:
+    """The camera with the most inliers over the pairs ``use`` (P,) bool; None if none."""
+    if not np.any(use):
+        return None
+    load = np.zeros(cameras)
+    for p, u in zip(pairs, use):
+        if u:
+            load[p.a] += p.inliers
+            load[p.b] += p.inliers
+    return int(np.argmax(load))
+
+
 def place_cameras(cameras: int, R: np.ndarray, pairs: Sequence[PairPose], logs: np.ndarray,
                   scaled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Camera centres (C, 3) from the rotations and the pairs' baselines: c_b - c_a =
@@ -1211,20 +1223,24 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     if phantoms:
         say("bridge pairs whose person changed size as two people would, dropped: "
             + ", ".join(f"{names[p.a]}-{names[p.b]} (spread {p.size_spread:.2f})" for p in phantoms))
-    R, connected, _ = average_rotations(C, good, sigma_deg=cfg.rotation_outlier / 2)
+    logs, scaled, _ = pair_scales(good, cfg.model_copy(update={"bone_scales": False}))
+    blogs, bscaled, n_bones = pair_scales(good, cfg) if cfg.bone_scales else (logs, scaled, 0)
+    # The rotations are rooted where the scales are: a hall whose view graph falls apart
+    # had its most-seen camera in a part no scale reached, and placed none of its 30
+    # cameras (grid30 seed 1, Session 47).
+    R, connected, _ = average_rotations(C, good, root=_busiest(C, good, scaled if scaled.any() else bscaled),
+                                        sigma_deg=cfg.rotation_outlier / 2)
     # Geometry first, the people's bones last. A bone relation takes the person two pairs
     # see for one, and two walkers of 1.85 and 1.60 m put a group of cameras 15 % off
     # (the HD lab's seed 0: cam_4 and cam_7 1.4 m off, stated 0.013 m; the lab's seed 0 at
     # 110 s: 12 of 19 cameras within the bars, 19 with the group left to the resection).
     # Cameras only bones can place (a corridor: no camera triple, no resection) are placed
     # by them after the resection (``_place_by_bones``).
-    logs, scaled, _ = pair_scales(good, cfg.model_copy(update={"bone_scales": False}))
     t, located = place_cameras(C, R, good, logs, scaled)
     located &= connected
     bones_at = None  # (R, t, located) of the placement with the bones' relations, for after the resection
     bone_links = 0  # the bones' relations the placement took as it is
     if cfg.bone_scales:
-        blogs, bscaled, n_bones = pair_scales(good, cfg)
         tb, lb = place_cameras(C, R, good, blogs, bscaled)
         lb &= connected
         if located.sum() < 2:  # nothing to place the rest on: the bones' placement as it is

@@ -673,3 +673,17 @@ def test_a_clock_that_runs_ahead_is_timed_by_its_lead_and_a_late_detector_as_sta
     assert as_stamped.mistimed == {}
     off = acc.per_camera.get("cam_13")
     assert off is None or off[2] > 0.05 or off[3] > 0.5
+
+
+def test_the_rotations_are_rooted_where_the_scales_are():
+    """The camera with the most inliers over the pairs a scale relates, not over all."""
+    from backend.bootstrap import _busiest
+
+    def pair(a, b, n):
+        return PairPose(a, b, np.eye(3), np.array([1.0, 0, 0]), np.arange(n), n, n, 1.0, 10.0,
+                        np.zeros(0, np.int64), {})
+
+    pairs = [pair(0, 1, 500), pair(1, 2, 400), pair(3, 4, 60), pair(4, 5, 50)]
+    assert _busiest(6, pairs, np.array([True, True, True, True])) == 1
+    assert _busiest(6, pairs, np.array([False, False, True, True])) == 4
+    assert _busiest(6, pairs, np.zeros(4, bool)) is None
