@@ -185,12 +185,17 @@ class PairPose:
 
 
 def single_views(frames: Sequence[Frame]) -> list[dict[int, Detection]]:
-    """Per frame: camera → its detection, for the cameras that see exactly one person,
-    with the whole torso. A person seen in profile (``preprocess.partial_torso``) is
-    someone, so a camera that also sees another is ambiguous; but geometry from
-    scratch is not made of such views: kept, they doubled the wrong pairs of a hall of
-    30 cameras whose cameras mostly see different walkers (Session 47)."""
-    return [{v[0].cam: v[0] for v in views if len(v) == 1 and v[0].whole_torso} for _, views in frames]
+    """Per frame: camera → its detection, for the cameras that see exactly one person
+    with the whole torso; persons seen in profile (``preprocess.partial_torso``) are not
+    looked at, as the paper's preprocessing drops them. Geometry from scratch made of
+    them doubled the wrong pairs of a hall of 30 cameras that mostly see different
+    walkers; counted as persons that make a view ambiguous, they halved the pairs of a
+    corridor where one walker hides behind the other (Session 47)."""
+    out = []
+    for _, views in frames:
+        whole = [[d for d in v if d.whole_torso] for v in views]
+        out.append({w[0].cam: w[0] for w in whole if len(w) == 1})
+    return out
 
 
 def sampson_px(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, focal: float) -> np.ndarray:
