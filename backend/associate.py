@@ -65,10 +65,9 @@ def depth_interval(xy: np.ndarray, cfg: AssociateConfig) -> tuple[float, float]:
     to = np.linalg.norm(np.nanmean(xy[[L_SHOULDER, R_SHOULDER]], 0) - np.nanmean(xy[[L_HIP, R_HIP]], 0))
     eps = 1e-6
     lo_h, hi_h = cfg.min_height, cfg.max_height
-    with np.errstate(invalid="ignore", divide="ignore"):
-        d_max = np.nanmin([cfg.shoulders_ratio * hi_h / max(sh, eps) if np.isfinite(sh) else np.inf,
-                           cfg.hips_ratio * hi_h / max(hp, eps) if np.isfinite(hp) else np.inf,
-                           cfg.torso_ratio * hi_h / max(to, eps)])
+    d_max = min(cfg.shoulders_ratio * hi_h / max(sh, eps) if np.isfinite(sh) else np.inf,
+                cfg.hips_ratio * hi_h / max(hp, eps) if np.isfinite(hp) else np.inf,
+                cfg.torso_ratio * hi_h / max(to, eps))
     lows = [1.0 / np.sqrt((to / (cfg.torso_ratio * lo_h)) ** 2 + (w / (r * lo_h)) ** 2 + eps)
             for w, r in ((sh, cfg.shoulders_ratio), (hp, cfg.hips_ratio)) if np.isfinite(w)]
     # One side hidden (a profile view): no width, and the torso alone bounds nothing from
