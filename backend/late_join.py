@@ -583,17 +583,18 @@ def later_summary(j: Mapping[str, Any]) -> str:
            f"{j['frames']}/{j['seen']} framesets, spread {j['spread']:.2f} m, {j['residual_px']:.1f} px), ")
     if j.get("timed"):
         how += f"timed by its stamps' lead ({1000 * j['timed']:+.0f} ms: its clock's offset, not a delay), "
-    return (f"{j['name']} placed after the bootstrap" + how
-            + ("joined the running calibration (its cycles and the final batch adjusted it) from a prior std of "
-               f"{j['std_translation']:.3f} m / {j['std_rotation']:.2f}°" if j.get("live") and j.get("adjusted") else
-               # too few views with the others for a cycle: a wrong pair's camera looks where they see nobody
-               "joined the running calibration, but no cycle and not the final batch adjusted it (too few views "
-               f"with the others): its {'pair' if j.get('paired_with') else 'resection'}'s pose is its result, "
-               "unconfirmed" if j.get("live") else
-               "then adjusted by the final batch adjustment with the others from a prior std of "
-               f"{j['std_translation']:.3f} m / {j['std_rotation']:.2f}°" if j.get("adjusted") else
-               "not adjusted (the final batch adjustment was not taken: its resected pose is its result)"))
-
+    prior = f"from a prior std of {j['std_translation']:.3f} m / {j['std_rotation']:.2f}°"
+    if j.get("live") and j.get("adjusted"):
+        then = f"joined the running calibration (its cycles and the final batch adjusted it) {prior}"
+    elif j.get("live"):  # too few views with the others for a cycle: a wrong pair's camera looks where they see nobody
+        then = ("joined the running calibration, but no cycle and not the final batch adjusted it (too few views "
+                f"with the others): its {'pair' if j.get('paired_with') else 'resection'}'s pose is its result, "
+                "unconfirmed")
+    elif j.get("adjusted"):
+        then = f"then adjusted by the final batch adjustment with the others {prior}"
+    else:
+        then = "not adjusted (the final batch adjustment was not taken: its resected pose is its result)"
+    return f"{j['name']} placed after the bootstrap" + how + then
 
 def late_comment(p: Pipeline) -> list[str]:
     """Lines for a result's header: the cameras placed after the bootstrap, how; those

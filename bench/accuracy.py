@@ -399,6 +399,7 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
         else (None, None, [])
     names = list(cams.names)
     evaluated = lim_active if len(lim_active) >= 3 else (calibrated if len(calibrated) >= 3 else names)
+    both = [n for n in evaluated if n in calibrated]
 
     def acc(poses, cameras=evaluated, per_camera=False):
         return _acc_dict(evaluate(poses, ref, cameras), per_camera)
@@ -428,7 +429,7 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
         "final_all": acc(final_poses, names),
         # a camera the engine left at its start (no cycle took it) pulls the alignment of
         # all the others round: these figures tell that from calibrating badly
-        "initial_calibrated": acc(given, both) if len(both := [n for n in evaluated if n in calibrated]) >= 3 else None,
+        "initial_calibrated": acc(given, both) if len(both) >= 3 else None,
         "final_calibrated": acc(final_poses, both) if len(both) >= 3 else None,
         "limit_calibrated": acc(lim_poses, both) if lim_poses is not None and len(both) >= 3 else None,
         "limit_all": acc(lim_poses, names) if lim_poses is not None else None,
