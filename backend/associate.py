@@ -144,14 +144,26 @@ class Associator:
         self.cfg = config
         self.rejected: Counter = Counter()
         self.created = 0
+        self.followed = 0  # views with one side hidden that joined a hypothesis (``_follow``)
 
     def __call__(self, time: float, views: Sequence[Sequence[Detection]], R: np.ndarray, t: np.ndarray,
-                 gate_px: np.ndarray | None = None, pose_px: np.ndarray | None = None) -> list[Hypothesis]:
+                 gate_px: np.ndarray | None = None, pose_px: np.ndarray | None = None,
+                 follow_px: np.ndarray | None = None) -> list[Hypothesis]:
         """gate_px: (C,) px reprojection gate per camera (inf = not gated), or None.
         pose_px: (C,) px one std of how far the cameras' poses may move an image point
-        (``Pipeline._pose_px``), for the epipolar test of two-view hypotheses; None: no test."""
+        (``Pipeline._pose_px``), for the epipolar test of two-view hypotheses; None: no test.
+        follow_px: (C,) px how far a view with one side of the torso hidden may miss the
+        torso of a hypothesis to join it (``_follow``; inf = such views of that camera
+        are dropped), or None: all such views dropped."""
         dets = [d for v in views for d in v]
+        # A view with one side hidden has no width to bound its depth from below: its
+        # segment reaches back to its camera and pairs with anyone along its ray. It only
+        # follows a hypothesis of whole views, where its camera's pose is known well.
+        sides = [d for d in dets if not d.whole_torso]
+        if sides:
+            dets = [d for d in dets if d.whole_torso]
         if len(dets) < 2:
+            self.rejected["side_view_unmatched"] += len(sides)
             return []
         seg0, seg1, depth, dirs = [], [], [], []
         for d in dets:
@@ -181,7 +193,54 @@ class Associator:
             h = self._hypothesis(time, [dets[k] for k in g], R, t, gate_px, pose_px)
             if h is not None:
                 out.append(h)
+        if sides:
+            out = self._follow(out, sides, R, t, follow_px)
         self.created += len(out)
+        return out
+
+    def _follow(self, hyps: list[Hypothesis], sides: list[Detection], R: np.ndarray, t: np.ndarray,
+                follow_px: np.ndarray | None) -> list[Hypothesis]:
+        """Each view with one side of the torso hidden joins the hypothesis whose
+        triangulated torso its seen torso joints meet best, within ``follow_px`` of its
+        camera, one view per camera; the hypothesis' centre stays that of its whole views."""
+        if follow_px is None or not hyps:
+            self.rejected["side_view_unmatched"] += len(sides)
+            return hyps
+        idx = np.array(TORSO)
+        torsos = [triangulate_views(R, t, h.cams, h.xy[:, idx])[0] for h in hyps]
+        pairs = []  # (error px, side, hypothesis)
+        for i, d in enumerate(sides):
+            if not np.isfinite(follow_px[d.cam]):
+                continue
+            lo, hi = depth_interval(d.xy, self.cfg)
+            seen = np.isfinite(d.xy[idx, 0])
+            for j, (h, X) in enumerate(zip(hyps, torsos)):
+                if d.cam in h.cams or not np.all(np.isfinite(X[seen])):
+                    continue
+                Xc = (X[seen] - t[d.cam]) @ R[d.cam]  # R^T (X - t)
+                if np.any(Xc[:, 2] <= 0.1) or not lo <= float(Xc[:, 2].mean()) <= hi:
+                    continue
+                err = float(np.linalg.norm(Xc[:, :2] / Xc[:, 2:3] - d.xy[idx[seen]], axis=1).mean() * d.focal)
+                if err <= follow_px[d.cam]:
+                    pairs.append((err, i, j))
+        taken, joined = set(), {}
+        for err, i, j in sorted(pairs):
+            key = (j, sides[i].cam)
+            if i in taken or key in joined:
+                continue
+            taken.add(i)
+            joined[key] = sides[i]
+        self.followed += len(joined)
+        self.rejected["side_view_unmatched"] += len(sides) - len(joined)
+        if not joined:
+            return hyps
+        out = []
+        for j, h in enumerate(hyps):
+            more = [d for (k, _), d in joined.items() if k == j]
+            if more:
+                h = Hypothesis(h.time, np.r_[h.cams, [d.cam for d in more]], np.concatenate([h.xy, [d.xy for d in more]]),
+                               np.concatenate([h.sigma, [d.sigma / d.focal for d in more]]), h.com)
+            out.append(h)
         return out
 
     def _hypothesis(self, time: float, dets: list[Detection], R: np.ndarray, t: np.ndarray,

@@ -66,6 +66,7 @@ class Problem:
     associate: AssociateConfig | None = None
     gate_px: np.ndarray | None = None
     pose_px: np.ndarray | None = None  # (C,) px: the association's epipolar test of two views (Associator)
+    follow_px: np.ndarray | None = None  # (C,) px: views with one side hidden that may follow a hypothesis (Associator)
     max_hypotheses: int = 0
     spacing: float = 0.0
     fill: bool = False  # after the spaced hypotheses, the others up to max_hypotheses (``select_spaced``)
@@ -269,7 +270,7 @@ def _hypotheses_persons_phantoms(p: Problem) -> tuple[list[Hypothesis], np.ndarr
         assoc = Associator(p.associate)
         hyps: list[Hypothesis] = []
         for time_, views in p.frames:
-            hyps.extend(assoc(time_, views, p.R, p.t, p.gate_px, p.pose_px))
+            hyps.extend(assoc(time_, views, p.R, p.t, p.gate_px, p.pose_px, p.follow_px))
     else:
         hyps = list(p.hypotheses)
     person = np.full(len(hyps), -1, np.int64)

@@ -243,12 +243,12 @@ class Pipeline(ClockStage, EndOfRun, Snapshots):
         if job is not None:
             self.apply_clock(job, job.run())
         ready = self.sync.pop_ready(now)
-        gate, pose_px = self._gates() if ready else (None, None)
+        gates = self._gates() if ready else (None, None, None)
         for fs in ready:
             dets = self.preprocess(fs)
             if len(dets) < 2:
                 continue
-            new += self._take(fs.time, tuple(tuple(v) for v in dets), R, t, gate, pose_px)
+            new += self._take(fs.time, tuple(tuple(v) for v in dets), R, t, *gates)
         return new
 
     def take_frames(self, frames: Iterable[tuple[float, tuple[tuple[Detection, ...], ...]]]) -> int:
@@ -257,14 +257,14 @@ class Pipeline(ClockStage, EndOfRun, Snapshots):
         associated and queued as if they had just come out of ``preprocess``; returns the
         new hypotheses."""
         R, t = self.refiner.R, self.refiner.t
-        gate, pose_px = self._gates()
-        return sum(self._take(T, views, R, t, gate, pose_px) for T, views in frames if len(views) >= 2)
+        gates = self._gates()
+        return sum(self._take(T, views, R, t, *gates) for T, views in frames if len(views) >= 2)
 
     def _take(self, time: float, views: tuple[tuple[Detection, ...], ...], R: np.ndarray, t: np.ndarray,
-              gate: np.ndarray | None, pose_px: np.ndarray | None) -> int:
+              gate: np.ndarray | None, pose_px: np.ndarray | None, follow: np.ndarray | None) -> int:
         """One preprocessed frameset (>= 2 views): archive, associate, queue, count."""
         self.frames.append((time, views))
-        hyps = self.associate(time, views, R, t, gate, pose_px)
+        hyps = self.associate(time, views, R, t, gate, pose_px, follow)
         # Only while some camera sees people with one other camera alone: there no third
         # view checks a pair. In the lab with two walkers (none such) the check everywhere
         # cost convergence (0.074 against 0.064 m at 60 s of data), though not the result.
@@ -297,15 +297,15 @@ class Pipeline(ClockStage, EndOfRun, Snapshots):
         st, sr = pose_std(self.refiner.P0 if start else self.refiner.P)
         return self.focal * (sr + st / 3.0)
 
-    def _gates(self) -> tuple[np.ndarray | None, np.ndarray]:
+    def _gates(self) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
         """The association's gates, from one ``_pose_px``: (C,) reprojection gate in px
-        for cameras the filter is already sure of (None without ``reassociate``), and the
-        pose term of the epipolar test of two views."""
+        for cameras the filter is already sure of (None without ``reassociate``), the
+        pose term of the epipolar test of two views, and (C,) px how far a view with one
+        side of its torso hidden may miss a hypothesis to follow it (inf: not sure of the
+        camera yet, such views are dropped)."""
         a, pose_px = self.cfg.associate, self._pose_px()
-        if not a.reassociate:
-            return None, pose_px
-        sure = self.refiner.cycles >= 2
-        return np.where(sure, a.gate_pixels + 3 * pose_px, np.inf), pose_px
+        follow = np.where(self.refiner.cycles >= 2, a.gate_pixels + 3 * pose_px, np.inf)
+        return (follow if a.reassociate else None), pose_px, follow
 
     # ------------------------------------------------------------ optimisation
 
@@ -405,10 +405,10 @@ class Pipeline(ClockStage, EndOfRun, Snapshots):
         P = rf.predicted_covariance()
         P[cam] = cov
         p = self._batch_problem(self.cfg.refine.batch_size, self.cfg.select.min_spacing / 2, frames, seed=seed)
-        pose_px = p.pose_px.copy()
-        pose_px[cam] = np.inf
+        pose_px, follow_px = p.pose_px.copy(), p.follow_px.copy()
+        pose_px[cam] = follow_px[cam] = np.inf
         return replace(p, prior_R=rf.R.copy(), prior_t=rf.t.copy(), prior_cov=P, kind=kind, moved=(cam,),
-                       pose_px=pose_px)
+                       pose_px=pose_px, follow_px=follow_px)
 
     def _relocalize_problem(self, lost, frames) -> Problem:
         """Prior = the start and its uncertainty: where a lost camera can be
@@ -501,7 +501,7 @@ class Pipeline(ClockStage, EndOfRun, Snapshots):
                        associate=self.cfg.associate,
                        # the batch re-associates ungated: a camera the filter got wrong must
                        # keep its views to be put right; the solve's outlier rounds drop bad ones
-                       gate_px=None, pose_px=self._pose_px(), max_hypotheses=max_hypotheses,
+                       gate_px=None, pose_px=self._pose_px(), follow_px=self._gates()[2], max_hypotheses=max_hypotheses,
                        spacing=spacing, fill=final and self.cfg.refine.batch_fill,
                        seed=int(self.rng.integers(2**31)) if seed is None else seed, kind="batch",
                        lenses=self.lens_cameras() if final and opt.lenses == "auto" else ())

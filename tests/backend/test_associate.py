@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from backend.associate import (Associator, depth_interval, epipolar_miss, intersect_rays, torso_centre,
                                triangulate_torso)
@@ -188,10 +189,9 @@ def test_two_persons_far_apart_in_three_cameras():
     assert np.allclose(h.sigma[k][np.isfinite(h.sigma[k])], 2.0 / F)
 
 
-def test_a_person_seen_in_profile_joins_the_other_views_of_that_person():
-    """Each person's far shoulder and hip hidden from one camera (preprocess.partial_torso):
-    its views still go to the right persons."""
-    R, t = rig(3)
+def _two_persons_one_camera_in_profile(R, t):
+    """Two persons seen whole by cameras 0 and 1, each with its far shoulder and hip
+    hidden from camera 2 (preprocess.partial_torso): (A, B) joints, views."""
     A = body([-1.2, 0.4], heading=0.3)
     B = body([1.3, -0.6], heading=2.0)
 
@@ -201,17 +201,43 @@ def test_a_person_seen_in_profile_joins_the_other_views_of_that_person():
         xy[hide] = np.nan
         return Detection(c, xy, np.where(np.isfinite(xy[:, 0]), 2.0, np.nan), F, 0, -1)
 
-    views = [[detection(R, t, 0, A), detection(R, t, 0, B)],
-             [detection(R, t, 1, B), detection(R, t, 1, A)],
-             [profile(2, A, [6, 8, 10, 12]), profile(2, B, [5, 7, 9, 11])]]
-    hyps = Associator(AssociateConfig())(0.0, views, R, t)
-    assert len(hyps) == 2
+    return A, B, [[detection(R, t, 0, A), detection(R, t, 0, B)],
+                  [detection(R, t, 1, B), detection(R, t, 1, A)],
+                  [profile(2, A, [6, 8, 10, 12]), profile(2, B, [5, 7, 9, 11])]]
+
+
+def test_a_person_seen_in_profile_follows_the_other_views_of_that_person():
+    """A view with one side hidden joins the hypothesis of its person's whole views
+    where its camera's pose is known (follow_px finite)."""
+    R, t = rig(3)
+    A, B, views = _two_persons_one_camera_in_profile(R, t)
+    assoc = Associator(AssociateConfig())
+    hyps = assoc(0.0, views, R, t, follow_px=np.full(3, 25.0))
+    assert len(hyps) == 2 and assoc.followed == 2
     for h in hyps:
         assert _cams_of(h) == [0, 1, 2]
         J = A if np.linalg.norm(h.com - A[list(TORSO)].mean(0)) < 0.3 else B
         k = list(h.cams).index(2)
         seen = np.isfinite(h.xy[k, :, 0])
         assert np.allclose(h.xy[k, seen], observe(R, t, 2, J)[seen])  # camera 2's view of this person
+
+
+def test_a_view_in_profile_is_dropped_where_its_camera_is_not_known():
+    """Without a follow gate for its camera, or with its camera at a wrong pose, a view
+    with one side hidden joins nobody (its depth is unbounded from below: its segment
+    would meet anyone along its ray) and is counted."""
+    R, t = rig(3)
+    _, _, views = _two_persons_one_camera_in_profile(R, t)
+    for follow in (None, np.array([25.0, 25.0, np.inf])):
+        assoc = Associator(AssociateConfig())
+        hyps = assoc(0.0, views, R, t, follow_px=follow)
+        assert len(hyps) == 2 and all(_cams_of(h) == [0, 1] for h in hyps)
+        assert assoc.rejected["side_view_unmatched"] == 2
+    wrong_R, wrong_t = R.copy(), t.copy()  # camera 2 turned 10° about its vertical and 1 m aside
+    wrong_R[2] = wrong_R[2] @ Rotation.from_euler("y", 10, degrees=True).as_matrix()
+    wrong_t[2] += [1.0, 0.0, 0.0]
+    hyps = Associator(AssociateConfig())(0.0, views, wrong_R, wrong_t, follow_px=np.full(3, 25.0))
+    assert all(_cams_of(h) == [0, 1] for h in hyps)
 
 
 def test_a_detection_is_never_used_twice_and_cameras_are_distinct():
