@@ -87,6 +87,24 @@ def test_offline_run_improves_a_perturbed_estimate_a_lot(lab, run):
         assert 0 < c.std_translation < 0.1 and 0 < c.std_rotation < 3.0
 
 
+def test_views_with_one_side_hidden_follow_once_the_cycles_know_their_camera(lab, run):
+    """preprocess.partial_torso (the default): the views with a shoulder and a hip hidden
+    join the hypotheses of whole views once their camera had two cycles (``_gates``), and
+    cost the result nothing against the paper's rule (all four torso joints)."""
+    cams, truth, msgs = lab
+    p = run[0]
+    a = p.associate
+    assert a.followed > 0 and a.rejected["side_view_unmatched"] > 0
+    follow = p._gates()[2]
+    assert np.array_equal(np.isfinite(follow), p.refiner.cycles >= 2)
+    paper = run_offline(cams, EngineConfig().merged({"preprocess": {"partial_torso": False}}),
+                        _with_bad_messages(msgs), seed=0)
+    assert paper.associate.followed == 0 and paper.associate.rejected["side_view_unmatched"] == 0
+    on, off = (evaluate(q.state().poses(), truth, list(WEST)) for q in (p, paper))
+    assert on.shape_position.mean < 1.25 * off.shape_position.mean, (on.summary(), off.summary())
+    assert on.orientation.mean < 1.25 * off.orientation.mean, (on.summary(), off.summary())
+
+
 def test_a_camera_that_never_sees_anyone_keeps_its_initial_pose(lab, run):
     cams, _, _ = lab
     p, _ = run
