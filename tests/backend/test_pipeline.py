@@ -931,7 +931,7 @@ def test_a_bootstrapped_floor_frame_is_levelled_on_the_final_batch_s_floor(lab, 
         return
     assert p.levelled.done and abs(p.levelled.turn_deg - 8.0) < 0.5, p.levelled
     assert (p.levelled.first, p.levelled.second) == ("cam_11", "cam_12")
-    assert "turned 8." in p.levelled.summary()
+    assert f"turned {p.levelled.turn_deg:.2f}° from the bootstrap's" in p.levelled.summary()
     for n in WEST:  # the floor frame itself, not after an alignment
         assert abs(got[n].t[2] - want[n].t[2]) < 0.05, (n, got[n].t, want[n].t)  # height above the floor
         assert np.degrees(np.arccos(np.clip(got[n].R[2] @ want[n].R[2], -1, 1))) < 0.4, n  # the world's up

@@ -115,8 +115,8 @@ def test_confidence_threshold_drops_joints_and_a_person_needs_a_shoulder_and_a_h
     assert p.accepted == 2
 
 
-def test_by_default_as_the_paper_a_missing_torso_joint_drops_the_person(pre, lab_intrinsics):
-    p = pre()
+def test_as_the_paper_a_missing_torso_joint_drops_the_person(pre, lab_intrinsics):
+    p = pre(PreprocessConfig(partial_torso=False))
     intr = lab_intrinsics["cam_4"]
     uv = _pixels(intr, _body([0.0, 0.0, 4.0]))
     for j in TORSO:
