@@ -275,8 +275,12 @@ class Pipeline(ClockStage, EndOfRun, Snapshots):
         if self.estimating:
             self.clocks.add(hyps)
         for v in views:
-            self.detected[v[0].cam] += len(v)
-            self.detected_total[v[0].cam] += len(v)
+            # whole views only: a view with one side hidden follows only cameras the
+            # cycles know, so counted it would make a camera that sees people side-on
+            # look lost (``_lost_cameras``) before its first cycles
+            n = sum(d.whole_torso for d in v)
+            self.detected[v[0].cam] += n
+            self.detected_total[v[0].cam] += n
         for h in hyps:
             self.associated[h.cams] += 1
             self.associated_total[h.cams] += 1

@@ -97,6 +97,8 @@ def test_views_with_one_side_hidden_follow_once_the_cycles_know_their_camera(lab
     assert a.followed > 0 and a.rejected["side_view_unmatched"] > 0
     follow = p._gates()[2]
     assert np.array_equal(np.isfinite(follow), p.refiner.cycles >= 2)
+    # a camera's detections, against which it is judged lost, are its whole views
+    assert p.detected_total.sum() == sum(d.whole_torso for _, views in p.frames for v in views for d in v)
     paper = run_offline(cams, EngineConfig().merged({"preprocess": {"partial_torso": False}}),
                         _with_bad_messages(msgs), seed=0)
     assert paper.associate.followed == 0 and paper.associate.rejected["side_view_unmatched"] == 0
