@@ -49,7 +49,7 @@ class PreprocessConfig(_Section):
         "joints meet the hypothesis' within the association's gate (its depth is unbounded from below: it would "
         "pair with anyone along its ray); the bootstrap's pairs take whole views only. The lab from no initial "
         "estimate is within 0.05 m / 0.5° on 4 of 5 seeds, not 3 (its cam_13 sees people side-on: 0.119 m -> "
-        "0.042 m), a hall of 30 cameras 0.0133 -> 0.0124 m shape (docs/bootstrap.md, Sessions 47-48)")
+        "0.046 m), a hall of 30 cameras 0.0133 -> 0.0123 m shape (docs/bootstrap.md, Sessions 47-48)")
     confidence_reference: float | None = Field(
         0.9, gt=0, le=1, description="the 90th percentile of a sensor's detected torso-joint confidences that "
         "min_confidence is stated for (the paper's detector; the simulator's run 0.93-0.98). A detector's scores "
