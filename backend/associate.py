@@ -201,8 +201,9 @@ class Associator:
     def _follow(self, hyps: list[Hypothesis], sides: list[Detection], R: np.ndarray, t: np.ndarray,
                 follow_px: np.ndarray | None) -> list[Hypothesis]:
         """Each view with one side of the torso hidden joins the hypothesis whose
-        triangulated torso its seen torso joints meet best, within ``follow_px`` of its
-        camera, one view per camera; the hypothesis' centre stays that of its whole views."""
+        triangulated torso its seen torso joints meet best (mean reprojection error, px),
+        within ``follow_px`` (C,) of its camera, one view per camera; the hypothesis'
+        centre stays that of its whole views. R (C, 3, 3), t (C, 3) as in ``__call__``."""
         if follow_px is None or not hyps:
             self.rejected["side_view_unmatched"] += len(sides)
             return hyps

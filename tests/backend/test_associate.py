@@ -236,8 +236,10 @@ def test_a_view_in_profile_is_dropped_where_its_camera_is_not_known():
     wrong_R, wrong_t = R.copy(), t.copy()  # camera 2 turned 10° about its vertical and 1 m aside
     wrong_R[2] = wrong_R[2] @ Rotation.from_euler("y", 10, degrees=True).as_matrix()
     wrong_t[2] += [1.0, 0.0, 0.0]
-    hyps = Associator(AssociateConfig())(0.0, views, wrong_R, wrong_t, follow_px=np.full(3, 25.0))
-    assert all(_cams_of(h) == [0, 1] for h in hyps)
+    assoc = Associator(AssociateConfig())
+    hyps = assoc(0.0, views, wrong_R, wrong_t, follow_px=np.full(3, 25.0))
+    assert len(hyps) == 2 and all(_cams_of(h) == [0, 1] for h in hyps)
+    assert assoc.followed == 0 and assoc.rejected["side_view_unmatched"] == 2
 
 
 def test_a_detection_is_never_used_twice_and_cameras_are_distinct():
