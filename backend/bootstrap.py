@@ -1010,9 +1010,11 @@ def _without(frames: Sequence[Frame], keep: np.ndarray) -> list[Frame]:
 def retimed(frames: Sequence[Frame], cam: int, delta: float, *, max_gap: float = 0.25) -> list[Frame]:
     """``frames`` with camera ``cam``'s views those it had ``delta`` s later, interpolated
     between its two nearest frames (at most ``max_gap`` s apart) in which it saw one
-    person (with several persons nothing tells which is which: such views are dropped,
-    as are frames left with < 2 views). Its sigma is the larger of the two."""
-    own = [(T, v[0]) for T, views in frames for v in views if v and v[0].cam == cam and len(v) == 1]
+    person with the whole torso, as ``single_views`` (with several persons nothing tells
+    which is which: such views are dropped, as are frames left with < 2 views). Its sigma
+    is the larger of the two."""
+    own = [(T, w[0]) for T, views in frames for v in views if v and v[0].cam == cam
+           for w in [[d for d in v if d.whole_torso]] if len(w) == 1]
     times = np.array([T for T, _ in own])
     out: list[Frame] = []
     for T, views in frames:

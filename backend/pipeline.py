@@ -313,8 +313,9 @@ class Pipeline(ClockStage, EndOfRun, Snapshots):
         # follow (the west room's 30 s: the one view between 25 px and the widened gate
         # took the result from 0.0222 to 0.0272 m shape), and an uncertain camera that
         # misses a few loses little.
-        follow = np.where(self.refiner.cycles >= 2, a.gate_pixels, np.inf)
-        return (follow if a.reassociate else None), pose_px, follow
+        sure = self.refiner.cycles >= 2
+        follow = np.where(sure, a.gate_pixels, np.inf)
+        return (np.where(sure, a.gate_pixels + 3 * pose_px, np.inf) if a.reassociate else None), pose_px, follow
 
     # ------------------------------------------------------------ optimisation
 
