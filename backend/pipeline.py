@@ -308,14 +308,15 @@ class Pipeline(ClockStage, EndOfRun, Snapshots):
         side of its torso hidden may miss a hypothesis to follow it (inf: not sure of the
         camera yet, such views are dropped)."""
         a, pose_px = self.cfg.associate, self._pose_px()
+        sure = self.refiner.cycles >= 2
+        gate = np.where(sure, a.gate_pixels + 3 * pose_px, np.inf) if a.reassociate else None
         # Not widened by the pose's uncertainty, as the whole views' gate is: such a view
         # cannot be placed by itself, so a wider gate only widens the chance of a wrong
         # follow (the west room's 30 s: the one view between 25 px and the widened gate
         # took the result from 0.0222 to 0.0272 m shape), and an uncertain camera that
         # misses a few loses little.
-        sure = self.refiner.cycles >= 2
         follow = np.where(sure, a.gate_pixels, np.inf)
-        return (np.where(sure, a.gate_pixels + 3 * pose_px, np.inf) if a.reassociate else None), pose_px, follow
+        return gate, pose_px, follow
 
     # ------------------------------------------------------------ optimisation
 

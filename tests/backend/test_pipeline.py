@@ -96,8 +96,12 @@ def test_views_with_one_side_hidden_follow_once_the_cycles_know_their_camera(lab
                     seed=0)
     a = p.associate
     assert a.followed > 0 and a.rejected["side_view_unmatched"] > 0
-    follow = p._gates()[2]
-    assert np.array_equal(np.isfinite(follow), p.refiner.cycles >= 2)
+    gate, pose_px, follow = p._gates()
+    sure = p.refiner.cycles >= 2
+    assert sure.any() and np.array_equal(np.isfinite(follow), sure) and np.array_equal(np.isfinite(gate), sure)
+    # the whole views' gate widens with the pose's uncertainty, the follow gate does not
+    np.testing.assert_allclose(gate[sure], p.cfg.associate.gate_pixels + 3 * pose_px[sure])
+    assert np.all(follow[sure] == p.cfg.associate.gate_pixels) and np.all(pose_px[sure] > 0)
     # a camera's detections, against which it is judged lost, are its whole views
     assert p.detected_total.sum() == sum(d.whole_torso for _, views in p.frames for v in views for d in v)
     paper = run[0]
