@@ -204,15 +204,15 @@ class Associator:
         triangulated torso its seen torso joints meet best (mean reprojection error, px),
         within ``follow_px`` (C,) of its camera, one view per camera; the hypothesis'
         centre stays that of its whole views. R (C, 3, 3), t (C, 3) as in ``__call__``."""
-        if follow_px is None or not hyps:
+        # only where its camera is known: before any is (early in a run) nothing to triangulate
+        known = [d for d in sides if follow_px is not None and np.isfinite(follow_px[d.cam])]
+        if not known or not hyps:
             self.rejected["side_view_unmatched"] += len(sides)
             return hyps
         idx = np.array(TORSO)
         torsos = [triangulate_views(R, t, h.cams, h.xy[:, idx])[0] for h in hyps]
         pairs = []  # (error px, side, hypothesis)
-        for i, d in enumerate(sides):
-            if not np.isfinite(follow_px[d.cam]):
-                continue
+        for i, d in enumerate(known):
             lo, hi = depth_interval(d.xy, self.cfg)
             seen = np.isfinite(d.xy[idx, 0])
             for j, (h, X) in enumerate(zip(hyps, torsos)):
@@ -226,23 +226,21 @@ class Associator:
                     pairs.append((err, i, j))
         taken, joined = set(), {}
         for err, i, j in sorted(pairs):
-            key = (j, sides[i].cam)
+            key = (j, known[i].cam)
             if i in taken or key in joined:
                 continue
             taken.add(i)
-            joined[key] = sides[i]
+            joined[key] = known[i]
         self.followed += len(joined)
         self.rejected["side_view_unmatched"] += len(sides) - len(joined)
         if not joined:
             return hyps
-        out = []
-        for j, h in enumerate(hyps):
-            more = [d for (k, _), d in joined.items() if k == j]
-            if more:
-                h = Hypothesis(h.time, np.r_[h.cams, [d.cam for d in more]], np.concatenate([h.xy, [d.xy for d in more]]),
-                               np.concatenate([h.sigma, [d.sigma / d.focal for d in more]]), h.com)
-            out.append(h)
-        return out
+        more: dict[int, list[Detection]] = {}
+        for (j, _), d in joined.items():
+            more.setdefault(j, []).append(d)
+        return [Hypothesis(h.time, np.r_[h.cams, [d.cam for d in more[j]]], np.concatenate([h.xy, [d.xy for d in more[j]]]),
+                           np.concatenate([h.sigma, [d.sigma / d.focal for d in more[j]]]), h.com) if j in more else h
+                for j, h in enumerate(hyps)]
 
     def _hypothesis(self, time: float, dets: list[Detection], R: np.ndarray, t: np.ndarray,
                     gate_px: np.ndarray | None, pose_px: np.ndarray | None = None) -> Hypothesis | None:

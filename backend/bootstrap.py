@@ -184,6 +184,13 @@ class PairPose:
         assert self.bones.shape == (len(BONE_NAMES),)
 
 
+def single_whole(view: Sequence[Detection]) -> Detection | None:
+    """A camera's view's one person seen with the whole torso, or None (nobody, or more
+    than one: nothing tells which is which)."""
+    whole = [d for d in view if d.whole_torso]
+    return whole[0] if len(whole) == 1 else None
+
+
 def single_views(frames: Sequence[Frame]) -> list[dict[int, Detection]]:
     """Per frame: camera → its detection, for the cameras that see exactly one person
     with the whole torso; persons seen in profile (``preprocess.partial_torso``) are not
@@ -191,11 +198,7 @@ def single_views(frames: Sequence[Frame]) -> list[dict[int, Detection]]:
     them doubled the wrong pairs of a hall of 30 cameras that mostly see different
     walkers; counted as persons that make a view ambiguous, they halved the pairs of a
     corridor where one walker hides behind the other (Session 47)."""
-    out = []
-    for _, views in frames:
-        whole = [[d for d in v if d.whole_torso] for v in views]
-        out.append({w[0].cam: w[0] for w in whole if len(w) == 1})
-    return out
+    return [{d.cam: d for d in map(single_whole, views) if d is not None} for _, views in frames]
 
 
 def sampson_px(R: np.ndarray, t: np.ndarray, xa: np.ndarray, xb: np.ndarray, focal: float) -> np.ndarray:
@@ -1013,8 +1016,8 @@ def retimed(frames: Sequence[Frame], cam: int, delta: float, *, max_gap: float =
     person with the whole torso, as ``single_views`` (with several persons nothing tells
     which is which: such views are dropped, as are frames left with < 2 views). Its sigma
     is the larger of the two."""
-    own = [(T, w[0]) for T, views in frames for v in views if v and v[0].cam == cam
-           for w in [[d for d in v if d.whole_torso]] if len(w) == 1]
+    own = [(T, d) for T, views in frames for v in views if v and v[0].cam == cam
+           if (d := single_whole(v)) is not None]
     times = np.array([T for T, _ in own])
     out: list[Frame] = []
     for T, views in frames:

@@ -596,6 +596,7 @@ def later_summary(j: Mapping[str, Any]) -> str:
         then = "not adjusted (the final batch adjustment was not taken: its resected pose is its result)"
     return f"{j['name']} placed after the bootstrap" + how + then
 
+
 def late_comment(p: Pipeline) -> list[str]:
     """Lines for a result's header: the cameras placed after the bootstrap, how; those
     tried and not placed."""

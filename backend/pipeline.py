@@ -506,13 +506,14 @@ class Pipeline(ClockStage, EndOfRun, Snapshots):
         opt = self.cfg.optimize.model_copy(update={"max_iterations": max(self.cfg.optimize.max_iterations, 100)})
         if opt.bones == "auto":  # bones carry the scale along a chain, where projections cannot
             opt = opt.model_copy(update={"bones": "batch" if final and self._pairwise_only().any() else "off"})
+        _, pose_px, follow_px = self._gates()
         return Problem(cycle=self.cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.prior_R.copy(),
                        prior_t=rf.prior_t.copy(), prior_cov=rf.P0.copy(), focal=self.focal, config=opt,
                        frames=tuple(self._timed_frames(frames)),
                        associate=self.cfg.associate,
                        # the batch re-associates ungated: a camera the filter got wrong must
                        # keep its views to be put right; the solve's outlier rounds drop bad ones
-                       gate_px=None, pose_px=self._pose_px(), follow_px=self._gates()[2], max_hypotheses=max_hypotheses,
+                       gate_px=None, pose_px=pose_px, follow_px=follow_px, max_hypotheses=max_hypotheses,
                        spacing=spacing, fill=final and self.cfg.refine.batch_fill,
                        seed=int(self.rng.integers(2**31)) if seed is None else seed, kind="batch",
                        lenses=self.lens_cameras() if final and opt.lenses == "auto" else ())
