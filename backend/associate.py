@@ -186,6 +186,8 @@ class Associator:
         dist[cams[:, None] == cams[None, :]] = np.inf
 
         groups = _cluster(dist, cams, np.asarray(depth), self.cfg.max_distance)
+        if sides:
+            groups = self._unrivalled(groups, dist, dets, seg0, seg1, sides, R, t)
         out = []
         for g in groups:
             if len(g) < self.cfg.min_views:
@@ -197,6 +199,39 @@ class Associator:
             out = self._follow(out, sides, R, t, follow_px)
         self.created += len(out)
         return out
+
+    def _unrivalled(self, groups: list[list[int]], dist: np.ndarray, dets: list[Detection], seg0: np.ndarray,
+                    seg1: np.ndarray, sides: list[Detection], R: np.ndarray, t: np.ndarray) -> list[list[int]]:
+        """``groups`` without the pairs of two views that a view with one side hidden
+        rivals: one of the two cameras sees someone else in profile whose segment passes
+        closer to the other view's than the pair's own do. The pair was made because the
+        profile took no part; it is probably two people, each seen whole by one camera
+        (the west room, a camera that sees one walker whole while the other camera sees
+        him in profile and the other walker whole: two such pairs turned the camera 0.2°).
+        dist: (n, n) the whole views' segment distances, seg0/seg1: (n, 3) their ends."""
+        rivals = [g for g in groups if len(g) == 2 and any(s.cam in (dets[g[0]].cam, dets[g[1]].cam) for s in sides)]
+        if not rivals:
+            return groups
+        ends = []
+        for s in sides:
+            lo, hi = depth_interval(s.xy, self.cfg)
+            c = torso_centre(s.xy)
+            dw = R[s.cam] @ np.array([c[0], c[1], 1.0])
+            ends.append((t[s.cam] + lo * dw, t[s.cam] + hi * dw))
+        drop = set()
+        for g in rivals:
+            for mine, other in ((g[0], g[1]), (g[1], g[0])):
+                near = [k for k, s in enumerate(sides) if s.cam == dets[mine].cam]
+                if not near:
+                    continue
+                a0 = np.array([ends[k][0] for k in near])
+                a1 = np.array([ends[k][1] for k in near])
+                d, _, _ = closest_points_segments(a0, a1, np.repeat(seg0[None, other], len(near), 0),
+                                                  np.repeat(seg1[None, other], len(near), 0))
+                if np.min(d) < dist[g[0], g[1]]:
+                    drop.add(id(g))
+        self.rejected["pair_rivalled_by_side_view"] += 2 * len(drop)
+        return [g for g in groups if id(g) not in drop]
 
     def _follow(self, hyps: list[Hypothesis], sides: list[Detection], R: np.ndarray, t: np.ndarray,
                 follow_px: np.ndarray | None) -> list[Hypothesis]:

@@ -242,6 +242,35 @@ def test_a_view_in_profile_is_dropped_where_its_camera_is_not_known():
     assert assoc.followed == 0 and assoc.rejected["side_view_unmatched"] == 2
 
 
+def test_a_pair_that_a_profile_view_rivals_is_not_made():
+    """Camera 0 sees A whole and B in profile, camera 1 only B. Among whole views alone
+    the two cameras each see one person, and their segments pair A with B; camera 0's
+    profile of B meets camera 1's B closer, so the pair is dropped (and counted). The
+    same whole views without the profile make the pair: the profile is the evidence."""
+    R, t = rig(2)
+    A = body([0.2, -0.3], heading=1.0)
+    B = body([0.5, 0.1], heading=2.5, height=1.7)
+    b0 = detection(R, t, 0, B)
+    xy = b0.xy.copy()
+    xy[[6, 8, 10, 12]] = np.nan  # B's right side hidden from camera 0
+    profile = Detection(0, xy, np.where(np.isfinite(xy[:, 0]), 2.0, np.nan), F, 0, -1)
+    whole = [[detection(R, t, 0, A)], [detection(R, t, 1, B)]]
+    cfg = AssociateConfig()
+    assert len(Associator(cfg)(0.0, whole, R, t)) == 1  # segments alone pair A with B
+    assoc = Associator(cfg)
+    assert assoc(0.0, [[detection(R, t, 0, A), profile], [detection(R, t, 1, B)]], R, t) == []
+    assert assoc.rejected["pair_rivalled_by_side_view"] == 2
+    # a profile of someone else, off to the side, rivals nothing: A's pair with A stays
+    C = body([-2.5, 2.0], heading=0.0)
+    c0 = detection(R, t, 0, C)
+    xy = c0.xy.copy()
+    xy[[5, 7, 9, 11]] = np.nan
+    other = Detection(0, xy, np.where(np.isfinite(xy[:, 0]), 2.0, np.nan), F, 0, -1)
+    assoc = Associator(cfg)
+    [h] = assoc(0.0, [[detection(R, t, 0, A), other], [detection(R, t, 1, A)]], R, t)
+    assert _cams_of(h) == [0, 1] and assoc.rejected["pair_rivalled_by_side_view"] == 0
+
+
 def test_a_detection_is_never_used_twice_and_cameras_are_distinct():
     """Crowded scenes (persons 0.6-1.5 m apart, closer than the 1 m segment threshold):
     whatever the grouping, one detection goes to one hypothesis, one view per camera."""
