@@ -43,15 +43,15 @@ class SyncConfig(_Section):
 class PreprocessConfig(_Section):
     min_confidence: float = Field(0.6, ge=0, le=1)
     partial_torso: bool = Field(
-        False, description="a detection needs a shoulder and a hip at min_confidence, one side may be hidden (a "
+        True, description="a detection needs a shoulder and a hip at min_confidence, one side may be hidden (a "
         "person seen in profile hides the far shoulder and hip behind the body); false: all four, as the paper. "
         "Such a view only follows a hypothesis of whole views, where its camera had two cycles and its seen torso "
         "joints meet the hypothesis' within associate.gate_pixels (its depth is unbounded from below: it would "
-        "pair with anyone along its ray); the bootstrap's pairs take whole views only. On, the lab from no "
-        "initial estimate was within 0.05 m / 0.5° on 4 of 5 seeds, not 3 (its cam_13 sees people side-on: "
-        "0.119 m -> 0.042 m), a hall of 30 cameras 0.0133 -> 0.0124 m shape; off by default because a bootstrap "
-        "with a clock 0.2 s ahead left a camera 0.55° off, not 0.17°, for a reason not found (docs/bootstrap.md, "
-        "Sessions 47-48)")
+        "pair with anyone along its ray); a pair of two whole views that it rivals (one camera sees someone else "
+        "in profile nearer the other's person) is not made; the bootstrap's pairs take whole views only. The "
+        "lab from no initial estimate was within 0.05 m / 0.5° on 4 of 5 seeds, not 3 (its cam_13 sees people "
+        "side-on: 0.119 m -> 0.024 m), a hall of 30 cameras 0.0133 -> 0.0124 m shape (docs/bootstrap.md, "
+        "Sessions 47-49)")
     confidence_reference: float | None = Field(
         0.9, gt=0, le=1, description="the 90th percentile of a sensor's detected torso-joint confidences that "
         "min_confidence is stated for (the paper's detector; the simulator's run 0.93-0.98). A detector's scores "
