@@ -50,7 +50,7 @@ class PreprocessConfig(_Section):
         "pair with anyone along its ray); a pair of two whole views that it rivals (one camera sees someone else "
         "in profile nearer the other's person) is not made; the bootstrap's pairs take whole views only. The "
         "lab from no initial estimate was within 0.05 m / 0.5° on 4 of 5 seeds, not 3 (its cam_13 sees people "
-        "side-on: 0.119 m -> 0.024 m), a hall of 30 cameras 0.0133 -> 0.0124 m shape (docs/bootstrap.md, "
+        "side-on: 0.119 m -> within 0.025 m), a hall of 30 cameras 0.0133 -> 0.0124 m shape (docs/bootstrap.md, "
         "Sessions 47-49)")
     confidence_reference: float | None = Field(
         0.9, gt=0, le=1, description="the 90th percentile of a sensor's detected torso-joint confidences that "
