@@ -119,6 +119,21 @@ def _cluster(dist: np.ndarray, cams: np.ndarray, depth: np.ndarray, limit: float
     return [sorted(g, key=lambda m: depth[m]) for g in members.values()]
 
 
+def torso_segments(dets: Sequence[Detection], R: np.ndarray, t: np.ndarray, cfg: AssociateConfig
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each detection's torso-centre ray cut to its depth interval (``depth_interval``):
+    the segments' near and far ends (n, 3) in the world and their mid depths (n,)."""
+    seg0, seg1, depth = [], [], []
+    for d in dets:
+        lo, hi = depth_interval(d.xy, cfg)
+        c = torso_centre(d.xy)
+        dw = R[d.cam] @ np.array([c[0], c[1], 1.0])
+        seg0.append(t[d.cam] + lo * dw)
+        seg1.append(t[d.cam] + hi * dw)
+        depth.append(0.5 * (lo + hi))
+    return np.array(seg0).reshape(-1, 3), np.array(seg1).reshape(-1, 3), np.array(depth)
+
+
 def torso_centre(xy: np.ndarray) -> np.ndarray:
     return np.nanmean(xy[list(TORSO)], 0)
 
@@ -165,17 +180,7 @@ class Associator:
         if len(dets) < 2:
             self.rejected["side_view_unmatched"] += len(sides)
             return []
-        seg0, seg1, depth, dirs = [], [], [], []
-        for d in dets:
-            lo, hi = depth_interval(d.xy, self.cfg)
-            c = torso_centre(d.xy)
-            ray_c = np.array([c[0], c[1], 1.0])
-            dw = R[d.cam] @ ray_c
-            seg0.append(t[d.cam] + lo * dw)
-            seg1.append(t[d.cam] + hi * dw)
-            depth.append(0.5 * (lo + hi))
-            dirs.append(dw / np.linalg.norm(dw))
-        seg0, seg1, dirs = np.array(seg0), np.array(seg1), np.array(dirs)
+        seg0, seg1, depth = torso_segments(dets, R, t, self.cfg)
         n = len(dets)
         ii, jj = np.triu_indices(n, 1)
         dist = np.full((n, n), np.inf)
@@ -185,7 +190,7 @@ class Associator:
         cams = np.array([d.cam for d in dets])
         dist[cams[:, None] == cams[None, :]] = np.inf
 
-        groups = _cluster(dist, cams, np.asarray(depth), self.cfg.max_distance)
+        groups = _cluster(dist, cams, depth, self.cfg.max_distance)
         if sides:
             groups = self._unrivalled(groups, dist, dets, seg0, seg1, sides, R, t)
         out = []
@@ -209,29 +214,23 @@ class Associator:
         (the west room, a camera that sees one walker whole while the other camera sees
         him in profile and the other walker whole: two such pairs turned the camera 0.2°).
         dist: (n, n) the whole views' segment distances, seg0/seg1: (n, 3) their ends."""
-        rivals = [g for g in groups if len(g) == 2 and any(s.cam in (dets[g[0]].cam, dets[g[1]].cam) for s in sides)]
-        if not rivals:
+        side_cams = np.array([s.cam for s in sides])
+        pairs = [i for i, g in enumerate(groups) if len(g) == 2 and np.isin([dets[k].cam for k in g], side_cams).any()]
+        if not pairs:
             return groups
-        ends = []
-        for s in sides:
-            lo, hi = depth_interval(s.xy, self.cfg)
-            c = torso_centre(s.xy)
-            dw = R[s.cam] @ np.array([c[0], c[1], 1.0])
-            ends.append((t[s.cam] + lo * dw, t[s.cam] + hi * dw))
+        s0, s1, _ = torso_segments(sides, R, t, self.cfg)
         drop = set()
-        for g in rivals:
-            for mine, other in ((g[0], g[1]), (g[1], g[0])):
-                near = [k for k, s in enumerate(sides) if s.cam == dets[mine].cam]
-                if not near:
-                    continue
-                a0 = np.array([ends[k][0] for k in near])
-                a1 = np.array([ends[k][1] for k in near])
-                d, _, _ = closest_points_segments(a0, a1, np.repeat(seg0[None, other], len(near), 0),
-                                                  np.repeat(seg1[None, other], len(near), 0))
-                if np.min(d) < dist[g[0], g[1]]:
-                    drop.add(id(g))
+        for i in pairs:
+            a, b = groups[i]
+            for mine, other in ((a, b), (b, a)):
+                near = side_cams == dets[mine].cam
+                if near.any():
+                    d, _, _ = closest_points_segments(s0[near], s1[near], np.broadcast_to(seg0[other], s0[near].shape),
+                                                      np.broadcast_to(seg1[other], s1[near].shape))
+                    if d.min() < dist[a, b]:
+                        drop.add(i)
         self.rejected["pair_rivalled_by_side_view"] += 2 * len(drop)
-        return [g for g in groups if id(g) not in drop]
+        return [g for i, g in enumerate(groups) if i not in drop]
 
     def _follow(self, hyps: list[Hypothesis], sides: list[Detection], R: np.ndarray, t: np.ndarray,
                 follow_px: np.ndarray | None) -> list[Hypothesis]:
