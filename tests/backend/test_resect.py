@@ -9,6 +9,8 @@ where it sees) is placed by its pair with that neighbour (``place_by_pair``).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -371,6 +373,64 @@ def test_pair_placements_that_do_not_hold_together_are_taken_back(corridor2, mon
     assert r4.cam == 4 and not r4.accepted and r4.third == (3,)
     assert "taken back: the cameras placed by pairs do not hold together" in r4.summary("cam_4", names)
     assert r4.summary("cam_4", names).endswith(": cam_3)")
+
+
+def test_a_provisional_camera_that_another_pose_explains_better_is_not_placed(west2, monkeypatch):
+    """Nothing verified cam_17's pose (``provisional``) and the resection cannot take the
+    pose it finds (made so: persons at one spot). That pose agrees in 26 frames, the one
+    cam_17 has in 17: not placed, the late join decides (a hall of 40 kept cam_24 11.7 m
+    off on such counts). With its own pose agreeing in more, it is kept."""
+    import backend.resect as resect_module
+    from backend.geometry import so3_exp
+
+    frames, R, t, focal = west2
+    cfg = EngineConfig()
+    provisional = np.zeros(7, bool)
+    provisional[LOST] = True
+    for held, placed in ((17, False), (27, True)):
+        def found(frames_, persons, cam, *a, held=held, **kw):
+            return Resection(cam, R[cam] @ so3_exp([0.0, np.radians(15.0), 0.0]), t[cam], 26, 66, 116, 0.07, 19, 4.3,
+                             None, False, "the persons it agrees with spread 0.07 m, 0.3 m needed", held=held)
+
+        monkeypatch.setattr(resect_module, "resect", found)
+        _, _, loc, out = resect_unplaced(frames, R, t, np.ones(7, bool), focal, view_box(frames, 7),
+                                         cfg.associate, cfg.bootstrap, seed=1, provisional=provisional)
+        assert loc[LOST] == placed, out[0].summary("cam_17")
+        assert out[0].reason.endswith("agrees in 17 frames: not placed") != placed
+
+
+def test_after_a_take_back_the_cameras_the_persons_place_alone_are_placed_again(west2, monkeypatch):
+    """cam_16 is placed first, by a pair (made so in the test), then cam_17 is resected
+    against a network with cam_16 in it. The pair placements do not hold together
+    (``_apart``, made so): cam_16 is taken back, and cam_17, which the persons place
+    without cam_16 too, is resected again and stays; before, it was taken back with it."""
+    import backend.resect as resect_module
+
+    frames, R, t, focal = west2
+    cfg = EngineConfig()
+    real_resect = resect_module.resect
+
+    def no_resection_of_16(frames_, persons, cam, *a, **kw):
+        r = real_resect(frames_, persons, cam, *a, **kw)
+        return replace(r, accepted=False, reason="made so") if cam == 5 else r
+
+    def paired_16(frames_, persons, cam, R_, t_, *a, **kw):
+        if cam != 5:
+            return None
+        return Resection(5, R[5], t[5], 1000, 1000, 1000, float("nan"), 0, 1.0, None, True, "", paired=4,
+                         scaled_by="floor")
+
+    monkeypatch.setattr(resect_module, "resect", no_resection_of_16)
+    monkeypatch.setattr(resect_module, "place_by_pair", paired_16)
+    monkeypatch.setattr(resect_module, "_apart", lambda new, *a, **kw: [5] if 5 in new else [])
+    located = np.ones(7, bool)
+    located[[5, LOST]] = False
+    R1, t1, loc, out = resect_unplaced(frames, R, t, located, focal, view_box(frames, 7), EngineConfig().associate,
+                                       cfg.bootstrap, seed=1, pairs=True)
+    by_cam = {r.cam: r for r in out}
+    assert not loc[5] and by_cam[5].reason.startswith("taken back"), by_cam[5].summary("cam_16")
+    assert loc[LOST] and by_cam[LOST].accepted and by_cam[LOST].paired == -1, by_cam[LOST].summary("cam_17")
+    assert np.linalg.norm(t1[LOST] - t[LOST]) < 0.05 and rotation_angle_deg(R1[LOST], R[LOST]) < 0.5
 
 
 def test_a_group_each_of_whose_cameras_its_pairs_hold_is_found_by_the_pairs_across_its_border():
