@@ -353,7 +353,8 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
     network given (placed here or not) has a pair with one placed here and a pair, about
     as strong, with the network that turn it apart (``_apart``), every camera placed from
     the first pair placement on is taken back (a wrong pair turns its camera round, and
-    the cameras chained to it with it, docs/bootstrap.md, Session 44). ``provisional``
+    the cameras chained to it with it, docs/bootstrap.md, Session 44), and the pass runs
+    again without pairs (the cameras the persons place alone stay). ``provisional``
     (C,) bool: located cameras nothing verified (reached over pairs that no triangle and
     no check confirmed): resected as if not located, against the others' persons only,
     and kept where they were where the resection does not place them, unless the persons
