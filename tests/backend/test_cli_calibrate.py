@@ -268,18 +268,23 @@ def test_lenses_3_percent_off_their_files_are_estimated_and_the_poses_fit_them(c
     Simulator(scene, SimConfig(persons=2, duration=60.0, seed=2, heights=(1.9, 1.75), intrinsics_error=0.03)).write(rec)
     ref = {n: e.pose for n, e in load_extrinsics(d / "reference.yaml").items()}
     shape = {}
-    for mode in ("auto", "off"):
-        out = tmp_path / f"{mode}.yaml"
-        r = _invoke(cli, *_args(d, rec, out, "--seed", "1", "--quiet", "--set", f"optimize.lenses={mode}",
-                                  "--set", "refine.split_check=false"))
-        assert r.exit_code == 0, r.output
-        got = load_extrinsics(out)
-        shape[mode] = evaluate({n: got[n].pose for n in WEST}, ref, list(WEST)).shape_position.mean
-        lens_file = Path(f"{out}.intrinsics.yaml")
-        assert ("lenses off their calibration files" in out.read_text()) == (mode == "auto")
-        assert lens_file.exists() == (mode == "auto")
-    lenses = load_intrinsics(tmp_path / "auto.yaml.intrinsics.yaml")
+    for profiles in (False, True):
+        for mode in ("auto", "off"):
+            out = tmp_path / f"{mode}-{profiles}.yaml"
+            r = _invoke(cli, *_args(d, rec, out, "--seed", "1", "--quiet", "--set", f"optimize.lenses={mode}",
+                                      "--set", "refine.split_check=false",
+                                      "--set", f"preprocess.partial_torso={str(profiles).lower()}"))
+            assert r.exit_code == 0, r.output
+            got = load_extrinsics(out)
+            shape[mode, profiles] = evaluate({n: got[n].pose for n in WEST}, ref, list(WEST)).shape_position.mean
+            lens_file = Path(f"{out}.intrinsics.yaml")
+            assert ("lenses off their calibration files" in out.read_text()) == (mode == "auto")
+            assert lens_file.exists() == (mode == "auto")
+    lenses = load_intrinsics(tmp_path / "auto-False.yaml.intrinsics.yaml")
     files_ = load_intrinsics(d / "intrinsics.yaml")
     assert set(lenses) >= set(WEST)
     assert any(abs(lenses[n].fx / files_[n].fx - 1) > 0.01 for n in WEST)  # not the files' again
-    assert shape["auto"] < 0.85 * shape["off"], shape  # 0.069 against 0.105 m
+    # the paper's preprocessing: 0.069 against 0.105 m. With the profile views (the
+    # default) the lenses help less, 0.083 against 0.098 m (docs/bootstrap.md, Session 49)
+    assert shape["auto", False] < 0.85 * shape["off", False], shape
+    assert shape["auto", True] < shape["off", True], shape

@@ -425,7 +425,7 @@ def test_after_a_take_back_the_cameras_the_persons_place_alone_are_placed_again(
     monkeypatch.setattr(resect_module, "_apart", lambda new, *a, **kw: [5] if 5 in new else [])
     located = np.ones(7, bool)
     located[[5, LOST]] = False
-    R1, t1, loc, out = resect_unplaced(frames, R, t, located, focal, view_box(frames, 7), EngineConfig().associate,
+    R1, t1, loc, out = resect_unplaced(frames, R, t, located, focal, view_box(frames, 7), cfg.associate,
                                        cfg.bootstrap, seed=1, pairs=True)
     by_cam = {r.cam: r for r in out}
     assert not loc[5] and by_cam[5].reason.startswith("taken back"), by_cam[5].summary("cam_16")
