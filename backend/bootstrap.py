@@ -1016,8 +1016,8 @@ def retimed(frames: Sequence[Frame], cam: int, delta: float, *, max_gap: float =
     person with the whole torso, as ``single_views`` (with several persons nothing tells
     which is which: such views are dropped, as are frames left with < 2 views). Its sigma
     is the larger of the two."""
-    own = [(T, d) for T, views in frames for v in views if v and v[0].cam == cam
-           if (d := single_whole(v)) is not None]
+    own = [(T, d) for T, views in frames for v in views
+           if v and v[0].cam == cam and (d := single_whole(v)) is not None]
     times = np.array([T for T, _ in own])
     out: list[Frame] = []
     for T, views in frames:

@@ -422,10 +422,9 @@ def resect_unplaced(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, locat
         # have leant on it, but one the persons place without it stands on its own (a
         # hall of 40 took back 12 cameras that agreed with them in 125-356 frames,
         # spread 1-3 m, for two pairs that disagreed: docs/bootstrap.md, Session 49)
-        again = {c: last[c] for c in order[start:]}
-        for c in place(False):
-            again.pop(c, None)
-        last.update(again)
+        taken_back = {c: last[c] for c in order[start:]}
+        placed_again = set(place(False))
+        last.update({c: r for c, r in taken_back.items() if c not in placed_again})
     for c in map(int, np.flatnonzero(keep & ~located)):  # not resected: where their pairs put them (R0, t0)
         r = last.get(c)
         if (r is not None and r.R is not None and r.frames >= cfg.resect_min_frames
