@@ -23,6 +23,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "bench"))
 
 WEST = ("cam_11", "cam_13", "cam_14", "cam_15", "cam_16", "cam_17")
 RUNS = (("paper", False, "auto"), ("paper", False, "off"), ("profiles", True, "auto"), ("profiles", True, "off"))
@@ -32,10 +33,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", default="2,3,4,5,6", help="simulator seeds, comma-separated")
     ap.add_argument("--error", type=float, default=0.03, help="simulator intrinsics_error")
-    ap.add_argument("--lab", type=Path, default=None, help="camera directory (default: the shared lab)")
     args = ap.parse_args()
 
     from typer.testing import CliRunner
+
+    import accuracy
 
     from backend.cameras import Extrinsics, load_extrinsics, save_extrinsics, save_intrinsics
     from backend.cli import _register_all, app
@@ -43,8 +45,7 @@ def main() -> None:
     from backend.perturb import perturb_extrinsics
     from edge_clients.sim import Scene, SimConfig, Simulator
 
-    lab = args.lab or next(p for p in (REPO.parent / "shared" / "data" / "ais_lab20",
-                                       REPO / "edge_clients" / "data" / "ais_lab20") if p.is_dir())
+    lab = accuracy.lab_dir()  # EXTRCAL_LAB, else the shared lab or its copy
     _register_all()
     full = Scene.load(lab)
     scene = Scene.from_cameras({n: full.intrinsics[n] for n in WEST}, {n: full.poses[n] for n in WEST},
