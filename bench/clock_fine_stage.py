@@ -35,7 +35,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.accuracy import lab_dir, simulate  # noqa: E402
+from bench.accuracy import lab_dir, sim_settings, simulate  # noqa: E402
 from bench.clock_offsets import DEFAULT_OFFSETS  # noqa: E402
 
 
@@ -111,7 +111,6 @@ def main() -> None:
                     help="simulator setting (repeatable), as for `extrcal simulate --set`")
     ap.add_argument("--true-3d", action="store_true", help="the others' 3D replaced by the true joints (diagnostic)")
     a = ap.parse_args()
-    from bench.accuracy import sim_settings
     from edge_clients.sim import Truth
 
     rec = simulate(2, 180.0, a.seed, a.cache, {**sim_settings(a.sim), "clock_offsets": DEFAULT_OFFSETS})
