@@ -3,8 +3,8 @@
 The scene of tests/backend/test_cli_calibrate.py's lens test, over several seeds: the lab's
 west room (6 cameras), 2 walkers (1.90 m, 1.75 m) for 60 s, the simulated lenses off the
 files by ``--error`` (relative focal std; the principal point by that times half the image
-width), initial estimates 0.05 m / 2° off. ``extrcal calibrate`` runs (in process, as the
-test does) with ``optimize.lenses`` auto and off, each with the paper's preprocessing
+width), initial estimates 0.05 m / 2° off. ``extrcal calibrate`` runs
+(``backend.cli_engine.calibrate``, in this process) with ``optimize.lenses`` auto and off, each with the paper's preprocessing
 (``preprocess.partial_torso=false``) and the default (profile views kept). Printed: the
 shape position error (m, mean over the cameras) of each, and the means over seeds.
 
@@ -35,18 +35,16 @@ def main() -> None:
     ap.add_argument("--error", type=float, default=0.03, help="simulator intrinsics_error")
     args = ap.parse_args()
 
-    from typer.testing import CliRunner
-
     import accuracy
+    import typer
 
     from backend.cameras import Extrinsics, load_extrinsics, save_extrinsics, save_intrinsics
-    from backend.cli import _register_all, app
+    from backend.cli_engine import calibrate
     from backend.evaluate import evaluate
     from backend.perturb import perturb_extrinsics
     from edge_clients.sim import Scene, SimConfig, Simulator
 
     lab = accuracy.lab_dir()  # EXTRCAL_LAB, else the shared lab or its copy
-    _register_all()
     full = Scene.load(lab)
     scene = Scene.from_cameras({n: full.intrinsics[n] for n in WEST}, {n: full.poses[n] for n in WEST},
                                lab / "room.yaml")
@@ -65,13 +63,14 @@ def main() -> None:
             row = []
             for name, profiles, mode in RUNS:
                 out = d / f"{seed}-{name}-{mode}.yaml"
-                r = CliRunner().invoke(app, [
-                    "calibrate", "--intrinsics", str(d / "intrinsics.yaml"), "--initial", str(d / "initial.yaml"),
-                    "--recording", str(rec), "--output", str(out), "--seed", "1", "--quiet",
-                    "--set", f"optimize.lenses={mode}", "--set", "refine.split_check=false",
-                    "--set", f"preprocess.partial_torso={str(profiles).lower()}"])
-                if r.exit_code != 0:
-                    raise SystemExit(f"seed {seed} {name} {mode}: {r.output}")
+                try:
+                    calibrate(intrinsics=d / "intrinsics.yaml", recording=rec, output=out, initial=d / "initial.yaml",
+                              distrust_initial=False, person_height=None, reference=None, config=None,
+                              set_=[f"optimize.lenses={mode}", "refine.split_check=false",
+                                    f"preprocess.partial_torso={str(profiles).lower()}"],
+                              seed=1, history=None, skip_bad=False, quiet=True)
+                except typer.Exit as e:  # cli.fail: its message is on stderr
+                    raise SystemExit(f"seed {seed} {name} {mode}: calibrate exited with code {e.exit_code}")
                 got = load_extrinsics(out)
                 e = evaluate({n: got[n].pose for n in WEST}, {n: x.pose for n, x in ref.items()}, list(WEST))
                 table[name, mode].append(e.shape_position.mean)
