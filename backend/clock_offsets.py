@@ -22,6 +22,11 @@ How (docs/clock_offsets.md has the reasoning and the figures):
    the grid's centre, then once at the best candidate: a pose fitted at every candidate
    of a wide grid mimics a time shift), a fine grid around it (pose fitted at each) and
    a least-squares parabola measure it; its std is the jackknife over blocks of data time.
+   At the end of a run (``reestimate``) also the spread over the cameras that triangulate
+   the person: the estimate again with each of them left out (``_reference_spread``). An
+   error of the others' 3D that every block shares (a lens a little off, a pair of
+   cameras that sees the spot) moves every block alike, so the blocks' jackknife cannot
+   see it; the reported std is the larger of the two.
    A sensor's tracks that join no hypothesis are identified by projecting the person
    into it, with a gate that grows with its pose's covariance.
 4. Offsets relative to the median sensor; confident ones are applied by the
@@ -80,6 +85,10 @@ _FINE_WALK = 8
 # for the 2D distance the median is 1.18 sigma).
 _CAUCHY = 2.385 / 1.18
 _CHI2_6 = float(scipy.stats.chi2.ppf(1 - 0.0027, 6))  # the 3-sigma tail of a 6-dof pose
+# A camera is left out of a sensor's reference (``_reference_spread``) when it is in at
+# least this share of the sensor's samples: one in a handful moves nothing, and its
+# near-zero change would dilute the spread of the ones that matter.
+_SPREAD_MIN_SHARE = 0.05
 
 
 # ------------------------------------------------------------------ results
@@ -91,7 +100,11 @@ class SensorClock:
 
     offset: s its stamps run ahead of the reference clock (the median sensor), None when
         not estimated yet.
-    std: s, its standard deviation (jackknife over blocks of data).
+    std: s, its standard deviation: the larger of ``std_blocks`` and ``std_references``.
+    std_blocks: s, the jackknife over blocks of data time.
+    std_references: s, the jackknife over the cameras whose views place the person it is
+        timed against (each left out in turn), measured by the estimate at the end of a
+        run; None when not measured (live estimates, too few cameras).
     applied: s the synchroniser subtracts from its stamps now.
     blocks: blocks of data (``clock.block`` s each) the estimate rests on.
     drift_warnings: how often its estimate moved by more than ``clock.drift_warning``.
@@ -106,9 +119,12 @@ class SensorClock:
     blocks: int
     drift_warnings: int
     note: str | None = None
+    std_blocks: float | None = None
+    std_references: float | None = None
 
     def to_dict(self) -> dict:
-        return {"offset": self.offset, "std": self.std, "applied": self.applied, "blocks": self.blocks,
+        return {"offset": self.offset, "std": self.std, "std_blocks": self.std_blocks,
+                "std_references": self.std_references, "applied": self.applied, "blocks": self.blocks,
                 "drift_warnings": self.drift_warnings, "note": self.note}
 
 
@@ -530,10 +546,11 @@ class _Record:
 @dataclass(frozen=True)
 class ClockResult:
     """What a ``ClockJob`` found: per sensor (S,) the estimate on the synchronised clock
-    (s, NaN = none), its std (s), the residual scale (px), the blocks it rests on, where
-    the next fine grid is centred (s, NaN = search the whole range), the pose fitted
-    with the offset ((R (3, 3), t (3,)) or None), and why a sensor's estimate was not
-    updated (None: it was)."""
+    (s, NaN = none), its std (s, the blocks' jackknife), the residual scale (px), the
+    blocks it rests on, where the next fine grid is centred (s, NaN = search the whole
+    range), the pose fitted with the offset ((R (3, 3), t (3,)) or None), why a sensor's
+    estimate was not updated (None: it was), and the spread over the reference cameras
+    (s, NaN = not measured; ``_reference_spread``)."""
 
     raw: np.ndarray
     std: np.ndarray
@@ -542,6 +559,7 @@ class ClockResult:
     center: np.ndarray
     pose: tuple
     note: tuple[str | None, ...]
+    ref_std: np.ndarray | None = None
 
 
 @dataclass
@@ -555,6 +573,8 @@ class ClockJob:
     now: data time of the estimate. R (C, 3, 3), t (C, 3): the poses it uses (copies).
     records: the records in the window. work: the estimator's copy it runs on.
     cancelled: set from any thread to end ``run`` early (between sensors; it returns None).
+    spread: also measure each estimate's spread over its reference cameras (costly: a
+    fine search per camera left out; ``reestimate``).
     """
 
     now: float
@@ -564,6 +584,7 @@ class ClockJob:
     records: list
     work: "ClockOffsetEstimator"
     cancelled: bool = False
+    spread: bool = False
 
     def run(self) -> ClockResult | None:
         return self.work._compute(self)
@@ -597,7 +618,8 @@ class ClockOffsetEstimator:
         self.last_update: float | None = None
         self.raw = np.full(S, np.nan)  # estimates on the synchronised clock (what a raw stamp is ahead of it)
         self.offset = np.full(S, np.nan)  # ... relative to the median sensor
-        self.std = np.full(S, np.nan)
+        self.std = np.full(S, np.nan)  # the blocks' jackknife
+        self.ref_std = np.full(S, np.nan)  # the spread over reference cameras (``_reference_spread``), NaN: not measured
         self.scale = np.full(S, np.nan)  # px: the robust residual scale of the sensor's last fit
         self.nblocks = np.zeros(S, np.int64)
         self.pose: list[tuple[np.ndarray, np.ndarray] | None] = [None] * S  # the sensor's pose fitted with its offset
@@ -679,14 +701,15 @@ class ClockOffsetEstimator:
         return self.finish(job, job.run())
 
     def begin(self, now: float, R: np.ndarray, t: np.ndarray, *, flush: bool = False,
-              P: np.ndarray | None = None) -> "ClockJob":
+              P: np.ndarray | None = None, spread: bool = False) -> "ClockJob":
         """The cheap part of an update, on the caller's thread: drop records and track
         points that left the window, and take a ``ClockJob`` with copies of what the
         estimate reads (the per-sensor state, the tracks as they are now, the records in
         the window). ``push`` and ``add`` may go on while the job runs elsewhere; ``due``
         says False until ``finish`` (a ``flush`` job replaces one in flight).
         P (C, 6, 6): the poses' covariance (rotation, translation; right perturbation):
-        a sensor's gate for identifying its tracks grows with it (None: the fixed gate)."""
+        a sensor's gate for identifying its tracks grows with it (None: the fixed gate).
+        spread: the job also measures ``_reference_spread``."""
         S = len(self.names)
         assert R.shape == (S, 3, 3) and t.shape == (S, 3) and (P is None or P.shape == (S, 6, 6))
         self.last_update = now
@@ -699,14 +722,14 @@ class ClockOffsetEstimator:
         work = copy.copy(self)  # shares the config and the constant tables; the state below is copied
         work.tracks = [st.frozen() for st in self.tracks]
         work.records = deque()
-        for k in ("raw", "offset", "std", "scale", "nblocks", "center", "applied", "anchor", "anchor_std",
+        for k in ("raw", "offset", "std", "ref_std", "scale", "nblocks", "center", "applied", "anchor", "anchor_std",
                   "drift_candidate", "drift_candidate_std",
                   "drift_warnings", "next_due"):
             setattr(work, k, getattr(self, k).copy())
         work.pose, work.note = list(self.pose), list(self.note)
         work._job = None
         work.pose_cov = None if P is None else P.copy()
-        job = ClockJob(now, flush, R.copy(), t.copy(), list(self.records), work)
+        job = ClockJob(now, flush, R.copy(), t.copy(), list(self.records), work, spread=spread)
         self._job = job
         return job
 
@@ -737,8 +760,10 @@ class ClockOffsetEstimator:
         them, +2.5 ms with the batch's, +2.3 ms with the true ones: docs/clock_offsets.md).
         Offsets applied stay as they were (the batch used them); what changes is what is
         reported (``clocks``) and where the next fine grids are centred, for every sensor
-        whose re-estimate is at least as certain as its estimate before."""
-        job = self.begin(now, R, t, flush=True, P=P)
+        whose re-estimate is at least as certain as its estimate before. With
+        ``clock.reference_spread`` it also measures each estimate's spread over its
+        reference cameras (``_reference_spread``; the std reported is then the larger)."""
+        job = self.begin(now, R, t, flush=True, P=P, spread=self.cfg.reference_spread)
         self._job = None
         result = job.run()
         if result is None:
@@ -746,6 +771,8 @@ class ClockOffsetEstimator:
         # a sensor whose re-estimate is less certain than the estimate it would replace keeps
         # that one: the final poses remove a bias, they do not make weak data stronger (seed 5
         # of the bench: cam_13's +123.7 +- 2.7 ms, 5 ms off, would have become +132.8 +- 9.2)
+        # (the spread over the reference cameras measured now stays with a kept estimate: it
+        # is the same window's, and the cameras are the same)
         before = [(self.raw[s], self.std[s], self.scale[s], self.nblocks[s], self.center[s], self.pose[s],
                    self.note[s]) for s in range(len(self.names))]
         self._take(result)
@@ -758,6 +785,7 @@ class ClockOffsetEstimator:
     def _take(self, result: "ClockResult") -> None:
         """A job's estimates become this estimator's."""
         self.raw, self.std, self.scale = result.raw.copy(), result.std.copy(), result.scale.copy()
+        self.ref_std = np.full(len(self.raw), np.nan) if result.ref_std is None else result.ref_std.copy()
         self.nblocks, self.center, self.pose = result.nblocks.copy(), result.center.copy(), list(result.pose)
         self.note = list(result.note)
 
@@ -821,8 +849,14 @@ class ClockOffsetEstimator:
                     if job.cancelled:
                         return None
                     self._estimate_sensor(s, recs, again[0], R, t)
+            self.ref_std = np.full(S, np.nan)
+            for s in todo if job.spread else ():
+                if job.cancelled:
+                    return None
+                if self.note[s] is None:
+                    self.ref_std[s] = self._reference_spread(s, recs, again[0], R, t)
         return ClockResult(self.raw, self.std, self.scale, self.nblocks, self.center, tuple(self.pose),
-                           tuple(self.note))
+                           tuple(self.note), self.ref_std.copy())
 
     def _trusted(self, recs: list[_Record]) -> tuple[list[np.ndarray], np.ndarray]:
         """Per record (V,) bool: views timed right as far as the current estimates know
@@ -851,6 +885,19 @@ class ClockOffsetEstimator:
         """Sensor s's samples: records with s in them (its track known from its view, the
         person from the other views) and records without it whose person one of its
         tracks clearly is (``_identify``); at most ``keep`` of them, spread in time."""
+        rows, trs = self._rows(s, recs, trusted, R, t)
+        if keep is not None and len(rows) > keep:
+            idx = np.linspace(0, len(rows) - 1, keep).round().astype(int)
+            rows, trs = [rows[i] for i in idx], [trs[i] for i in idx]
+        if not rows:
+            return None
+        return Samples(self._triangulate(rows, R, t), np.array([r.time for r, _ in rows]), tuple(trs),
+                       tuple(r.memo.setdefault(s, {}) for r, _ in rows))
+
+    def _rows(self, s: int, recs: list[_Record], trusted: list[np.ndarray], R: np.ndarray, t: np.ndarray
+              ) -> tuple[list[tuple[_Record, np.ndarray]], list]:
+        """Sensor s's samples as (record, mask (V,) of the views that place the person)
+        and its track in each (``_samples``)."""
         self._identify(s, recs, trusted, R, t)
         rows, trs = [], []
         for i, r in enumerate(recs):
@@ -865,13 +912,46 @@ class ClockOffsetEstimator:
                 continue
             rows.append((r, others))
             trs.append(tr)
-        if keep is not None and len(rows) > keep:
-            idx = np.linspace(0, len(rows) - 1, keep).round().astype(int)
-            rows, trs = [rows[i] for i in idx], [trs[i] for i in idx]
-        if not rows:
-            return None
-        return Samples(self._triangulate(rows, R, t), np.array([r.time for r, _ in rows]), tuple(trs),
-                       tuple(r.memo.setdefault(s, {}) for r, _ in rows))
+        return rows, trs
+
+    def _reference_spread(self, s: int, recs: list[_Record], trusted: list[np.ndarray], R: np.ndarray,
+                          t: np.ndarray) -> float:
+        """s: how far sensor s's estimate moves with the cameras that place its persons:
+        the estimate again (the fine grid around it, the pose fitted at each candidate)
+        with each camera in at least ``_SPREAD_MIN_SHARE`` of its samples left out of the
+        others' 3D, and the jackknife std of those estimates; NaN with fewer than 2 (two
+        are a crude spread, but a sensor whose persons two cameras place depends on
+        them most).
+
+        The blocks' jackknife cannot see an error of the others' 3D that stays with the
+        cameras (a lens a little off its file, the few pairs that see a spot): it moves
+        every block alike. Seeds 1 and 3 of the bench at the reference poses: the errors
+        of the 40 sensors were 1.1 and 1.5 of the blocks' std (rms; seed 3's cam_4 4.3),
+        0.7 and 1.0 of the larger of the two (docs/clock_offsets.md, Session 51)."""
+        cfg = self.cfg
+        rows, _ = self._rows(s, recs, trusted, R, t)
+        if not rows or not np.isfinite(self.raw[s]):
+            return float("nan")
+        counts = np.bincount(np.concatenate([r.cams[m] for r, m in rows]), minlength=len(self.names))
+        grid = (round(self.raw[s] / cfg.fine_step) * cfg.fine_step
+                + np.arange(-cfg.fine_half, cfg.fine_half + 1e-9, cfg.fine_step))
+        found = []
+        for c in np.flatnonzero(counts >= _SPREAD_MIN_SHARE * len(rows)):
+            smp = self._samples(s, recs, [m & (r.cams != c) for r, m in zip(recs, trusted)], R, t)
+            if smp is None:
+                continue
+            res = profile(smp, grid, *self._start(s, R, t), cfg.track_gap, cfg.block, float(self.focal[s]),
+                          cfg.min_scale_px, anneal=False)
+            if self._unfit(res) is not None:
+                continue
+            m = parabola_minimum(res[0].sum(0), grid)
+            if m is not None:
+                found.append(m)
+        G = len(found)
+        if G < 2:
+            return float("nan")
+        a = np.array(found)
+        return math.sqrt((G - 1) / G * float(((a - a.mean()) ** 2).sum()))
 
     def _triangulate(self, rows: list[tuple[_Record, np.ndarray]], R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """(N, J, 3) the BODY joints of each record of ``rows`` (N >= 1) from its views where
@@ -1138,10 +1218,12 @@ class ClockOffsetEstimator:
     def clocks(self) -> tuple[SensorClock, ...]:
         out = []
         for c, n in enumerate(self.names):
-            o, s = self.offset[c], self.std[c]
+            o, s, ref = self.offset[c], self.std[c], self.ref_std[c]
             est = bool(np.isfinite(o))
-            out.append(SensorClock(n, float(o) if est else None, float(s) if est else None, float(self.applied[c]),
-                                   int(self.nblocks[c]), int(self.drift_warnings[c]), self.note[c]))
+            ref_ok = est and bool(np.isfinite(ref))
+            out.append(SensorClock(n, float(o) if est else None, (float(max(s, ref)) if ref_ok else float(s)) if est
+                                   else None, float(self.applied[c]), int(self.nblocks[c]), int(self.drift_warnings[c]),
+                                   self.note[c], float(s) if est else None, float(ref) if ref_ok else None))
         return tuple(out)
 
     def set_applied(self, applied: Mapping[str, float]) -> None:

@@ -471,6 +471,11 @@ class ClockConfig(_Section):
     view_match_px: float = Field(10.0, gt=0, description="px: a hypothesis' view is a track's detection when they are "
                                  "this close (median over joints)")
     min_blocks: int = Field(4, ge=3, description="blocks of data a sensor needs for an estimate")
+    reference_spread: bool = Field(True, description="the estimate at the end of a run (after the final adjustment) also "
+                                   "measures how far each offset moves with the cameras that place the persons it is "
+                                   "timed against (each left out in turn; an error they share is invisible to the "
+                                   "jackknife over blocks of data): the std reported is the larger of the two. CPU: a "
+                                   "fine search per such camera and sensor (seconds to a minute for 20 cameras)")
     min_scale_px: float = Field(0.5, gt=0, description="px: floor of the robust residual scale (median distance) of a sensor's fit")
     max_scale_px: float = Field(12.0, gt=0, description="px: no estimate while a sensor's fit is worse than this (the poses have not settled)")
     max_std: float = Field(0.01, gt=0, description="s: an offset is applied once its std is below this ...")

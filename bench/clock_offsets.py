@@ -14,7 +14,10 @@ initial estimate (0.25 m / 10°, ``backend.perturb``):
   estimate starts when a sensor's stamps run apart from the others' as they arrive).
 
 Printed (for the estimated runs): per sensor the true offset (relative to the median sensor, as reported), the
-estimate, its std, the error and the offset applied; then the calibration error of each
+estimate, its std (and its two parts: the jackknife over blocks of data, the spread over the
+reference cameras measured at the end), the error and the offset applied; how far the stds
+cover the errors (rms of error / std over the sensors estimated: 1 when honest, with the
+reported std and with the blocks' alone); then the calibration error of each
 run (``backend.evaluate``: rigid position / orientation, shape position, mean over all 20
 cameras and over the 5 offset ones).
 
@@ -78,9 +81,9 @@ def table(name: str, est: dict, true: dict[str, float], offsets: dict[str, float
     med = float(np.median(list(true.values())))
     print(f"Clock offsets ({name}), 20-camera lab, 2 persons, {a.duration:g} s, seed {a.seed}, start {a.start} "
           "(ms, relative to the median sensor)")
-    print("| sensor | true | estimated | std | error | applied | note |")
+    print("| sensor | true | estimated | std (blocks / references) | error | applied | note |")
     print("|---|---|---|---|---|---|---|")
-    errs, other = [], []
+    errs, other, z, z_blocks = [], [], [], []
     for n in sorted(true, key=lambda s: int(s.split("_")[-1]) if s.split("_")[-1].isdigit() else s):
         c = est.get(n, {})
         tr = 1000 * (true[n] - med)
@@ -88,8 +91,13 @@ def table(name: str, est: dict, true: dict[str, float], offsets: dict[str, float
         e = None if o is None else 1000 * o - tr
         if e is not None:
             (errs if n in offsets else other).append(abs(e))
+            if c.get("std"):
+                z.append(e / (1000 * c["std"]))
+            if c.get("std_blocks"):
+                z_blocks.append(e / (1000 * c["std_blocks"]))
         fmt = lambda x: "n/a" if x is None else f"{x:+.1f}"  # noqa: E731
-        std = "n/a" if c.get("std") is None else f"{1000 * c['std']:.1f}"
+        parts = "/".join("n/a" if c.get(k) is None else f"{1000 * c[k]:.1f}" for k in ("std_blocks", "std_references"))
+        std = "n/a" if c.get("std") is None else f"{1000 * c['std']:.1f} ({parts})"
         star = " *" if n in offsets else ""
         print(f"| {n}{star} | {tr:+.1f} | {fmt(None if o is None else 1000 * o)} | {std} | {fmt(e)} | "
               f"{fmt(1000 * c.get('applied', 0.0))} | {c.get('note') or ''} |")
@@ -99,6 +107,9 @@ def table(name: str, est: dict, true: dict[str, float], offsets: dict[str, float
     print(f"other sensors estimated: {len(other)}/{len(true) - len(offsets)}, max error "
           f"{max(other) if other else float('nan'):.1f} ms; largest offset applied "
           f"{max((abs(1000 * est[n].get('applied', 0.0)) for n in est if n not in offsets), default=0.0):.1f} ms")
+    rms = lambda v: float(np.sqrt(np.mean(np.square(v)))) if v else float("nan")  # noqa: E731
+    print(f"rms error / std over the {len(z)} sensors estimated: {rms(z):.2f} (the blocks' std alone: "
+          f"{rms(z_blocks):.2f}); |error| > 2 std: {sum(abs(x) > 2 for x in z)} ({sum(abs(x) > 2 for x in z_blocks)})")
     print()
 
 

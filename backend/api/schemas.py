@@ -233,7 +233,9 @@ class SensorOut(BaseModel):
     time_offset: dict[str, float | int | str | None] | None = Field(
         None, description="the running session's estimate of this sensor's clock offset from the data "
         "(clock.estimate; \"auto\", the default: once a sensor's stamps run apart from the others'): offset and std "
-        "s relative to the median sensor, applied s, blocks, drift_warnings, "
+        "s relative to the median sensor (std: the larger of std_blocks, the jackknife over blocks of data time, and "
+        "std_references, how far the offset moves with each camera that places the persons left out, measured at the "
+        "end of a run, null before), applied s, blocks, drift_warnings, "
         "note (why its last update left the estimate as it was, null when it was updated)")
     keypoints: dict[str, float | int] | None = Field(
         None, description="the running session's preprocessing of its detections: torso_keypoints detected, "
