@@ -925,9 +925,9 @@ class ClockOffsetEstimator:
 
         The blocks' jackknife cannot see an error of the others' 3D that stays with the
         cameras (a lens a little off its file, the few pairs that see a spot): it moves
-        every block alike. Seeds 1 and 3 of the bench at the reference poses: the errors
-        of the 40 sensors were 1.1 and 1.5 of the blocks' std (rms; seed 3's cam_4 4.3),
-        0.7 and 1.0 of the larger of the two (docs/clock_offsets.md, Session 51)."""
+        every block alike. bench/clock_offsets.py, seeds 1-5: the errors of the 100
+        sensors were 1.3-2.0 of the blocks' std (rms per seed; 17 beyond 2 std), 0.8-1.2
+        of the larger of the two (4 beyond 2 std; docs/clock_offsets.md, Session 51)."""
         cfg = self.cfg
         rows, _ = self._rows(s, recs, trusted, R, t)
         if not rows or not np.isfinite(self.raw[s]):

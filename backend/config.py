@@ -475,7 +475,7 @@ class ClockConfig(_Section):
                                    "measures how far each offset moves with the cameras that place the persons it is "
                                    "timed against (each left out in turn; an error they share is invisible to the "
                                    "jackknife over blocks of data): the std reported is the larger of the two. CPU: a "
-                                   "fine search per such camera and sensor (seconds to a minute for 20 cameras)")
+                                   "fine search per such camera and sensor (20 cameras: some 20 s of CPU more at the end)")
     min_scale_px: float = Field(0.5, gt=0, description="px: floor of the robust residual scale (median distance) of a sensor's fit")
     max_scale_px: float = Field(12.0, gt=0, description="px: no estimate while a sensor's fit is worse than this (the poses have not settled)")
     max_std: float = Field(0.01, gt=0, description="s: an offset is applied once its std is below this ...")
