@@ -646,6 +646,32 @@ def test_a_thin_cycle_does_not_make_a_camera_s_first_big_move(lab):
     assert p.first_gated == [p.names[0]]
 
 
+def test_a_pass_of_the_first_adjustment_does_not_make_a_thin_big_move(lab):
+    """The first adjustment holds a camera as the cycles do: a pass that would move it
+    0.85 m / 28° (within first_gate's χ² 40) on 30 projections leaves it at its start;
+    on 150 projections the move is taken (the realistic detector with clock offsets had a
+    first pass put the lab's cam_6 1.42 m / 24° off on 34 projections, χ² 38: no cycle
+    moved it back)."""
+    cams = lab[0]
+    p = Pipeline(cams, EngineConfig())
+    rf, C = p.refiner, len(p.names)
+    problem = Problem(cycle=1, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
+                      prior_cov=rf.P0.copy(), focal=p.focal, config=p.cfg.optimize)
+    R, t = rf.R.copy(), rf.t.copy()
+    big = np.r_[np.radians([0.0, 28.0, 0.0]), 0.6, 0.6, 0.0]
+    for c in (0, 1):
+        R[c], t[c] = pose_retract(R[c], t[c], big)
+    obs = np.full(C, 300)
+    obs[0], obs[1] = 30, 150
+    sol = Solution(ok=True, reason="", R=R, t=t, cov=rf.P0.copy(), cov_shape=rf.P0.copy(), active=np.ones(C, bool),
+                   obs_per_camera=obs, hypotheses=150, residual_px=np.ones(10), initial_error=2.0, final_error=1.0,
+                   iterations=5, seconds=0.1)
+    assert p._beyond_prior(problem, sol).tolist() == [c == 0 for c in range(C)]
+    assert p.first_gated == [p.names[0]]
+    off = Pipeline(cams, EngineConfig().merged({"select": {"first_cycle_gate": 0}}))
+    assert not off._beyond_prior(problem, sol).any()
+
+
 def test_offline_the_default_monitor_does_not_watch(lab, watching):
     """monitor.enabled = "live" (the default) is the service's: the same 30 s offline, with
     the cameras converged as in the watching pipeline, watch and hold nothing."""
