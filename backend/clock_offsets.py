@@ -1219,11 +1219,13 @@ class ClockOffsetEstimator:
         out = []
         for c, n in enumerate(self.names):
             o, s, ref = self.offset[c], self.std[c], self.ref_std[c]
-            est = bool(np.isfinite(o))
-            ref_ok = est and bool(np.isfinite(ref))
-            out.append(SensorClock(n, float(o) if est else None, (float(max(s, ref)) if ref_ok else float(s)) if est
-                                   else None, float(self.applied[c]), int(self.nblocks[c]), int(self.drift_warnings[c]),
-                                   self.note[c], float(s) if est else None, float(ref) if ref_ok else None))
+            if not np.isfinite(o):
+                out.append(SensorClock(n, None, None, float(self.applied[c]), int(self.nblocks[c]),
+                                       int(self.drift_warnings[c]), self.note[c]))
+                continue
+            ref = float(ref) if np.isfinite(ref) else None
+            out.append(SensorClock(n, float(o), max(float(s), ref or 0.0), float(self.applied[c]), int(self.nblocks[c]),
+                                   int(self.drift_warnings[c]), self.note[c], float(s), ref))
         return tuple(out)
 
     def set_applied(self, applied: Mapping[str, float]) -> None:
