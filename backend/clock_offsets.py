@@ -722,7 +722,7 @@ class ClockOffsetEstimator:
         work = copy.copy(self)  # shares the config and the constant tables; the state below is copied
         work.tracks = [st.frozen() for st in self.tracks]
         work.records = deque()
-        for k in ("raw", "offset", "std", "ref_std", "scale", "nblocks", "center", "applied", "anchor", "anchor_std",
+        for k in ("raw", "offset", "std", "scale", "nblocks", "center", "applied", "anchor", "anchor_std",
                   "drift_candidate", "drift_candidate_std",
                   "drift_warnings", "next_due"):
             setattr(work, k, getattr(self, k).copy())
@@ -828,6 +828,7 @@ class ClockOffsetEstimator:
         # the persons the other views triangulate are the same for every sensor not in a
         # record, and one of V leave-one-out sets for those in it: made once per job
         self._tri: dict[tuple[int, bytes], np.ndarray] = {}
+        self.ref_std = np.full(len(self.names), np.nan)  # this job's measure, or none
         self._attach_tracks(job.records, job.now, job.flush)
         recs = [r for r in job.records if r.tracks is not None]
         if not recs:
@@ -849,12 +850,12 @@ class ClockOffsetEstimator:
                     if job.cancelled:
                         return None
                     self._estimate_sensor(s, recs, again[0], R, t)
-            self.ref_std = np.full(S, np.nan)
-            for s in todo if job.spread else ():
-                if job.cancelled:
-                    return None
-                if self.note[s] is None:
-                    self.ref_std[s] = self._reference_spread(s, recs, again[0], R, t)
+            if job.spread:
+                for s in todo:
+                    if job.cancelled:
+                        return None
+                    if self.note[s] is None:
+                        self.ref_std[s] = self._reference_spread(s, recs, again[0], R, t)
         return ClockResult(self.raw, self.std, self.scale, self.nblocks, self.center, tuple(self.pose),
                            tuple(self.note), self.ref_std.copy())
 

@@ -222,6 +222,19 @@ def six_cameras(duration: float, seed: int, offsets: dict[str, float]):
     return CameraSet.combine({n: intr[n] for n in SIX}, {n: ref[n] for n in SIX}), [m for _, m in sim.messages(SIX)]
 
 
+def estimator_alone(cams: CameraSet, cfg: EngineConfig, msgs) -> Pipeline:
+    """A pipeline fed ``msgs`` whose poses stay the reference (no adjustment): the clock
+    estimator alone, finished."""
+    p = Pipeline(cams, cfg)
+    p._calibrated = lambda: True  # the poses are the reference: no adjustment to wait for
+    for msg in msgs:
+        p.push(msg)
+        if p.clock is not None:
+            p.advance(p.clock)
+    p.finish()
+    return p
+
+
 @pytest.fixture(scope="module")
 def short_run():
     """6 cameras of the lab, 2 persons, 40 s, no detector noise, two sensors 150 ms
@@ -231,14 +244,7 @@ def short_run():
     cams, msgs = six_cameras(40.0, 3, offsets)
     cfg = EngineConfig.from_dict({"clock": {"estimate": True}, "refine": {"final_batch": False},
                                   "associate": {"relocalize": False}})
-    p = Pipeline(cams, cfg)
-    p._calibrated = lambda: True  # the poses are the reference: no adjustment to wait for
-    for msg in msgs:
-        p.push(msg)
-        if p.clock is not None:
-            p.advance(p.clock)  # poses stay the reference: the estimator alone is tested
-    p.finish()
-    return p, offsets, names
+    return estimator_alone(cams, cfg, msgs), offsets, names
 
 
 @pytest.mark.xfail(strict=True, reason="the bar is not met on this small scene (docs/clock_offsets.md): with 2 "
@@ -676,13 +682,7 @@ def west_mistimed():
     cams = CameraSet.combine({n: intr[n] for n in WEST}, {n: ref[n] for n in WEST})
     cfg = EngineConfig.from_dict({"clock": {"estimate": True, "min_apply": 0.05}, "refine": {"final_batch": False},
                                   "associate": {"relocalize": False}})
-    p = Pipeline(cams, cfg)
-    p._calibrated = lambda: True  # the poses are the reference: the estimator alone is tested
-    for _, msg in sim.messages(WEST):
-        p.push(msg)
-        if p.clock is not None:
-            p.advance(p.clock)
-    p.finish()
+    p = estimator_alone(cams, cfg, (msg for _, msg in sim.messages(WEST)))
     live = {c.sensor: c for c in p.clocks.clocks()}
     p.clocks.reestimate(p.clock, p.refiner.R, p.refiner.t)
     return live, {c.sensor: c for c in p.clocks.clocks()}

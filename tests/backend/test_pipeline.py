@@ -608,6 +608,26 @@ def test_the_monitor_watches_converged_cameras_and_holds_them(watching):
     assert q.monitor.alarms == p.monitor.alarms and q.state().cameras[2].moved_at == 12.5
 
 
+def _moved(p: Pipeline, steps: dict[int, np.ndarray], obs: list[int], cycle: int, prior_cov: np.ndarray
+           ) -> tuple[Problem, Solution, np.ndarray]:
+    """A problem at the refiner's poses with prior covariance ``prior_cov`` and a solution
+    that moves camera c by ``steps[c]`` (rotation vector, translation), seen on ``obs``
+    projections per camera; and the solution's translations."""
+    rf, C = p.refiner, len(p.names)
+    problem = Problem(cycle=cycle, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
+                      prior_cov=prior_cov, focal=p.focal, config=p.cfg.optimize)
+    R, t = rf.R.copy(), rf.t.copy()
+    for c, step in steps.items():
+        R[c], t[c] = pose_retract(R[c], t[c], step)
+    sol = Solution(ok=True, reason="", R=R, t=t, cov=prior_cov.copy(), cov_shape=prior_cov.copy(),
+                   active=np.ones(C, bool), obs_per_camera=np.array(obs[:C]), hypotheses=20, residual_px=np.ones(10),
+                   initial_error=2.0, final_error=1.0, iterations=5, seconds=0.1)
+    return problem, sol, t
+
+
+_BIG = np.r_[np.radians([0.0, 28.0, 0.0]), 0.6, 0.6, 0.0]  # 28°, 0.85 m
+
+
 def test_a_thin_cycle_does_not_make_a_camera_s_first_big_move(lab):
     """select.first_cycle_gate: a cycle that would move a camera no cycle has calibrated
     yet 0.85 m / 28° (χ² ~20 against the initial std: within cycle_gate's 40) on 30
@@ -615,19 +635,10 @@ def test_a_thin_cycle_does_not_make_a_camera_s_first_big_move(lab):
     calibrated, the move is taken (cycle_gate decides); a small first move is taken."""
     cams = lab[0]
     p = Pipeline(cams, EngineConfig())
-    rf, C = p.refiner, len(p.names)
-    P = rf.predicted_covariance()
-    problem = Problem(cycle=5, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(), prior_cov=P,
-                      focal=p.focal, config=p.cfg.optimize)
-    R, t = rf.R.copy(), rf.t.copy()
-    big = np.r_[np.radians([0.0, 28.0, 0.0]), 0.6, 0.6, 0.0]  # 28°, 0.85 m
+    rf = p.refiner
     small = np.r_[np.radians([0.0, 2.0, 0.0]), 0.05, 0.0, 0.0]
-    for c, step in ((0, big), (1, big), (2, small), (3, small), (4, small), (5, small)):
-        R[c], t[c] = pose_retract(R[c], t[c], step)
-    obs = np.array([30, 150, 30, 300, 300, 300, 300, 300][:C])
-    sol = Solution(ok=True, reason="", R=R, t=t, cov=P.copy(), cov_shape=P.copy(), active=np.ones(C, bool),
-                   obs_per_camera=obs, hypotheses=20, residual_px=np.ones(10), initial_error=2.0, final_error=1.0,
-                   iterations=5, seconds=0.1)
+    problem, sol, t = _moved(p, {0: _BIG, 1: _BIG, 2: small, 3: small, 4: small, 5: small},
+                             [30, 150, 30, 300, 300, 300, 300, 300], 5, rf.predicted_covariance())
     far = p._beyond_prediction(problem, sol)
     assert far[0] and not far[1:].any()  # the thin big move only
     rf.cycles[0] = 1  # calibrated before: only cycle_gate (40) judges it
@@ -654,18 +665,8 @@ def test_a_pass_of_the_first_adjustment_does_not_make_a_thin_big_move(lab):
     moved it back)."""
     cams = lab[0]
     p = Pipeline(cams, EngineConfig())
-    rf, C = p.refiner, len(p.names)
-    problem = Problem(cycle=1, R=rf.R.copy(), t=rf.t.copy(), prior_R=rf.R.copy(), prior_t=rf.t.copy(),
-                      prior_cov=rf.P0.copy(), focal=p.focal, config=p.cfg.optimize)
-    R, t = rf.R.copy(), rf.t.copy()
-    big = np.r_[np.radians([0.0, 28.0, 0.0]), 0.6, 0.6, 0.0]
-    for c in (0, 1):
-        R[c], t[c] = pose_retract(R[c], t[c], big)
-    obs = np.full(C, 300)
-    obs[0], obs[1] = 30, 150
-    sol = Solution(ok=True, reason="", R=R, t=t, cov=rf.P0.copy(), cov_shape=rf.P0.copy(), active=np.ones(C, bool),
-                   obs_per_camera=obs, hypotheses=150, residual_px=np.ones(10), initial_error=2.0, final_error=1.0,
-                   iterations=5, seconds=0.1)
+    C = len(p.names)
+    problem, sol, _ = _moved(p, {0: _BIG, 1: _BIG}, [30, 150] + [300] * (C - 2), 1, p.refiner.P0.copy())
     assert p._beyond_prior(problem, sol).tolist() == [c == 0 for c in range(C)]
     assert p.first_gated == [p.names[0]]
     off = Pipeline(cams, EngineConfig().merged({"select": {"first_cycle_gate": 0}}))
