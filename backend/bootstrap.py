@@ -903,7 +903,8 @@ class BootstrapResult:
     std_rotation (C,) deg: the bundle adjustment's shape std (NaN where unknown);
     residual_px (C,) and observations (C,): each camera's median reprojection error and
     number of joint observations in the last bundle adjustment (how well the data hold
-    it there; None when not recorded).
+    it there; None when not recorded); depth (C,) m: the median distance of the points
+    each camera saw there (NaN where unknown; None when not recorded).
     """
 
     names: tuple[str, ...]
@@ -928,6 +929,7 @@ class BootstrapResult:
     # sensors whose stamps ran apart from the others' (``stamps_apart``): name -> the shift (s) its
     # views were timed by here (its lead, or 0 where its stamps fitted its pairs better)
     mistimed: Mapping[str, float] = field(default_factory=dict)
+    depth: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         C = len(self.names)
@@ -1290,7 +1292,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     tried_reloc = False
     check_notes: tuple[str, ...] = ()
     resect_notes: tuple[str, ...] = ()
-    residual_px, observations = np.full(C, np.nan), np.zeros(C, np.int64)
+    residual_px, observations, depth = np.full(C, np.nan), np.zeros(C, np.int64), np.full(C, np.nan)
     rounds = cfg.batch_rounds
     r = 0
     while r < rounds:
@@ -1316,6 +1318,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
             + (f", {sol.phantoms} far larger than anyone dropped" if sol.phantoms else ""))
         if last and sol.ok:
             residual_px, observations = sol.residual_cam_px.copy(), sol.obs_per_camera.copy()
+            depth = sol.depth_cam.copy()
             for c in np.flatnonzero(sol.active):
                 P = sol.cov_shape[c]
                 if np.all(np.isfinite(P)):
@@ -1436,6 +1439,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     if scale is not None:
         t = t * scale.factor
         std_t = std_t * scale.factor
+        depth = depth * scale.factor
         seg = Segments(seg.time, seg.com * scale.factor, seg.shank * scale.factor, seg.thigh * scale.factor,
                        seg.torso * scale.factor, seg.ankles * scale.factor, seg.up * scale.factor)
         say(scale.summary())
@@ -1448,11 +1452,11 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     R[~located], t[~located] = np.eye(3), 0.0
     std_t[~located] = np.nan
     std_r[~located] = np.nan
-    residual_px[~located], observations[~located] = np.nan, 0
+    residual_px[~located], observations[~located], depth[~located] = np.nan, 0, np.nan
     stages["people"] = _time.perf_counter() - t0
     return BootstrapResult(tuple(names), R, t, located, std_t, std_r, scale, note, len(good), tried, len(frames),
                            float(data_seconds), _time.perf_counter() - t_start, stages, check_notes, resect_notes,
-                           residual_px, observations, spec, timed)
+                           residual_px, observations, spec, timed, depth)
 
 
 def mistimed_summary(timed: Mapping[str, float]) -> str:

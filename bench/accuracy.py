@@ -293,7 +293,7 @@ def bootstrap_cached(recording: str, intrinsics, cfg, seed: int, cache: Path):
         return BootstrapResult(names, z["R"], z["t"], z["located"], z["std_t"], z["std_r"], None, "cached",
                                int(z["pairs"]), int(z["pairs_tried"]), int(z["frames"]), float(z["data_seconds"]),
                                float(z["seconds"]), residual_px=z["residual_px"], observations=z["observations"],
-                               floor=floor)
+                               floor=floor, depth=z["depth"] if "depth" in z else None)
     try:
         b = bootstrap_messages(intrinsics, cfg, read_recording(recording), seed=seed)
     except BootstrapError:
@@ -306,6 +306,7 @@ def bootstrap_cached(recording: str, intrinsics, cfg, seed: int, cache: Path):
             np.savez(f, ok=True, R=b.R, t=b.t, located=b.located, std_t=b.std_translation, std_r=b.std_rotation,
                      pairs=b.pairs, pairs_tried=b.pairs_tried, frames=b.frames, data_seconds=b.data_seconds,
                      seconds=b.seconds, residual_px=b.residual_px, observations=b.observations,
+                     **({} if b.depth is None else {"depth": b.depth}),
                      **({} if b.floor is None else {"floor_first": b.floor.first, "floor_second": b.floor.second,
                                                     "floor_ankle": b.floor.ankle_height}))
     os.replace(tmp, path)

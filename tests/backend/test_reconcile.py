@@ -27,11 +27,11 @@ def _network(rng, C: int = 10) -> tuple[np.ndarray, np.ndarray]:
     return R, t
 
 
-def _boot(names, R, t, located=None, std=0.01, residual_px=None, observations=None) -> BootstrapResult:
+def _boot(names, R, t, located=None, std=0.01, residual_px=None, observations=None, depth=None) -> BootstrapResult:
     C = len(names)
     located = np.ones(C, bool) if located is None else located
     return BootstrapResult(tuple(names), R, t, located, np.full(C, std), np.full(C, 0.1), None, "test", 0, 0, 0,
-                           0.0, 0.0, residual_px=residual_px, observations=observations)
+                           0.0, 0.0, residual_px=residual_px, observations=observations, depth=depth)
 
 
 def _similar(R, t, s, Rw, tw):
@@ -162,6 +162,34 @@ def test_an_initial_estimate_the_data_confirm_is_kept():
     few = np.zeros(8, bool)
     few[:2] = True
     assert reconcile(_boot(names, Rb, tb, few), names, R, t, cfg) is None
+
+
+def test_the_same_turns_are_too_rough_where_the_people_are_far():
+    """0.25 m / 10° off (what it states) is left alone in a room, but starts from the data's
+    shape where the cameras see their people 14 m away: the turn moves them 2.4 m there."""
+    rng = RNG(4)
+    names = [f"cam_{i}" for i in range(8)]
+    R, t = _network(rng, 8)
+    Rb, tb = _similar(R, t, 0.5, so3_exp([0.2, -0.4, 0.3]), np.array([1.0, 0.0, -1.0]))
+    turn = np.stack([so3_exp(np.radians(10) * v / np.linalg.norm(v)) for v in rng.normal(size=(8, 3))])
+    R0 = np.einsum("cij,cjk->cik", turn, R)
+    d = rng.normal(size=(8, 3))
+    t0 = t + 0.25 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    cfg = EngineConfig()
+
+    def rec(metres: float | None):
+        depth = None if metres is None else np.full(8, metres * 0.5)  # the bootstrap's units: 0.5 per metre
+        return reconcile(_boot(names, Rb, tb, depth=depth), names, R0, t0, cfg)
+
+    # (measured after the alignment, which takes up a little of the errors)
+    room, hall = rec(6.0), rec(14.0)
+    assert not room.used and room.displacement == pytest.approx(0.25 + np.radians(10) * 6.0, rel=0.1)
+    assert hall.used and hall.from_bootstrap.all()
+    assert hall.displacement == pytest.approx(0.25 + np.radians(10) * 14.0, rel=0.1)
+    assert f"typically {hall.displacement:.2f} m at its persons" in hall.summary()
+    # a bootstrap that did not say how far its people were: the angle alone decides, as before
+    unknown = rec(None)
+    assert not unknown.used and np.isnan(unknown.displacement)
 
 
 def test_one_camera_the_bootstrap_chained_wrong_does_not_make_a_fair_estimate_look_rough():
