@@ -427,8 +427,8 @@ def solve(p: Problem) -> Solution:
     return Solution(out.reason == "", out.reason, R, t, cov, cov_shape, g.active, np.bincount(g.obs_cam, minlength=C),
                     int(len(np.unique(g.lm_hyp))), res, float(first_error), float(final_error),
                     iterations + its, time.perf_counter() - t0, bone_lengths=out.lengths, residual_cam_px=per_cam,
-                    depth_cam=depth, phantoms=phantoms, floor=floor if out.held else None, floor_points=out.held, level=level,
-                    lenses=out.lenses, lens_std=lens_std, cov_shape_lenses=cov_shape_lenses)
+                    depth_cam=depth, phantoms=phantoms, floor=floor if out.held else None, floor_points=out.held,
+                    level=level, lenses=out.lenses, lens_std=lens_std, cov_shape_lenses=cov_shape_lenses)
 
 
 def _relocalize(p: Problem) -> Solution:

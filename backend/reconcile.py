@@ -183,7 +183,8 @@ class Reconciled:
         head = (f"the initial estimate vs the data's shape (bootstrap, {n} cameras, aligned on "
                 f"{int(self.aligned.sum())}): median {dt:.3f} m / {dr:.2f}°, max {np.nanmax(self.translation):.3f} m / "
                 f"{np.nanmax(self.rotation):.2f}°"
-                + (f", typically {self.displacement:.2f} m at its persons" if np.isfinite(self.displacement) else "")
+                + (f", typically {self.displacement:.2f} m at its persons" if np.isfinite(self.displacement)
+                   else "")
                 + f"; {int(self.agrees.sum())}/{n} agree")
         refused = [m for m, r, o, k in zip(self.names, self.refused, self.overruled, self.block)
                    if r and not o and not k]
