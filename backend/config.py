@@ -417,7 +417,7 @@ class BootstrapConfig(_Section):
     auto_displacement: float = Field(1.5, gt=0, description="m: ... or when the initial estimate's errors move what its "
                                      "cameras see by more than this at their persons' distance (the typical camera's "
                                      "centre error plus its turn times the median distance of its persons): the "
-                                     "association's segments then miss each other by more than its max_distance. "
+                                     "association pairs rays that pass within max_distance (1 m) at the persons. "
                                      "Measured: the lab from 0.25 m / 10° 1.2 m, the paper's way at the limit; from "
                                      "0.35 m / 15° 1.8 m, it copes (seed 0 0.035 m shape, the limit 0.030 m); a warehouse "
                                      "(persons 9-16 m away) from 0.25 m / 8° and 10°: 1.7 and 2.1 m, a camera 16° and "
