@@ -182,11 +182,11 @@ def test_the_same_turns_are_too_rough_where_the_people_are_far():
         return reconcile(_boot(names, Rb, tb, depth=depth), names, R0, t0, cfg)
 
     # (measured after the alignment, which takes up a little of the errors)
-    room, hall = rec(6.0), rec(14.0)
+    room, far = rec(6.0), rec(14.0)
     assert not room.used and room.displacement == pytest.approx(0.25 + np.radians(10) * 6.0, rel=0.1)
-    assert hall.used and hall.from_bootstrap.all()
-    assert hall.displacement == pytest.approx(0.25 + np.radians(10) * 14.0, rel=0.1)
-    assert f"typically {hall.displacement:.2f} m at its persons" in hall.summary()
+    assert far.used and far.from_bootstrap.all()
+    assert far.displacement == pytest.approx(0.25 + np.radians(10) * 14.0, rel=0.1)
+    assert f"typically {far.displacement:.2f} m at its persons" in far.summary()
     # a bootstrap that did not say how far its people were: the angle alone decides, as before
     unknown = rec(None)
     assert not unknown.used and np.isnan(unknown.displacement)
