@@ -152,7 +152,8 @@ class Solution:
     seconds: float
     bone_lengths: np.ndarray | None = None  # (K, len(BONE_NAMES)) bone lengths per person after the solve, NaN = unseen
     residual_cam_px: np.ndarray | None = None  # (C,) median of each camera's residual_px, NaN = no observation
-    depth_cam: np.ndarray | None = None  # (C,) median distance of each camera's observed landmarks from it, NaN = none
+    # (C,) median distance of each camera's observed landmarks from it, NaN = none; batch adjustments only
+    depth_cam: np.ndarray | None = None
     phantoms: int = 0  # hypotheses dropped as far larger than anyone seen (optimize.max_size_ratio)
     floor: Floor | None = None  # the floor's plane as the last solve left it (optimize.floor; None: no floor)
     floor_points: int = 0  # lower ankles held to it
@@ -418,11 +419,16 @@ def solve(p: Problem) -> Solution:
     cov = out.cov if out.cov is not None else nan
     cov_shape = out.cov_shape if out.cov_shape is not None else nan.copy()
     res = residuals_px(R, t, lms, g.obs_cam, g.obs_lm, normalised_by_lenses(g.obs_xy, g.obs_cam, out.lenses), p.focal)
-    per_cam, depth = np.full(C, np.nan), np.full(C, np.nan)
-    reach = np.linalg.norm(lms[g.obs_lm] - t[g.obs_cam], axis=1)
+    per_cam = np.full(C, np.nan)
+    # the distances only a batch adjustment reports (the bootstrap's, for backend/reconcile.py):
+    # not on every cycle's solve
+    depth = np.full(C, np.nan) if p.kind == "batch" else None
+    reach = np.linalg.norm(lms[g.obs_lm] - t[g.obs_cam], axis=1) if depth is not None else None
     for c in np.unique(g.obs_cam):
-        per_cam[c] = np.median(res[g.obs_cam == c])
-        depth[c] = np.median(reach[g.obs_cam == c])
+        m = g.obs_cam == c
+        per_cam[c] = np.median(res[m])
+        if depth is not None:
+            depth[c] = np.median(reach[m])
     level = fit_floor(lms, g.lm_hyp, g.lm_joint, p.config.floor_sigma) if p.level else None
     return Solution(out.reason == "", out.reason, R, t, cov, cov_shape, g.active, np.bincount(g.obs_cam, minlength=C),
                     int(len(np.unique(g.lm_hyp))), res, float(first_error), float(final_error),
