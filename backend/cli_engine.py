@@ -188,7 +188,8 @@ def calibrate(
     try:
         p = run_offline(cams, cfg, messages(), seed=seed, progress=progress,
                         start=start, pipeline=joining,
-                        scale_heights=heights if boot is None else None)
+                        scale_heights=heights if boot is None else None,
+                        data_shape=rec.data_shape() if rec is not None else None)
     except RecordingError as e:
         raise fail(f"{e} (use --skip-bad to skip malformed records)")
     finally:
@@ -238,6 +239,9 @@ def calibrate(
         comment += f"\n{p.lenses.summary()}; the lenses: {lens_file}"
     if rec is not None:
         comment += f"\n{rec.summary()}"
+        if p.final_batch_start == "data":
+            comment += ("\nfinal batch adjustment: the one started from the data's shape explained the data better "
+                        "than the one from the online estimate, and was kept")
     scale = boot.scale if boot is not None else (check.people if check is not None else None)
     if boot is not None:
         comment += f"\nno initial estimate: {boot.frame}"

@@ -244,6 +244,11 @@ class RefineConfig(_Section):
     final_batch_from_start: bool = Field(False, description="the final batch also from the start (the bootstrap's "
                                          "estimate: set by the hand-over), kept when it explains at least as many "
                                          "observations at a lower cost per observation")
+    final_batch_from_data: bool = Field(True, description="a run from an initial estimate that the bootstrap checked "
+                                        "(bootstrap.with_initial) and kept: the final batch also from the data's shape "
+                                        "where the two disagree on a camera (beyond bootstrap.agree_* or 3x the "
+                                        "bootstrap's std), kept when it explains at least as many observations at a "
+                                        "lower cost per observation")
     archive_frames: int = Field(10000, ge=100, description="preprocessed framesets kept for re-localisation and the final batch")
     split_check: bool = Field(True, description="after the final batch, solve it again on each of two halves of the "
                               "frames (alternate split_block s) and compare: a camera the halves place further apart "

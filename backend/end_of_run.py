@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 
 from .floor import Floor, world_frame
-from .geometry import from_prior
+from .geometry import align_poses, from_prior
 from .optimize import Problem, Solution, solve
 from .scale_check import ScaleCheck, check_run
 from .split_check import SplitCheck, compare_halves, interleaved_halves
@@ -119,6 +119,8 @@ class EndOfRun:
                 sol = again
         if self.cfg.refine.final_batch_from_start:
             p, sol = self._batch_from_start(p, sol)
+        if self.data_shape is not None and self.cfg.refine.final_batch_from_data:
+            p, sol = self._batch_from_data(p, sol)
         self._inflight = p
         report = self.apply(p, sol)
         if report.accepted:  # the final word: a camera it did not place keeps no earlier part
@@ -165,10 +167,51 @@ class EndOfRun:
         rf = self.refiner
         q = replace(p, R=rf.prior_R.copy(), t=rf.prior_t.copy(), pose_px=self._pose_px(start=True))
         alt = solve(q)
-        n_p, n_q = int(sol.obs_per_camera.sum()), int(alt.obs_per_camera.sum())
-        better = (alt.ok and (not sol.ok or (n_q >= n_p > 0 and alt.final_error / n_q < sol.final_error / n_p)))
+        better = self._explains_better(sol, alt)
         self.final_batch_start = "start" if better else "estimate"
         return (q, alt) if better else (p, sol)
+
+    def _batch_from_data(self, p: Problem, sol: Solution) -> tuple[Problem, Solution]:
+        """The same batch also from the data's shape (``data_shape``, aligned onto its
+        result) when the two disagree on a camera beyond the bootstrap's tolerance
+        (``bootstrap.agree_*``, or 3x its std), kept by ``_batch_from_start``'s test. A run
+        from an initial estimate within its stated std can still associate wrongly for good
+        (four walkers in a 4 x 4 m room: a camera 26° off at the end, the data's shape
+        13 mm); an extra batch costs only where the two disagree."""
+        R_d, t_d, std = self.data_shape
+        placed = np.isfinite(t_d).all(axis=1) & sol.active if sol.ok else np.isfinite(t_d).all(axis=1)
+        R_e, t_e = (sol.R, sol.t) if sol.ok else (p.R, p.t)
+        if placed.sum() < 3:
+            return p, sol
+        idx = np.flatnonzero(placed)
+        al = align_poses(R_d[idx], t_d[idx], R_e[idx], t_e[idx], orientations=True)
+        if al is None:
+            return p, sol
+        b = self.cfg.bootstrap
+        tol_t = np.fmax(b.agree_translation, 3 * al.s * np.nan_to_num(std[idx, 0]))
+        tol_r = np.fmax(b.agree_rotation, 3 * np.nan_to_num(std[idx, 1]))
+        apart = (al.dt > tol_t) | (al.dr > tol_r)
+        if sol.ok and not apart.any():
+            return p, sol
+        R, t = R_e.copy(), t_e.copy()
+        R[idx], t[idx] = al.R, al.t
+        q = replace(p, R=R, t=t, pose_px=self._pose_px(start=True))
+        alt = solve(q)
+        if self._explains_better(sol, alt):
+            far = ", ".join(f"{self.names[c]} {d:.2f} m / {a:.1f}°"
+                            for c, d, a, x in zip(idx, al.dt, al.dr, apart) if x)
+            log.warning("the final batch from the data's shape explains the data better than from the online "
+                        "estimate, which had %s off it: kept", far)
+            self.final_batch_start = "data"
+            return q, alt
+        return p, sol
+
+    @staticmethod
+    def _explains_better(sol: Solution, alt: Solution) -> bool:
+        """Whether ``alt`` explains at least as many observations as ``sol`` at a lower cost
+        per observation (or ``sol`` failed)."""
+        n_p, n_q = int(sol.obs_per_camera.sum()), int(alt.obs_per_camera.sum())
+        return alt.ok and (not sol.ok or (n_q >= n_p > 0 and alt.final_error / n_q < sol.final_error / n_p))
 
     def _lens_part(self, sol: Solution, cams: np.ndarray) -> None:
         """Take what the lenses' accuracy adds to the stated covariance of ``cams`` (C,) bool

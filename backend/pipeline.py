@@ -91,7 +91,8 @@ def _gated(moves: Moves, C: int, gate: float) -> np.ndarray:
 class Pipeline(ClockStage, EndOfRun, Snapshots):
     def __init__(self, cameras: CameraSet, config: EngineConfig | None = None, *, seed: int = 0,
                  start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-                 scale_heights: Sequence[float] | None = None):
+                 scale_heights: Sequence[float] | None = None,
+                 data_shape: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None):
         """``start``: (R (C, 3, 3), t (C, 3), P (C, 6, 6)): where the estimate starts and
         what adjustments over all data are anchored to, when that is not the initial
         estimate with ``refine.initial_std_*`` (e.g. the data's shape aligned onto a rough
@@ -100,7 +101,10 @@ class Pipeline(ClockStage, EndOfRun, Snapshots):
         estimate's scale against the people's (the walkers' heights in m if known, else
         ``()``: the population prior) and corrects it as ``bootstrap.initial_scale`` says
         (backend/scale_check.py); None for cameras whose scale is the people's already
-        (a bootstrap's)."""
+        (a bootstrap's). ``data_shape``: (R (C, 3, 3), t (C, 3), std (C, 2) m, deg; NaN
+        rows: unknown) where the data's shape puts the cameras in the initial estimate's
+        frame when the run starts from the estimate itself (``Reconciled.data_shape``): the
+        final batch tries from there too where its result disagrees (``_batch_from_data``)."""
         self.cameras = cameras
         self.cfg = (config or EngineConfig()).for_images(cameras.sizes)
         self.names = cameras.names
@@ -157,7 +161,10 @@ class Pipeline(ClockStage, EndOfRun, Snapshots):
         # (a dispute adjustment, a re-localisation); the cycle's report lists those since the last
         self.restarted: dict[int, tuple[float, str]] = {}
         self._restarted_new: list[str] = []
-        self.final_batch_start: str | None = None  # the final batch kept: from the "estimate" or the "start"
+        self.final_batch_start: str | None = None  # the final batch kept: from the "estimate", the "start", the "data"
+        if data_shape is not None:
+            assert data_shape[0].shape == (C, 3, 3) and data_shape[1].shape == (C, 3) and data_shape[2].shape == (C, 2)
+        self.data_shape = data_shape
         self.scale_heights = None if scale_heights is None else tuple(float(h) for h in scale_heights)
         self.scale_check: ScaleCheck | None = None
         self.split_check: SplitCheck | None = None  # the final batch on two halves of the data
@@ -872,12 +879,13 @@ class Pipeline(ClockStage, EndOfRun, Snapshots):
 def run_offline(cameras: CameraSet, config: EngineConfig, messages: Iterable[KeypointMessage], *, seed: int = 0,
                 progress: Callable[[CalibrationState, CycleReport], None] | None = None,
                 finish: bool = True, start: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
-                pipeline: Pipeline | None = None, scale_heights: Sequence[float] | None = None) -> Pipeline:
+                pipeline: Pipeline | None = None, scale_heights: Sequence[float] | None = None,
+                data_shape: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> Pipeline:
     """Run the online pipeline on recorded messages on virtual time (the newest stamp);
-    ``start``, ``scale_heights`` as for ``Pipeline``; ``pipeline``: one built by the caller
-    instead (e.g. backend/late_join.py's), whose cameras and config are then its own."""
-    p = Pipeline(cameras, config, seed=seed, start=start, scale_heights=scale_heights) if pipeline is None \
-        else pipeline
+    ``start``, ``scale_heights``, ``data_shape`` as for ``Pipeline``; ``pipeline``: one built
+    by the caller instead (e.g. backend/late_join.py's), whose cameras and config are then its own."""
+    p = Pipeline(cameras, config, seed=seed, start=start, scale_heights=scale_heights, data_shape=data_shape) \
+        if pipeline is None else pipeline
     for msg in messages:
         p.push(msg)
         if p.clock is None:

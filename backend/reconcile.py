@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Iterable, Mapping, Sequence
 
 import numpy as np
@@ -95,6 +95,10 @@ class Reconciled:
     # m: how far the initial estimate's errors typically move what a camera sees, at the
     # distance of its persons (``_reach``; NaN: not known)
     displacement: float = float("nan")
+    # (C, 3, 3), (C, 3): the bootstrap aligned onto the initial estimate, where it placed a
+    # camera it was not refused for (NaN elsewhere); None: not kept
+    R_data: np.ndarray | None = field(default=None, repr=False)
+    t_data: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         C = len(self.names)
@@ -102,6 +106,8 @@ class Reconciled:
         for a in (self.translation, self.rotation, self.agrees, self.refused, self.from_bootstrap, self.aligned,
                   self.std_translation, self.std_rotation, self.overruled, self.block):
             assert a.shape == (C,)
+        assert (self.R_data is None) == (self.t_data is None)
+        assert self.R_data is None or (self.R_data.shape == (C, 3, 3) and self.t_data.shape == (C, 3))
 
     @property
     def used(self) -> bool:
@@ -125,6 +131,21 @@ class Reconciled:
                 "initial_std_translation": max(b.handover_std_translation, 3 * st),
                 "initial_std_rotation": max(b.handover_std_rotation, 3 * sr)}))
         return self.R.copy(), self.t.copy(), P
+
+    def data_shape(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """(R (C, 3, 3), t (C, 3), std (C, 2) m and deg; NaN rows where the bootstrap did
+        not place a camera or was refused for it) for ``Pipeline(data_shape=...)``: where
+        the data's shape puts the cameras when the run starts from the initial estimate,
+        for its final batch to try too (``EndOfRun._batch_from_data``); None when the run
+        starts from the data's shape already, or it holds fewer than 3 cameras."""
+        if self.used or self.R_data is None:
+            return None
+        placed = np.isfinite(self.t_data).all(axis=1)
+        if placed.sum() < 3:
+            return None
+        std = np.stack([self.std_translation, self.std_rotation], axis=1)
+        std[~placed] = np.nan
+        return self.R_data.copy(), self.t_data.copy(), std
 
     def applied(self, config: EngineConfig, cameras: CameraSet
                 ) -> tuple[EngineConfig, CameraSet, tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
@@ -333,11 +354,14 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
     else:
         use = usable | overruled
     R, t = R0.copy(), t0.copy()
+    R_data, t_data = np.full((C, 3, 3), np.nan), np.full((C, 3), np.nan)
     for i, c in enumerate(idx):
         if use[c]:
             R[c], t[c] = Ra[i], ta[i]
+        if usable[c] or overruled[c]:
+            R_data[c], t_data[c] = Ra[i], ta[i]
     return Reconciled(tuple(names), R, t, dt, dr, agrees, refused, use, aligned, float(s), mode, st, sr, overruled,
-                      block, nowhere and mode != "never", displacement)
+                      block, nowhere and mode != "never", displacement, R_data, t_data)
 
 
 _BLOCK_TRIES = 1000  # three-camera sets ``_block`` fits from (all of them up to 19 cameras overruled)

@@ -50,6 +50,7 @@ class Snapshots:
             "lenses": self.lenses.to_dict() if self.lenses is not None else None,
             "lens_cov": None if self.lens_cov is None else
             [x.tolist() if np.all(np.isfinite(x)) else None for x in self.lens_cov],
+            "data_shape": None if self.data_shape is None else _shape_rows(*self.data_shape),
         }
 
     @classmethod
@@ -97,6 +98,8 @@ class Snapshots:
         if config.monitor.on:  # held from the first cycle after the restart, not the monitor's first turn
             rf.held = p.watched & config.monitor.hold
         rf.batched = np.array(snapshot.get("batched", [False] * len(p.names)), dtype=bool)
+        if snapshot.get("data_shape") is not None and len(snapshot["data_shape"]) == len(p.names):
+            p.data_shape = _shape_arrays(snapshot["data_shape"])
         if snapshot.get("lens_cov") is not None and len(snapshot["lens_cov"]) == len(p.names):
             p.lens_cov = np.array([np.full((6, 6), np.nan) if x is None else x for x in snapshot["lens_cov"]],
                                   dtype=np.float64)
@@ -109,3 +112,24 @@ class Snapshots:
             p.clocks.set_applied(applied)
             for n, o in applied.items():
                 p.sync.set_offset(n, o)
+
+
+def _shape_rows(R: np.ndarray, t: np.ndarray, std: np.ndarray) -> list:
+    """``Pipeline.data_shape`` as JSON: per camera None (not placed) or [R (9), t (3),
+    std m, std deg] (a std unknown: None)."""
+    return [None if not np.all(np.isfinite(t[c])) else
+            [*R[c].ravel().tolist(), *t[c].tolist(), *(float(x) if np.isfinite(x) else None for x in std[c])]
+            for c in range(len(t))]
+
+
+def _shape_arrays(rows: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``_shape_rows`` back to (R (C, 3, 3), t (C, 3), std (C, 2)), NaN where unknown."""
+    C = len(rows)
+    R, t, std = np.full((C, 3, 3), np.nan), np.full((C, 3), np.nan), np.full((C, 2), np.nan)
+    for c, row in enumerate(rows):
+        if row is None:
+            continue
+        R[c] = np.array(row[:9], dtype=np.float64).reshape(3, 3)
+        t[c] = np.array(row[9:12], dtype=np.float64)
+        std[c] = [np.nan if x is None else float(x) for x in row[12:14]]
+    return R, t, std
