@@ -692,6 +692,9 @@ class Service(ServiceApi):
         log.info("session %s: the initial estimate against the data: %s", rec.id, note)
         self._save_record(s)
         if not used:
+            # kept: the session's final batch also tries from the data's shape where it ends apart from it
+            if reconciled is not None and s.pipeline is p:
+                p.data_shape = reconciled.data_shape()
             return
         h = await asyncio.to_thread(Handover.build, job, outcome.result, s.inputs.cameras, cfg, True,
                                     seed=rec.seed, frames=frames, reconciled=(reconciled, note))

@@ -562,6 +562,9 @@ def test_an_initial_estimate_the_data_agree_with_is_checked_once_and_kept(tmp_pa
         assert "the initial estimate is used as it is" in check["note"] and "cycle" not in check
         assert not s["reason"].startswith("the initial estimate checked") and s["bootstrap"] is None
         assert st.call(lambda: st.service.active.pipeline) is pipeline  # nothing swapped in
+        # ... but the data's shape is kept for the session's final batch to try where it ends apart
+        shape = st.call(lambda: pipeline.data_shape)
+        assert shape is not None and np.isfinite(shape[1]).all() and shape[1].shape == (len(WEST), 3)
         got = parse_extrinsics(c.get(f"/sessions/{sid}/result", params={"format": "yaml"}).text)
         for n in WEST:
             assert np.allclose(got[n].pose.t, initial[n].pose.t) and np.allclose(got[n].pose.R, initial[n].pose.R)

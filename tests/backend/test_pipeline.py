@@ -134,6 +134,49 @@ def test_bad_messages_are_counted_and_lose_nothing(lab, run):
     assert p.clock == pytest.approx(msgs[-1].stamp, abs=1.0)
 
 
+def test_the_final_batch_from_the_data_s_shape_is_kept_where_the_run_ended_apart_from_it(lab):
+    """A run from an initial estimate the bootstrap checked and kept carries the data's shape
+    (``data_shape``) to its end. Where the final batch's result disagrees with it, the same
+    batch runs from the data's shape too and is kept when it explains the data better; where
+    they agree nothing more is solved. The run here is dragged by hand (cam_14 2 m / 30°)."""
+    import copy
+
+    from backend.geometry import so3_exp
+
+    cams, truth, msgs = lab
+    names = cams.names
+    placed = np.array([n != SILENT for n in names])  # nobody sees the silent camera: not placed
+    R_d = np.array([truth[n].R if k else np.full((3, 3), np.nan) for n, k in zip(names, placed)])
+    t_d = np.array([truth[n].t if k else np.full(3, np.nan) for n, k in zip(names, placed)])
+    std = np.where(placed[:, None], [0.01, 0.1], np.nan)
+    cfg = EngineConfig().merged({"refine": {"split_check": False}})
+    p = run_offline(cams, cfg, msgs, seed=0, finish=False, data_shape=(R_d, t_d, std))
+    agreeing = copy.deepcopy(p)
+    c = names.index("cam_14")
+    rf = p.refiner
+    rf.R[c] = so3_exp(np.radians([0.0, 0.0, 30.0])) @ rf.R[c]
+    rf.t[c] = rf.t[c] + np.array([2.0, 0.0, 0.0])
+    off = copy.deepcopy(p)
+    off.cfg = off.cfg.merged({"refine": {"final_batch_from_data": False}})
+    for q in (agreeing, off, p):
+        q.finish()
+
+    def error(q) -> tuple[float, float]:
+        per = evaluate(q.state().poses(), truth, list(WEST)).per_camera["cam_14"]
+        return per[2], per[3]
+
+    print(error(agreeing), error(off), error(p))
+    assert agreeing.final_batch_start is None and error(agreeing)[0] < 0.05
+    assert off.final_batch_start is None
+    assert error(off)[0] > 0.3 or error(off)[1] > 3.0  # the batch from the dragged estimate does not bring it back
+    assert p.final_batch_start == "data"
+    assert error(p)[0] < 0.05 and error(p)[1] < 0.5
+    # and a session resumed from a snapshot still has it for its end
+    q = Pipeline.restore(cams, cfg, json.loads(json.dumps(p.snapshot())))
+    assert np.array_equal(np.isnan(q.data_shape[1]), np.isnan(t_d))
+    assert np.allclose(q.data_shape[1][placed], t_d[placed]) and np.allclose(q.data_shape[2][placed], std[placed])
+
+
 def test_snapshot_and_restore_give_the_same_state(lab, run):
     cams, _, _ = lab
     p, _ = run

@@ -192,6 +192,42 @@ def test_the_same_turns_are_too_rough_where_the_people_are_far():
     assert not unknown.used and np.isnan(unknown.displacement)
 
 
+def test_an_estimate_left_as_it_is_keeps_the_data_s_shape_for_the_final_batch():
+    """When 'auto' keeps the initial estimate, the aligned bootstrap is still handed on
+    (``data_shape``), for the final batch to try where the run ends apart from it; not
+    where the run starts from it anyway, and not for a camera it was refused for."""
+    rng = RNG(5)
+    names = [f"cam_{i}" for i in range(8)]
+    R, t = _network(rng, 8)
+    Rb, tb = _similar(R, t, 0.5, so3_exp([0.1, 0.3, -0.2]), np.array([2.0, 0.0, 1.0]))
+    d = rng.normal(size=t.shape)
+    t0 = t + 0.2 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    t0[5] += [3.0, 0.0, 0.0]  # grossly off: refused
+    placed = np.ones(8, bool)
+    placed[2] = False
+    cfg = EngineConfig()
+    rec = reconcile(_boot(names, Rb, tb, placed), names, R, t0, cfg)
+    assert not rec.used and rec.refused[5]
+    R_d, t_d, std = rec.data_shape()
+    assert R_d.shape == (8, 3, 3) and t_d.shape == (8, 3) and std.shape == (8, 2)
+    unknown = ~np.isfinite(t_d).all(axis=1)
+    assert unknown.tolist() == [i in (2, 5) for i in range(8)] and np.isnan(std[unknown]).all()
+    # the bootstrap in the initial estimate's frame and metres: the truth's shape (its
+    # frame is the estimate's, a few cm off the truth's), not the estimate's
+    k = ~unknown
+    off = ~np.eye(int(k.sum()), dtype=bool)
+
+    def ratios(x):  # of the pairwise distances to the truth's: one number for one shape
+        r = np.linalg.norm(x[:, None] - x[None], axis=2)[off] / np.linalg.norm(t[k][:, None] - t[k][None], axis=2)[off]
+        return r.std() / r.mean()
+
+    assert ratios(t_d[k]) < 1e-9 and ratios(t0[k]) > 0.01
+    assert np.allclose(std[k, 0], 0.01 * rec.scale) and np.allclose(std[k, 1], 0.1)
+    assert np.abs(t_d[k] - t[k]).max() < 0.25
+    # 'always' starts from it: nothing left for the final batch to try
+    assert reconcile(_boot(names, Rb, tb, placed), names, R, t0, cfg, mode="always").data_shape() is None
+
+
 def test_one_camera_the_bootstrap_chained_wrong_does_not_make_a_fair_estimate_look_rough():
     # the HD lab's seed 0: an estimate 0.25 m off everywhere (as it states), the bootstrap
     # right but for one camera 1.3 m / 5° off (stated 0.013 m): not beyond refuse_sigma
