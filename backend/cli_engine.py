@@ -242,6 +242,9 @@ def calibrate(
         if p.final_batch_start == "data":
             comment += ("\nfinal batch adjustment: the one started from the data's shape explained the data better "
                         "than the one from the online estimate, and was kept")
+        elif p.final_batch_start == "estimate":
+            comment += ("\nfinal batch adjustment: also started from the data's shape (the online estimate ended "
+                        "apart from it); the one from the online estimate explained the data better, and was kept")
     scale = boot.scale if boot is not None else (check.people if check is not None else None)
     if boot is not None:
         comment += f"\nno initial estimate: {boot.frame}"

@@ -200,13 +200,15 @@ class EndOfRun:
         R[idx], t[idx] = al.R, al.t
         q = replace(p, R=R, t=t, pose_px=self._pose_px(start=True))
         alt = solve(q)
+        far = ", ".join(f"{self.names[c]} {d:.2f} m / {a:.1f}°" for c, d, a, x in zip(idx, al.dt, al.dr, apart) if x)
         if self._explains_better(sol, alt):
-            far = ", ".join(f"{self.names[c]} {d:.2f} m / {a:.1f}°"
-                            for c, d, a, x in zip(idx, al.dt, al.dr, apart) if x)
             log.warning("the final batch from the data's shape explains the data better than from the online "
                         "estimate, which had %s off it: kept", far)
             self.final_batch_start = "data"
             return q, alt
+        log.info("the final batch from the online estimate (%s off the data's shape) explains the data better than "
+                 "from the data's shape: kept", far)
+        self.final_batch_start = "estimate"
         return p, sol
 
     @staticmethod
