@@ -367,7 +367,7 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
 
     # bootstrap.with_initial: the data's shape aligned onto the initial estimate
     # (backend/reconcile.py), as `extrcal calibrate --initial` does; its time is the bootstrap's
-    start, reconciled, boot_s = None, None, 0.0
+    start, reconciled, boot_s, data_shape = None, None, 0.0, None
     if cfg.bootstrap.with_initial != "never":
         from backend.reconcile import reconcile_cameras
 
@@ -378,12 +378,13 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
             rec, _, _ = reconcile_cameras(boot, cams, cfg)
             if rec is not None:
                 cfg, cams, start = rec.applied(cfg, cams)
+                data_shape = rec.data_shape()
                 reconciled = {**rec.to_dict(), "start": acc_start(rec) if start is not None else None,
                               "initial_std": [cfg.refine.initial_std_translation, cfg.refine.initial_std_rotation]}
 
     t0 = time.perf_counter()
     p = run_offline(cams, cfg, feed(), seed=spec.seed, progress=progress, start=start,
-                    scale_heights=tuple(truth.heights.tolist()) if known_height else ())
+                    scale_heights=tuple(truth.heights.tolist()) if known_height else (), data_shape=data_shape)
     run_s = time.perf_counter() - t0 - spent[0]
     state = p.state()
     final_poses = state.poses()
@@ -456,6 +457,7 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
         "cycle_p50": float(np.percentile(solve, 50)) if len(solve) else None,
         "cycle_p95": float(np.percentile(solve, 95)) if len(solve) else None,
         "final_batch_seconds": final_batch[-1]["solve_seconds"] if final_batch else None,
+        "final_batch_start": p.final_batch_start,
         "reconciled": reconciled,
         "bootstrap_seconds": boot_s,
     }
@@ -867,7 +869,9 @@ def _start(r: dict) -> str:
     if not rc:
         return ""
     if not rc["used"]:
-        return f" | initial kept ({rc['mode']})"
+        fb = {"data": "; the final batch from the data's shape kept",
+              "estimate": "; the final batch also from the data's shape, not kept"}.get(r.get("final_batch_start"), "")
+        return f" | initial kept ({rc['mode']}){fb}"
     st = rc["start"]
     return (f" | start from the bootstrap for {len(rc['from_bootstrap'])} cams (rigid {st['position']:.3f} m, "
             f"shape {st['shape_position']:.3f} m){', refused ' + ','.join(rc['refused']) if rc['refused'] else ''}")
