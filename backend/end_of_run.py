@@ -180,13 +180,15 @@ class EndOfRun:
         13 mm); an extra batch costs only where the two disagree."""
         R_d, t_d, std = self.data_shape
         placed = np.isfinite(t_d).all(axis=1)
-        R_e, t_e = (sol.R, sol.t) if sol.ok else (p.R, p.t)
+        # a camera the monitor saw move since (a live session) is no longer where the data had it
+        placed[[a.cam for a in self.monitor.alarms]] = False
         idx = np.flatnonzero(placed)
+        if len(idx) < 3:
+            return p, sol
+        R_e, t_e = (sol.R, sol.t) if sol.ok else (p.R, p.t)
         # aligned on the cameras the batch held (a camera dragged so far that it joins nobody
         # is not, and is then one of those it differs on)
         use = sol.active[idx] if sol.ok and sol.active[idx].sum() >= 3 else None
-        if len(idx) < 3:
-            return p, sol
         al = align_poses(R_d[idx], t_d[idx], R_e[idx], t_e[idx], use, orientations=True)
         if al is None:
             return p, sol

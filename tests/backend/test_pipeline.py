@@ -158,7 +158,9 @@ def test_the_final_batch_from_the_data_s_shape_is_kept_where_the_run_ended_apart
     rf.t[c] = rf.t[c] + np.array([2.0, 0.0, 0.0])
     off = copy.deepcopy(p)
     off.cfg = off.cfg.merged({"refine": {"final_batch_from_data": False}})
-    for q in (agreeing, off, p):
+    moved = copy.deepcopy(p)  # a live session's monitor saw cam_14 move: the data's pose of it is stale
+    moved.monitor.alarms = [Alarm(20.0, c, 500.0, 2.0, 30.0, 15.0)]
+    for q in (agreeing, off, moved, p):
         q.finish()
 
     def error(q) -> tuple[float, float]:
@@ -168,6 +170,7 @@ def test_the_final_batch_from_the_data_s_shape_is_kept_where_the_run_ended_apart
     print(error(agreeing), error(off), error(p))
     assert agreeing.final_batch_start is None and error(agreeing)[0] < 0.05
     assert off.final_batch_start is None
+    assert error(moved)[0] > 0.3  # not put back where the data had it before it moved
     assert error(off)[0] > 0.3 or error(off)[1] > 3.0  # the batch from the dragged estimate does not bring it back
     assert p.final_batch_start == "data"
     assert error(p)[0] < 0.05 and error(p)[1] < 0.5
