@@ -106,7 +106,7 @@ def calibrate(
                           + (f"; not placed: {', '.join(lost)}" if lost else ""), highlight=False)
             if ref is not None and boot.located.sum() >= 3:
                 console.print(f"bootstrap vs reference: {evaluate(boot.poses(), ref).summary()}", highlight=False)
-    rec, start = None, None
+    rec, start, note = None, None, ""
     if boot is None and cfg.bootstrap.with_initial != "never":
         # the data's shape aligned onto the initial estimate (backend/reconcile.py)
         from .reconcile import bootstrap_start
@@ -245,6 +245,8 @@ def calibrate(
         elif p.final_batch_start == "estimate":
             comment += ("\nfinal batch adjustment: also started from the data's shape (the online estimate ended "
                         "apart from it); the one from the online estimate explained the data better, and was kept")
+    elif note:  # the check was not possible: say so, the result is the paper's way
+        comment += f"\n{note}"
     scale = boot.scale if boot is not None else (check.people if check is not None else None)
     if boot is not None:
         comment += f"\nno initial estimate: {boot.frame}"

@@ -91,6 +91,7 @@ def test_calibrate_writes_extrinsics_history_and_names_uncalibrated_cameras(file
         assert np.isfinite(e.std_translation) and e.std_translation > 0
     text = out.read_text()
     assert text.startswith("# extrcal calibrate of ")
+    assert re.search(r"^# bootstrap not possible .*: the initial estimate is used as it is$", text, re.M)  # and the file
     named = re.search(r"# not calibrated \(kept initial pose\): (.*)", text).group(1).split(", ")
     assert ABSENT in named
     # what the stated std holds (optimize.lens_accuracy_*, 0.3 % by default)
