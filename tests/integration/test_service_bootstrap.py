@@ -118,6 +118,8 @@ def test_session_without_initial_estimate_bootstraps_and_calibrates(tmp_path, la
     assert "floor" in boot["frame"] and boot["scale"]["method"] == "known height"
     assert stopped["state"] == "stopped" and stopped["final_batch"]["ran"]
     assert stopped["final_batch"]["far_from_start"] == []  # every camera where its data put it, within its std
+    # the hand-over's final batch also ran from the bootstrap; the record says which was kept
+    assert stopped["final_batch"]["kept_from"] in ("start", "estimate")
     assert stopped["final_batch"]["retimed"] == {}  # no clock offsets estimated: no view timed again
     # the final batch on two halves of the data ran in the solver and is reported
     assert stopped["final_batch"]["split_check"]["summary"].startswith("split-half check")
