@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 
 from .floor import Floor, world_frame
-from .geometry import align_poses, from_prior
+from .geometry import align_poses, from_prior, within_std
 from .optimize import Problem, Solution, solve
 from .scale_check import ScaleCheck, check_run
 from .split_check import SplitCheck, compare_halves, interleaved_halves
@@ -164,17 +164,12 @@ class EndOfRun:
         from where it starts: a camera the online cycles dragged off (few hypotheses, a
         wide prior) can end in another minimum than from the start the bootstrap found
         with all the data (docs/bootstrap.md, seed 2's cam_13)."""
-        rf = self.refiner
-        q = replace(p, R=rf.prior_R.copy(), t=rf.prior_t.copy(), pose_px=self._pose_px(start=True))
-        alt = solve(q)
-        better = self._explains_better(sol, alt)
-        self.final_batch_start = "start" if better else "estimate"
-        return (q, alt) if better else (p, sol)
+        return self._batch_from(p, sol, self.refiner.prior_R.copy(), self.refiner.prior_t.copy(), "start")
 
     def _batch_from_data(self, p: Problem, sol: Solution) -> tuple[Problem, Solution]:
         """The same batch also from the data's shape (``data_shape``, aligned onto its
         result) when the two disagree on a camera beyond the bootstrap's tolerance
-        (``bootstrap.agree_*``, or 3x its std), kept when it ``_explains_better``. A run
+        (``bootstrap.agree_*``, or 3x its std), kept by ``_batch_from``'s test. A run
         from an initial estimate within its stated std can still associate wrongly for good
         (four walkers in a 4 x 4 m room: a camera 26° off at the end; from the data's shape
         the batch ends 12 mm from the truth's shape); the extra batch is solved only where
@@ -194,32 +189,34 @@ class EndOfRun:
         if al is None:
             return p, sol
         b = self.cfg.bootstrap
-        tol_t = np.fmax(b.agree_translation, 3 * al.s * np.nan_to_num(std[idx, 0]))
-        tol_r = np.fmax(b.agree_rotation, 3 * np.nan_to_num(std[idx, 1]))
-        apart = (al.dt > tol_t) | (al.dr > tol_r)
+        # the test ``reconcile`` agrees by, the data's std in the estimate's units
+        apart = ~within_std(al.dt, al.dr, al.s * std[idx, 0], std[idx, 1], b.agree_translation, b.agree_rotation)
         if sol.ok and not apart.any():
             return p, sol
         R, t = R_e.copy(), t_e.copy()
         R[idx], t[idx] = al.R, al.t
-        q = replace(p, R=R, t=t, pose_px=self._pose_px(start=True))
-        alt = solve(q)
         far = ", ".join(f"{self.names[c]} {d:.2f} m / {a:.1f}°" for c, d, a, x in zip(idx, al.dt, al.dr, apart) if x)
-        if self._explains_better(sol, alt):
+        p, sol = self._batch_from(p, sol, R, t, "data")
+        if self.final_batch_start == "data":
             log.warning("the final batch from the data's shape explains the data better than from the online "
                         "estimate, which had %s off it: kept", far)
-            self.final_batch_start = "data"
-            return q, alt
-        log.info("the final batch from the online estimate (%s off the data's shape) explains the data better than "
-                 "from the data's shape: kept", far)
-        self.final_batch_start = "estimate"
+        else:
+            log.info("the final batch from the online estimate (%s off the data's shape) explains the data better "
+                     "than from the data's shape: kept", far)
         return p, sol
 
-    @staticmethod
-    def _explains_better(sol: Solution, alt: Solution) -> bool:
-        """Whether ``alt`` explains at least as many observations as ``sol`` at a lower cost
-        per observation (or ``sol`` failed)."""
+    def _batch_from(self, p: Problem, sol: Solution, R: np.ndarray, t: np.ndarray, name: str
+                    ) -> tuple[Problem, Solution]:
+        """The batch ``p`` (solved: ``sol``) solved again from R (C, 3, 3), t (C, 3), the
+        association gated by the start's std; kept when it explains at least as many
+        observations at a lower cost per observation (or ``sol`` failed). Records which was
+        kept in ``final_batch_start``: ``name`` or "estimate"."""
+        q = replace(p, R=R, t=t, pose_px=self._pose_px(start=True))
+        alt = solve(q)
         n_p, n_q = int(sol.obs_per_camera.sum()), int(alt.obs_per_camera.sum())
-        return alt.ok and (not sol.ok or (n_q >= n_p > 0 and alt.final_error / n_q < sol.final_error / n_p))
+        better = alt.ok and (not sol.ok or (n_q >= n_p > 0 and alt.final_error / n_q < sol.final_error / n_p))
+        self.final_batch_start = name if better else "estimate"
+        return (q, alt) if better else (p, sol)
 
     def _lens_part(self, sol: Solution, cams: np.ndarray) -> None:
         """Take what the lenses' accuracy adds to the stated covariance of ``cams`` (C,) bool

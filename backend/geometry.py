@@ -324,6 +324,17 @@ class AlignedPoses:
     dr: np.ndarray
 
 
+def within_std(dt: np.ndarray, dr: np.ndarray, st: np.ndarray, sr: np.ndarray, floor_t: float, floor_r: float,
+               k: float = 3.0) -> np.ndarray:
+    """(N,) bool: pose differences dt (N,) m / dr (N,) deg within ``k`` times their std
+    st (N,) / sr (N,), or within ``floor_t`` / ``floor_r`` where that is more (a std of
+    millimetres does not make 2 cm a disagreement); a NaN difference is not within, a NaN
+    std counts as 0."""
+    tol_t = np.fmax(floor_t, k * np.nan_to_num(st, nan=0.0))
+    tol_r = np.fmax(floor_r, k * np.nan_to_num(sr, nan=0.0))
+    return (np.nan_to_num(dt, nan=np.inf) <= tol_t) & (np.nan_to_num(dr, nan=np.inf) <= tol_r)
+
+
 def align_poses(R_src: np.ndarray, t_src: np.ndarray, R_dst: np.ndarray, t_dst: np.ndarray,
                 use: np.ndarray | None = None, *, orientations: bool = False) -> AlignedPoses | None:
     """The src poses (N, 3, 3), (N, 3) (world-from-camera rotations, centres) aligned onto

@@ -58,7 +58,7 @@ from proto import KeypointMessage
 from .bootstrap import BootstrapError, BootstrapResult, Progress, bootstrap_messages
 from .cameras import CameraSet, Intrinsics, Pose
 from .config import EngineConfig
-from .geometry import align_poses
+from .geometry import align_poses, within_std
 from .refine import initial_covariance
 
 
@@ -269,9 +269,7 @@ def reconcile(boot: BootstrapResult, names: Sequence[str], R0: np.ndarray, t0: n
         # the bootstrap's own std, in the initial estimate's units
         st[idx] = al.s * boot.std_translation[bi]
         sr[idx] = boot.std_rotation[bi]
-        tol_t = np.fmax(b.agree_translation, 3 * np.nan_to_num(st, nan=0.0))
-        tol_r = np.fmax(b.agree_rotation, 3 * np.nan_to_num(sr, nan=0.0))
-        agrees = both & (np.nan_to_num(dt, nan=np.inf) <= tol_t) & (np.nan_to_num(dr, nan=np.inf) <= tol_r)
+        agrees = both & within_std(dt, dr, st, sr, b.agree_translation, b.agree_rotation)
         # gross against the initial estimate's stated std, or against how far its cameras
         # are off the data typically when that is more (the lower quartile: the better
         # cameras' error, which gross errors of up to three quarters of them do not raise):
