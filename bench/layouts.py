@@ -61,6 +61,12 @@ LAYOUTS = {
     "steep": ("room", {"cameras": 4, "width": 4.0, "depth": 4.0, "height": 3.4, "aim": 0.3, "hfov": 110.0}),
     # many cameras on a grid under a hall's ceiling, turned every way (a new grid each seed):
     # half the pairs share no floor, pairs of cameras seeing different walkers fit wrong poses
+    # a capture space: cameras all round at chest height and high up, one in the ceiling
+    # looking straight down (an image with no "up"), three kinds of lens
+    "studio": ("studio", {}),
+    # two rooms joined by a door, four cameras each: the two networks see each other's
+    # floor only through the doorway
+    "tworooms": ("tworooms", {}),
     "grid30": ("grid", {"cameras": 30, "seed": None}),
     "grid40": ("grid", {"cameras": 40, "seed": None}),
 }

@@ -18,6 +18,17 @@ floor, half the pairs (30 cameras) or more (40) sharing none of it, walkers seen
 handful at a time (the layout where pairs of cameras that each see a different walker
 fit wrong relative poses, docs/bootstrap.md, Session 45).
 
+``studio``: a capture space ringed by cameras at two heights (on stands at chest height
+looking level, on the walls high up looking down) and one camera in the ceiling looking
+straight down through a fisheye-like lens: views from every side and from above, a
+camera whose image has no "up" (people radiate from its centre), cameras below the
+walkers' heads, and lenses of three kinds in one network.
+
+``tworooms``: two rooms side by side, joined by a door, each with its own cameras; one
+camera in each looks through the door into the other room, so the two networks share
+only what walkers in and near the doorway show them (a home, offices): a view graph
+joined by one weak link.
+
 ``write_scene`` writes a scene as a camera directory (intrinsics.yaml, reference.yaml,
 room.yaml, floorplan.pgm) that ``Scene.load``, ``extrcal simulate --cameras`` and
 ``extrcal calibrate`` read like the lab's.
@@ -37,7 +48,7 @@ from backend.cameras import Extrinsics, Intrinsics, Pose, dump_extrinsics, dump_
 from .area import CELL, fov_limit, in_fov, wall_map
 from .scene import Floor, FloorPlan, Scene
 
-SCENES = ("corridor", "room", "grid")
+SCENES = ("corridor", "room", "grid", "studio", "tworooms")
 
 _MPP = 0.05  # m per floor plan pixel
 _WALL = 0.2  # m wall thickness in the plan
@@ -78,10 +89,10 @@ def corridor(cameras: int = 6, *, spacing: float = 3.5, width: float = 2.5, heig
     return _walled(names, intr, poses, (-1.0, -width / 2), ((cameras - 1) * spacing + 6.0, width / 2))
 
 
-def _walled(names: tuple[str, ...], intr: dict, poses: dict, lo: tuple[float, float], hi: tuple[float, float]
-            ) -> Scene:
+def _walled(names: tuple[str, ...], intr: dict, poses: dict, lo: tuple[float, float], hi: tuple[float, float],
+            inner: tuple[tuple[float, float, float, float], ...] = ()) -> Scene:
     """A scene whose floor (world frame = floor frame, z up) is the rectangle ``lo``-``hi``
-    (m) inside walls ``_WALL`` thick."""
+    (m) inside walls ``_WALL`` thick; ``inner``: more walls, rectangles (x0, y0, x1, y1) m."""
     x0, y0 = lo
     x1, y1 = hi
     W = int(round((x1 - x0 + 2 * _WALL) / _MPP))
@@ -89,6 +100,9 @@ def _walled(names: tuple[str, ...], intr: dict, poses: dict, lo: tuple[float, fl
     free = np.zeros((H, W), bool)
     k = int(round(_WALL / _MPP))
     free[k:H - k, k:W - k] = True
+    for a0, b0, a1, b1 in inner:
+        free[int(round((b0 - y0 + _WALL) / _MPP)):int(round((b1 - y0 + _WALL) / _MPP)),
+             int(round((a0 - x0 + _WALL) / _MPP)):int(round((a1 - x0 + _WALL) / _MPP))] = False
     plan = FloorPlan(occupied=~free, free=free, metres_per_pixel=_MPP, map_R=np.eye(2),
                      map_t=np.array([x0 - _WALL, y0 - _WALL]))
     floor = Floor.make(np.zeros(3), [1.0, 0, 0], [0, 0, 1.0])
@@ -167,6 +181,76 @@ def grid(cameras: int = 30, *, spacing: float = 3.0, height: float = 2.6, pitch:
     return Scene(names, intr, poses, Floor.make(np.zeros(3), [1.0, 0, 0], [0, 0, 1.0]), None)
 
 
+def studio(cameras: int = 8, *, radius: float = 3.5, heights: tuple[float, float] = (1.3, 3.0), aim: float = 1.0,
+           overhead: float | None = 3.4) -> Scene:
+    """A square room ``2 (radius + 0.3)`` m wide (world frame = floor frame, z up, the
+    origin at its centre) with ``cameras`` cameras on a circle of ``radius`` m, evenly
+    spaced from +x, alternately ``heights[0]`` and ``heights[1]`` m high, each looking at
+    the point ``aim`` m above the centre: the low ones through 1280x720 lenses 80° wide
+    (k1 = -0.08), the high ones 848x480, 95° wide (the lab's k1 = -0.054). With
+    ``overhead`` (m), one more camera above the centre looking straight down, 1024x1024,
+    120° wide, k1 = -0.3, its image x along the floor's +x. Principal points 1 % off the
+    image centres."""
+    if cameras < 2:
+        raise ValueError(f"a studio needs at least 2 cameras on its ring, got {cameras}")
+    if not (radius > 1.0 and min(heights) > 0.3 and (overhead is None or overhead > 2.2)):
+        raise ValueError("studio: radius > 1 m, heights > 0.3 m, overhead > 2.2 m expected")
+    lenses = (((1280, 720), 80.0, -0.08), ((848, 480), 95.0, -0.054), ((1024, 1024), 120.0, -0.3))
+
+    def lens(n: str, kind: int) -> Intrinsics:
+        (w, h), hfov, k1 = lenses[kind]
+        f = (w / 2) / math.tan(math.radians(hfov) / 2)
+        return Intrinsics(n, f, f * 1.001, w / 2 + 0.01 * w, h / 2 + 0.01 * h,
+                          np.array([k1, k1 * k1 / 3, 0.0, 0.0, 0.0]), (w, h))
+
+    intr, poses = {}, {}
+    target = np.array([0.0, 0.0, aim])
+    for i in range(cameras):
+        n, a = f"cam_{i}", 2 * math.pi * i / cameras
+        c = np.array([radius * math.cos(a), radius * math.sin(a), heights[i % 2]])
+        poses[n], intr[n] = Pose(_look_at(c, target), c), lens(n, i % 2)
+    if overhead is not None:
+        n = f"cam_{cameras}"
+        # looking down: image x along +x, image y along -y (a right-handed camera frame)
+        poses[n] = Pose(np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]]), np.array([0.0, 0.0, overhead]))
+        intr[n] = lens(n, 2)
+    r = radius + 0.3
+    return _walled(tuple(intr), intr, poses, (-r, -r), (r, r))
+
+
+def tworooms(*, width: float = 5.0, depth: float = 4.0, height: float = 2.6, door: float = 1.0, aim: float = 0.9
+             ) -> Scene:
+    """Two ``width`` x ``depth`` m rooms side by side along x (world frame = floor frame, z
+    up, the origin in the first room's corner), joined by a ``door`` m wide in the middle of
+    the wall between them (x = ``width``, 0.2 m thick, floor to ceiling). Four cameras
+    ``height`` m high in each: three in corners looking at the room's centre ``aim`` m above
+    the floor (the far corners and one by the door) and one in the middle of the far wall
+    looking through the door (cam_3 from the first room, cam_7 from the second). The
+    room's 640x480 lens, 100° wide, k1 = -0.28."""
+    if not (width > 2.0 and depth > 2.0 and height > 1.8 and 0.6 <= door < depth - 0.5):
+        raise ValueError("tworooms: width and depth > 2 m, height > 1.8 m, 0.6 m <= door < depth - 0.5 m expected")
+    m, w, h = 0.3, 640, 480
+    f = (w / 2) / math.tan(math.radians(100.0) / 2)
+    intr, poses = {}, {}
+    for r in range(2):
+        x0, sgn = (0.0, 1.0) if r == 0 else (2 * width, -1.0)  # the second room mirrored
+        near = x0 + sgn * (width - m)
+        spots = [(x0 + sgn * m, m), (x0 + sgn * m, depth - m), (near, m if r == 0 else depth - m)]
+        centre = np.array([x0 + sgn * width / 2, depth / 2, aim])
+        for k, xy in enumerate(spots):
+            n = f"cam_{4 * r + k}"
+            c = np.array([*xy, height])
+            poses[n] = Pose(_look_at(c, centre), c)
+        n, c = f"cam_{4 * r + 3}", np.array([x0 + sgn * m, depth / 2 + 0.2, height])
+        poses[n] = Pose(_look_at(c, np.array([width, depth / 2, aim])), c)
+    for n in poses:
+        intr[n] = Intrinsics(n, f, f * 1.002, w / 2 + 0.01 * w, h / 2 - 0.01 * h,
+                             np.array([-0.28, 0.28 ** 2 / 3, 0.0, 0.0, 0.0]), (w, h))
+    t = _WALL / 2
+    wall = ((width - t, 0.0, width + t, (depth - door) / 2), (width - t, (depth + door) / 2, width + t, depth))
+    return _walled(tuple(sorted(poses, key=lambda n: int(n[4:]))), intr, poses, (0.0, 0.0), (2 * width, depth), wall)
+
+
 def make(name: str, **kw) -> Scene:
     """A generated scene by name (``SCENES``)."""
     if name == "corridor":
@@ -175,6 +259,10 @@ def make(name: str, **kw) -> Scene:
         return room(**kw)
     if name == "grid":
         return grid(**kw)
+    if name == "studio":
+        return studio(**kw)
+    if name == "tworooms":
+        return tworooms(**kw)
     raise ValueError(f"unknown scene {name!r} (known: {', '.join(SCENES)})")
 
 

@@ -7,7 +7,7 @@ import pytest
 from typer.testing import CliRunner
 
 from edge_clients.sim import Scene, SimConfig, Simulator
-from edge_clients.sim.scenes import corridor, floor_views, grid, make, room, write_scene
+from edge_clients.sim.scenes import corridor, floor_views, grid, make, room, studio, tworooms, write_scene
 
 # a standing person's torso as the association needs it (both hips and both shoulders),
 # for statures 1.55-2.0 m: hips 0.53 H, shoulders 0.818 H
@@ -98,6 +98,56 @@ def test_a_grid_hall_has_many_cameras_half_the_pairs_sharing_no_floor():
     assert make("grid", cameras=5).names == grid(5).names
     with pytest.raises(ValueError, match="at least 2"):
         grid(1)
+
+
+def test_a_studio_rings_its_floor_at_two_heights_and_looks_down_on_it_from_above():
+    s = studio()
+    c = s.centres()
+    assert s.names == tuple(f"cam_{i}" for i in range(9))
+    assert np.allclose(np.hypot(c[:8, 0], c[:8, 1]), 3.5) and np.allclose(c[:8, 2], [1.3, 3.0] * 4)
+    for n in s.names:
+        R = s.poses[n].R
+        assert np.allclose(R.T @ R, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
+    up = s.poses["cam_8"].R
+    assert np.allclose(up[:, 2], [0, 0, -1]) and np.allclose(c[8], [0, 0, 3.4])  # straight down
+    assert {s.intrinsics[n].resolution for n in s.names} == {(1280, 720), (848, 480), (1024, 1024)}
+    _, seen = floor_views(s)
+    k = seen.sum(0)
+    assert (k >= 3).mean() > 0.95 and seen[8].sum() > 500  # the ceiling camera sees whole walkers too
+    # its images have no up: a walker circling under it is seen upright, sideways and upside down
+    sim = Simulator(s, SimConfig(persons=1, duration=30.0, seed=2, heights=(1.8,)))
+    heads = []
+    for _, msg in sim.messages(["cam_8"]):
+        for person in msg.persons:
+            kp = person.kp
+            if (kp[[0, 11, 12], 2] > 0.5).all():
+                v = kp[0, :2] - kp[11:13, :2].mean(0)  # hips to nose
+                heads.append(np.degrees(np.arctan2(v[0], -v[1])))
+    assert len(heads) > 50 and np.ptp(heads) > 180
+    assert make("studio", cameras=4, overhead=None).names == ("cam_0", "cam_1", "cam_2", "cam_3")
+    with pytest.raises(ValueError, match="at least 2"):
+        studio(1)
+
+
+def test_two_rooms_see_each_other_only_through_their_door():
+    s = tworooms()
+    c = s.centres()
+    assert len(s.names) == 8 and (c[:4, 0] < 5).all() and (c[4:, 0] > 5).all()
+    plan = s.floorplan
+    wall = np.array([[5.0, 0.5], [5.0, 3.5]])
+    assert plan.occupied_at(wall).all() and not plan.occupied_at(np.array([[5.0, 2.0]])).any()  # the door
+    xy, seen = floor_views(s)
+    # cam_2 sits by the wall between the rooms, looking away from the door: only its own room
+    assert seen[2].sum() > 1000 and (xy[seen[2], 0] < 5).all()
+    for k in (3, 7):  # the cameras facing the door see into the other room
+        other = xy[seen[k], 0] > 5 if k == 3 else xy[seen[k], 0] < 5
+        assert 300 < other.sum() < 0.5 * seen[k].sum()
+    # walkers go from room to room
+    sim = Simulator(s, SimConfig(persons=1, duration=120.0, seed=0, heights=(1.8,)))
+    side = sim.truth.joints[0, :, 0, 0] > 5.0
+    assert 0.2 < side.mean() < 0.8 and (np.diff(side.astype(int)) != 0).sum() >= 4
+    with pytest.raises(ValueError, match="door"):
+        tworooms(door=0.3)
 
 
 def test_written_scene_loads_and_simulates(tmp_path):
