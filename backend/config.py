@@ -65,6 +65,14 @@ class PreprocessConfig(_Section):
                                     "dropped 88 % of the persons with 4 walkers in a 7 x 5 m room and left cameras "
                                     "unplaced; 0.03 (29 px) calibrates that room to 0.8 cm and the lab as before "
                                     "(docs/bootstrap.md, Session 7)")
+    duplicate_distance: float = Field(
+        0.1, ge=0, description="fraction of a person's size in the image: a detection whose joints at "
+        "min_confidence lie on another's (80 % of the joints both have within this of each other, at least 3 "
+        "and half of the smaller one's) is the same person detected twice, as top-down detectors do when two "
+        "boxes on one person survive their non-maximum suppression; the one with fewer (less confident) joints "
+        "is dropped (counted `duplicate`) before the crowd and the min_box_distance checks, which would drop "
+        "both. A detector that sent every person twice left the lab from no initial estimate with nothing to "
+        "start from (docs/accuracy.md, Session 54). 0: off")
     max_persons: int = Field(10, ge=1)
     pixel_sigma: float = Field(2.0, gt=0, description="px: keypoint noise at confidence 1 when a message has no covariance")
     min_pixel_sigma: float = Field(0.5, gt=0, description="px: floor of a joint's std from a message's covariance: "

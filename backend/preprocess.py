@@ -1,7 +1,8 @@
 """Filters and undistortion of one frameset's views (the paper's preprocessing).
 
 Joints outside the image (or where its lens model folds back) and below the confidence
-threshold are dropped; a person needs both hips and both shoulders; persons too close to
+threshold are dropped; a person detected twice in one image keeps its better detection; a
+person needs both hips and both shoulders; persons too close to
 another person in the same image are dropped (their keypoints mix); crowded views are
 dropped (detections with no joint at the threshold do not count towards a crowd). What
 remains is undistorted to normalised image coordinates with a per-joint standard deviation
@@ -122,6 +123,42 @@ class ConfidenceScale:
         return conf if k == 1.0 else np.minimum(conf * k, 1.0)
 
 
+def duplicates(kp: np.ndarray, max_distance: float) -> np.ndarray:
+    """(P,) True for the detections that are another's person detected again: of the joints
+    both detected (confidence > 0; at least 3 and half of the smaller skeleton's), 80 % lie
+    within ``max_distance`` times the smaller one's size (its joints' extent) of the
+    other's. Of such a pair the detection with more joints (then the larger confidence
+    sum) is kept; pairs are settled best first, so a person sent three times keeps one.
+    Why not the median: a person half hidden behind another gets a skeleton that mixes
+    the two (some joints on the one in front, others its own); that is no copy of either,
+    and both stay to the min_box_distance check.
+
+    kp: (P, 17, 3) float64 pixels and confidence, 0 = not detected."""
+    P = len(kp)
+    out = np.zeros(P, bool)
+    if P < 2 or max_distance <= 0:
+        return out
+    seen = kp[..., 2] > 0
+    n = seen.sum(1)
+    lo = np.where(seen[..., None], kp[..., :2], np.inf).min(1)
+    hi = np.where(seen[..., None], kp[..., :2], -np.inf).max(1)
+    size = np.where(n >= 2, np.max(hi - lo, axis=1), 0.0)  # (P,)
+    order = np.lexsort((-kp[..., 2].sum(1), -n))  # best first
+    for a_i, a in enumerate(order):
+        if out[a] or n[a] < 3:
+            continue
+        for b in order[a_i + 1:]:
+            if out[b]:
+                continue
+            both = seen[a] & seen[b]
+            k = int(both.sum())
+            if k < 3 or k < 0.5 * min(n[a], n[b]):
+                continue
+            d = np.quantile(np.linalg.norm(kp[a, both, :2] - kp[b, both, :2], axis=1), 0.8)
+            out[b] = d < max_distance * min(size[a], size[b])
+    return out
+
+
 class Preprocessor:
     def __init__(self, config: PreprocessConfig, names: tuple[str, ...], intrinsics: Mapping[str, Intrinsics],
                  confidence: ConfidenceScale | None = None):
@@ -191,20 +228,23 @@ class Preprocessor:
         self.torso_seen[v.sensor] += int(detected.sum())
         self.torso_low[v.sensor] += int((detected & ~confident).sum())
         kp[kp[..., 2] < self.cfg.min_confidence, 2] = 0.0
+        dup = duplicates(kp, self.cfg.duplicate_distance)
+        self.rejected["duplicate"] += int(dup.sum())
         # A detection with no joint at the threshold is no one the calibration sees: real
         # detectors send such low-score boxes by the dozen, and counted as persons they
         # would make a whole view "crowded". It still counts as a neighbour that is too
         # close: most are people half hidden behind the one in front, whose keypoints mix
         # (counted out, the two-walker corridor's seed 2 ended 0.078 m off, not 0.047).
-        if (kp[..., 2] > 0).any(axis=1).sum() > self.cfg.max_persons:
+        if ((kp[..., 2] > 0).any(axis=1) & ~dup).sum() > self.cfg.max_persons:
             self.rejected["crowded_view"] += P
             return []
         if self.cfg.partial_torso:  # TORSO is (L_SHOULDER, R_SHOULDER, L_HIP, R_HIP)
             keep = confident[:, :2].any(axis=1) & confident[:, 2:].any(axis=1)
         else:
             keep = np.all(confident, axis=1)
-        self.rejected["no_torso"] += int((~keep).sum())
-        close = self._too_close(kp, v.boxes, v.size) & keep
+        self.rejected["no_torso"] += int((~keep & ~dup).sum())
+        keep &= ~dup
+        close = self._too_close(kp, v.boxes, v.size, ~dup) & keep
         self.rejected["too_close"] += int(close.sum())
         keep &= ~close
         if not keep.any():
@@ -258,8 +298,10 @@ class Preprocessor:
                            "warning": "; ".join(warn) or None}
         return out
 
-    def _too_close(self, kp: np.ndarray, boxes: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-        """(P,) True for persons whose box is within the distance limit of another's."""
+    def _too_close(self, kp: np.ndarray, boxes: np.ndarray, size: tuple[int, int], present: np.ndarray
+                   ) -> np.ndarray:
+        """(P,) True for persons whose box is within the distance limit of another's
+        (of the ``present`` (P,) ones: a dropped duplicate is no neighbour)."""
         P = len(kp)
         if P < 2 or self.cfg.min_box_distance <= 0:
             return np.zeros(P, bool)
@@ -274,6 +316,7 @@ class Preprocessor:
         gy = np.maximum(0, np.maximum(b[:, None, 1], b[None, :, 1]) - np.minimum(b[:, None, 3], b[None, :, 3]))
         gap = np.hypot(gx, gy)
         np.fill_diagonal(gap, np.inf)
+        gap[:, ~present] = np.inf
         return gap.min(1) < self.cfg.min_box_distance * float(np.hypot(*size))
 
     def _sigma(self, kp: np.ndarray, v: View, idx: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -81,6 +81,12 @@ class SimConfig:
       false_rate: mean number of random false detections per frame.
       ghost_prob, ghost_rate: chance that a sensor has a persistent false detection (a
         poster, a coat) and how often per frame it fires.
+      duplicate_prob: chance that a detected person is detected twice in a frame (a
+        top-down detector whose non-maximum suppression let two boxes on one person
+        through): the second skeleton lies on the first, a little off (1.5 % of the
+        person's height per joint), with fewer joints and a lower score; the truth gives
+        it the same person and ``FLAG_DUPLICATE``. Its own random stream: 0 (the default)
+        and any other value leave every other detection as it was.
       hidden_drop: chance that a hidden joint (occluded, face from behind) is dropped;
         otherwise it is guessed with large noise and low confidence.
       pixel_decimals: pixel coordinates and confidences are rounded to this many decimals
@@ -143,6 +149,7 @@ class SimConfig:
     false_rate: float = 0.02
     ghost_prob: float = 0.3
     ghost_rate: float = 0.05
+    duplicate_prob: float = 0.0
     hidden_drop: float = 0.5
     pixel_decimals: int | None = 3
     intrinsics_error: float = 0.002
@@ -205,7 +212,7 @@ class SimConfig:
                 bad("sensor_rates", f"{s}: rate must be > 0 Hz, got {r}")
         for name in ("pause_prob", "bend_prob", "reach_prob", "leave_prob", "drop_prob",
                      "stall_prob", "swap_prob", "snap_prob", "miss_prob", "miss_burst", "ghost_prob",
-                     "ghost_rate", "hidden_drop"):
+                     "ghost_rate", "duplicate_prob", "hidden_drop"):
             p = getattr(self, name)
             if not 0 <= p <= 1:
                 bad(name, f"a probability in [0, 1], got {p}")

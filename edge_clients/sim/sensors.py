@@ -49,6 +49,7 @@ FLAG_SWAP = 1  # left/right swapped (whole body or a limb pair)
 FLAG_SNAP = 2  # a joint reported on another person
 FLAG_HIDDEN_GUESS = 4  # a hidden joint was guessed
 FLAG_GHOST = 8  # persistent false detection
+FLAG_DUPLICATE = 16  # a second detection of a person already detected in the frame
 
 
 @dataclass
@@ -145,6 +146,7 @@ class SensorSim:
         self.last_arrival = -math.inf
         self.stall_until = -math.inf
         self.det = rng_for(cfg.seed, "detector", name)
+        self.dup = rng_for(cfg.seed, "duplicate", name)  # its own stream: duplicates leave the rest as it was
         g = rng_for(cfg.seed, "ghost", name)
         self.ghost = None
         if g.random() < cfg.ghost_prob:
@@ -350,6 +352,8 @@ class SensorSim:
                     for p in np.flatnonzero(detected[i])]
             if cfg.noise:
                 dets.extend(self._false(rng, int(n_false[i]), bool(ghost_fire[i])))
+                if cfg.duplicate_prob > 0:
+                    dets.extend(self._duplicates(dets))
             dets.sort(key=lambda d: -d.score)
             out.append(dets)
         return out
@@ -473,6 +477,32 @@ class SensorSim:
             kp[f, p, j, 2] = 0.4 + 0.4 * u[f, p, q, 2]
             noise[f, p, j] = np.nan
             flags[f, p] |= FLAG_SNAP
+
+    def _duplicates(self, dets: list[Detection]) -> list[Detection]:
+        """Second detections of some of the persons in ``dets`` (``duplicate_prob`` each), as
+        a top-down detector sends when two of its boxes on one person survive non-maximum
+        suppression: the pose estimated again from the other crop (each joint moved by 1.5 %
+        of the person's height, a fifth of them lost), confidences and score lower."""
+        rng, out = self.dup, []
+        for d in dets:
+            if d.person < 0 or rng.random() >= self.cfg.duplicate_prob:
+                continue
+            kp = d.kp.copy()
+            rep = kp[:, 2] > 0
+            hpx = max(float(np.ptp(kp[rep, 1])) if rep.sum() >= 2 else 0.0, 10.0)
+            kp[:, :2] += rng.normal(0.0, 0.015 * hpx, (17, 2))
+            kp[:, 2] *= rng.uniform(0.6, 1.0, 17)
+            rep &= (rng.random(17) >= 0.2) & (kp[:, 0] >= 0) & (kp[:, 0] < self.size[0]) \
+                & (kp[:, 1] >= 0) & (kp[:, 1] < self.size[1])
+            kp[~rep] = 0.0
+            if self.cfg.pixel_decimals is not None:
+                kp[:, :2] = np.round(kp[:, :2], self.cfg.pixel_decimals)
+                kp[:, 2] = np.where(rep, np.clip(np.round(kp[:, 2], 4), 1e-4, 1.0), 0.0)
+            bbox, _ = self._boxes(kp)
+            score = float(round(d.score * rng.uniform(0.5, 0.95), 4))
+            out.append(Detection(d.person, d.flags | FLAG_DUPLICATE, kp, bbox, score))
+        self.counters["duplicates"] += len(out)
+        return out
 
     def _false(self, rng, count: int, ghost: bool) -> list[Detection]:
         w, h = self.size

@@ -23,7 +23,7 @@ from proto import KeypointMessage, RecordingWriter
 from .area import Area, build_area, wall_map
 from .config import SimConfig
 from .scene import Scene
-from .sensors import FLAG_SNAP, FLAG_SWAP, Detection, SensorSim, to_message
+from .sensors import FLAG_DUPLICATE, FLAG_SNAP, FLAG_SWAP, Detection, SensorSim, to_message
 from .stats import SimStats, StatsCollector
 from .truth import STATE_NAMES, Truth, interpolate
 from .world import World
@@ -284,8 +284,8 @@ class Simulator:
             detections=int(tot["detections"]),
             false_detections=st.false,
             missed=int(tot["missed"]),
-            swaps=int(np.sum((flags & FLAG_SWAP) > 0)),
-            snaps=int(np.sum((flags & FLAG_SNAP) > 0)),
+            swaps=int(np.sum((flags & FLAG_SWAP > 0) & (flags & FLAG_DUPLICATE == 0))),
+            snaps=int(np.sum((flags & FLAG_SNAP > 0) & (flags & FLAG_DUPLICATE == 0))),
             guessed_joints=int(tot["guessed"]),
             visible_joints=tot["joints"] / det,
             confident_joints=tot["confident"] / det,
@@ -293,6 +293,7 @@ class Simulator:
             noise_rms=rms,
             clock_offset_ms={s.name: 1000 * s.offset for s in rec.sensors},
             delay_ms={s.name: 1000 * s.delay_base for s in rec.sensors},
+            duplicates=int(tot["duplicates"]),
         )
 
 

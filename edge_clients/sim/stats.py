@@ -21,7 +21,7 @@ class SimStats:
     exactly k cameras detected that person (k = 0..S); noise_rms: joint group → RMS
     pixel error injected on correctly placed visible joints; counts of detections, false
     detections, missed persons (visible enough but not detected), left/right swaps,
-    snapped joints, hidden joints guessed.
+    snapped joints, hidden joints guessed, duplicate detections (``duplicate_prob``).
     """
 
     duration: float
@@ -42,6 +42,7 @@ class SimStats:
     noise_rms: dict[str, float]
     clock_offset_ms: dict[str, float]
     delay_ms: dict[str, float]
+    duplicates: int = 0
 
     @property
     def total_messages(self) -> int:
@@ -79,7 +80,8 @@ class SimStats:
                      f"{self.visible_joints:.1f} reported, {self.confident_joints:.1f} with confidence >= 0.6")
         lines.append(f"false detections: {self.false_detections}; missed persons: {self.missed}; "
                      f"left/right swaps: {self.swaps}; snapped joints: {self.snaps}; "
-                     f"hidden joints guessed: {self.guessed_joints}")
+                     f"hidden joints guessed: {self.guessed_joints}"
+                     + (f"; duplicate detections: {self.duplicates}" if self.duplicates else ""))
         lines.append("")
         lines.append("cameras detecting a person at a time (share of person-time, 0.2 s bins):")
         ks = sorted(self.cameras_seeing)

@@ -9,7 +9,7 @@ import pytest
 
 from backend.cameras import Intrinsics, Pose, load_intrinsics, project
 from backend.config import PreprocessConfig
-from backend.preprocess import JOINT_NOISE, TORSO, Preprocessor
+from backend.preprocess import JOINT_NOISE, TORSO, Preprocessor, duplicates
 from backend.sync import Frameset, View
 
 
@@ -233,6 +233,50 @@ def test_persons_too_close_are_both_dropped(pre, lab_intrinsics):
     boxes = [[0, 0, 10, 10], [200, 200, 210, 210], [500, 400, 510, 410]]
     assert len(p.view(_view("cam_4", [a, b, far], intr.resolution, boxes=boxes))) == 3
     assert p.rejected["too_close"] == 2
+
+
+def test_a_person_detected_twice_keeps_its_better_detection(pre, lab_intrinsics):
+    # a top-down detector whose non-maximum suppression let two boxes on one person through
+    p = pre()
+    intr = lab_intrinsics["cam_4"]
+    rng = np.random.default_rng(4)
+    a = _pixels(intr, _body([-0.3, 0.0, 5.0]))
+    again = a + rng.normal(0.0, 2.0, a.shape)  # the same joints from another crop
+    conf = np.full(17, 0.9)
+    conf_again = np.where(np.arange(17) % 5 == 0, 0.0, 0.8)  # fewer joints, lower
+    far = _pixels(intr, _body([2.2, 0.0, 5.0]))
+    kp = np.stack([np.c_[a, conf], np.c_[again, conf_again], np.c_[far, conf]])
+    v = replace(_view("cam_4", [a, again, far], intr.resolution), kp=kp)
+    dets = p.view(v)
+    assert [d.index for d in dets] == [0, 2]
+    assert p.rejected["duplicate"] == 1 and p.rejected["too_close"] == 0
+    # the better one is kept whichever comes first; three copies keep one
+    assert [d.index for d in p.view(replace(v, kp=kp[[1, 0, 2]]))] == [1, 2]
+    third = np.c_[a + rng.normal(0.0, 2.0, a.shape), np.full(17, 0.7)]
+    v4 = replace(_view("cam_4", [a, again, far, a], intr.resolution), kp=np.stack([*kp, third]))
+    assert [d.index for d in p.view(v4)] == [0, 2]
+    assert p.rejected["duplicate"] == 4
+    # off: the two overlap, and both go as too close (as before)
+    off = pre(PreprocessConfig(duplicate_distance=0.0))
+    assert [d.index for d in off.view(v)] == [2] and off.rejected["too_close"] == 2
+
+
+def test_people_who_overlap_are_not_taken_for_duplicates(lab_intrinsics):
+    intr = lab_intrinsics["cam_4"]
+    a = _pixels(intr, _body([-0.3, 0.0, 5.0]))
+    conf = np.full(17, 0.9)
+    # side by side, a shoulder apart; one behind the other, smaller
+    beside = _pixels(intr, _body([0.1, 0.0, 5.0]))
+    behind = _pixels(intr, _body([-0.2, 0.0, 6.5], height=1.6))
+    for b in (beside, behind):
+        assert not duplicates(np.stack([np.c_[a, conf], np.c_[b, conf]]), 0.1).any()
+    # a skeleton half on the person in front, half on the one it belongs to: no copy
+    mixed = np.where(np.arange(17)[:, None] < 9, a, behind)
+    assert not duplicates(np.stack([np.c_[a, conf], np.c_[mixed, conf]]), 0.1).any()
+    # a copy is one, but not with fewer than 3 joints in common
+    few = np.where(np.arange(17) < 2, 0.9, 0.0)
+    assert duplicates(np.stack([np.c_[a, conf], np.c_[a + 1.0, conf]]), 0.1).tolist() == [False, True]
+    assert not duplicates(np.stack([np.c_[a, conf], np.c_[a + 1.0, few]]), 0.1).any()
 
 
 def test_crowded_views_are_dropped(pre, lab_intrinsics):

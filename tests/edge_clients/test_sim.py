@@ -16,7 +16,7 @@ from edge_clients.sim import Scene, SimConfig, Simulator, Truth
 from edge_clients.sim.area import build_area, fov_limit, in_fov, wall_map
 from edge_clients.sim.body import HIPS_W, SHOULDERS_W, Body, pose_joints
 from edge_clients.sim.scene import read_gray_image
-from edge_clients.sim.sensors import SensorSim
+from edge_clients.sim.sensors import FLAG_DUPLICATE, SensorSim
 from proto import read_recording, to_dict
 
 
@@ -200,6 +200,38 @@ def test_endless_run_is_produced_lazily(scene):
     assert len(first) == 100 and all(b[0] >= a[0] for a, b in zip(first, first[1:]))
     with pytest.raises(ValueError, match="endless"):
         _ = sim.truth
+
+
+def test_a_detector_that_detects_people_twice(scene, tmp_path):
+    cfg = SimConfig(persons=2, duration=4.0, seed=5)
+    plain = [to_dict(m) for _, m in Simulator(scene, cfg).messages(["cam_3", "cam_9"])]
+    sim = Simulator(scene, SimConfig(**{**cfg.to_dict(), "duplicate_prob": 0.3}))
+    st = sim.write(tmp_path / "dup.jsonl")
+    t = Truth.load(tmp_path / "dup.jsonl.truth.npz")
+    dup = (t.det_flags & FLAG_DUPLICATE) > 0
+    assert st.duplicates == dup.sum() and 0.2 < dup.sum() / (t.det_person >= 0).sum() < 0.3
+    assert (t.det_person[dup] >= 0).all()  # a duplicate is of a real person
+    # every other detection is as without duplicates: their own random stream
+    msgs = list(read_recording(tmp_path / "dup.jsonl"))  # in the truth's msg order
+    at = {(m.sensor, m.seq): k for k, m in enumerate(msgs)}
+    for want in plain:
+        k = at[(want["sensor"], want["seq"])]
+        got = to_dict(msgs[k])["persons"]
+        kept = [got[i] for i in t.det_index[(t.det_msg == k) & ~dup]]
+        assert sorted(map(repr, kept)) == sorted(map(repr, want["persons"]))
+    # a duplicate lies on its person's other detection in the same frame, with fewer joints
+    pairs = 0
+    for d in np.flatnonzero(dup):
+        twin = np.flatnonzero((t.det_msg == t.det_msg[d]) & (t.det_person == t.det_person[d]) & ~dup)
+        assert len(twin) == 1
+        first, second = (msgs[t.det_msg[d]].persons[t.det_index[i]].kp for i in (twin[0], d))
+        both = (first[:, 2] > 0) & (second[:, 2] > 0)
+        if both.sum() >= 5:
+            h = np.ptp(first[first[:, 2] > 0, 1])
+            assert np.median(np.linalg.norm(first[both, :2] - second[both, :2], axis=1)) < 0.05 * h
+            pairs += 1
+        assert (second[:, 2] > 0).sum() <= (first[:, 2] > 0).sum()
+    assert pairs > 50
 
 
 def test_no_persons_only_false_detections(scene, tmp_path):
