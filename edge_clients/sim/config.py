@@ -45,6 +45,10 @@ class SimConfig:
       rates: (min, max) Hz, each sensor's capture rate is drawn uniformly in it.
       sensor_rates: {sensor: Hz} overrides for some sensors.
       frame_jitter: s, std of a capture instant around its nominal time.
+      stamp_jitter: s, std of a stamp's error about its frame's capture instant (normal,
+        cut at 3 std; default 0): a sensor that stamps a frame when it gets it from the
+        driver or when its detector is done with it, not when it was exposed. Its own
+        random stream: every other draw stays as it was.
       drop_prob: chance that a frame is lost (its ``seq`` is skipped).
       stall_prob, stall: chance per frame that the sensor stalls for (min, max) s,
         losing every frame meanwhile (Wi-Fi hiccup, detector hang).
@@ -128,6 +132,7 @@ class SimConfig:
     rates: tuple[float, float] = (10.0, 30.0)
     sensor_rates: tuple[tuple[str, float], ...] = ()
     frame_jitter: float = 0.001
+    stamp_jitter: float = 0.0
     drop_prob: float = 0.01
     stall_prob: float = 0.0003
     stall: tuple[float, float] = (0.2, 1.5)
@@ -216,7 +221,7 @@ class SimConfig:
             p = getattr(self, name)
             if not 0 <= p <= 1:
                 bad(name, f"a probability in [0, 1], got {p}")
-        for name in ("noise_scale", "clock_std", "drift_std", "delay_jitter", "frame_jitter",
+        for name in ("noise_scale", "clock_std", "drift_std", "delay_jitter", "frame_jitter", "stamp_jitter",
                      "false_rate", "sigma_torso", "sigma_head", "sigma_limb", "sigma_extremity",
                      "intrinsics_error", "surface_offset"):
             if getattr(self, name) < 0:

@@ -129,6 +129,7 @@ class SensorSim:
         self.res_scale = math.sqrt(w * h / (848.0 * 480.0))
         t = rng_for(cfg.seed, "timing", name)
         self.timing = t
+        self.stamping = rng_for(cfg.seed, "stamp", name)  # drawn from only with stamp_jitter
         rates = dict(cfg.sensor_rates)
         drawn = t.uniform(*cfg.rates)
         self.rate = float(rates.get(name, drawn))
@@ -178,6 +179,8 @@ class SensorSim:
         jit = self.timing.standard_normal(n) * cfg.frame_jitter
         extra = self.timing.gamma(2.0, 1.0, n) * (cfg.delay_jitter / 2.0)
         lim = 0.3 / self.rate
+        late = (np.clip(self.stamping.standard_normal(n), -3.0, 3.0) * cfg.stamp_jitter if cfg.stamp_jitter > 0
+                else np.zeros(n))
         out = []
         for i in range(n):
             k = self.k + i
@@ -188,7 +191,7 @@ class SensorSim:
             if r[i, 0] < cfg.drop_prob or t_rel < self.stall_until:
                 continue
             capture = cfg.start_time + t_rel
-            stamp = capture + self.offset + self.drift * t_rel
+            stamp = capture + self.offset + self.drift * t_rel + float(late[i])
             arrival = max(capture + self.delay_base + float(extra[i]), self.last_arrival + 1e-4)
             self.last_arrival = arrival
             out.append(Frame(self.seq0 + k, capture, stamp, arrival))
