@@ -234,6 +234,19 @@ def test_a_detector_that_detects_people_twice(scene, tmp_path):
     assert pairs > 50
 
 
+def test_a_sensor_that_stamps_late_by_a_varying_time(scene, tmp_path):
+    cfg = SimConfig(persons=2, duration=6.0, seed=2)
+    Simulator(scene, cfg).write(tmp_path / "a.jsonl")
+    Simulator(scene, SimConfig(**{**cfg.to_dict(), "stamp_jitter": 0.02})).write(tmp_path / "b.jsonl")
+    a, b = (Truth.load(tmp_path / f"{x}.jsonl.truth.npz") for x in "ab")
+    # the same frames and detections; only the stamps moved, by 20 ms (std), at most 3 std
+    assert np.array_equal(a.msg_capture, b.msg_capture) and np.array_equal(a.det_person, b.det_person)
+    late = b.msg_stamp - a.msg_stamp
+    assert 0.018 < late.std() < 0.022 and np.abs(late).max() <= 0.06 + 1e-9 and abs(late.mean()) < 0.002
+    ma, mb = read_recording(tmp_path / "a.jsonl"), read_recording(tmp_path / "b.jsonl")
+    assert all(x.persons == y.persons for x, y in zip(ma, mb))
+
+
 def test_no_persons_only_false_detections(scene, tmp_path):
     st = Simulator(scene, SimConfig(persons=0, duration=1.0, seed=2, false_rate=0.5)).write(tmp_path / "empty.jsonl")
     t = Truth.load(tmp_path / "empty.jsonl.truth.npz")
