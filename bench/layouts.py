@@ -59,14 +59,14 @@ LAYOUTS = {
     "rolled": ("room", {"cameras": 8, "roll": (0.0, 90.0, 180.0, -90.0, 30.0, 135.0, -60.0, 180.0)}),
     # a small room's cameras near a high ceiling looking steeply down: people foreshortened
     "steep": ("room", {"cameras": 4, "width": 4.0, "depth": 4.0, "height": 3.4, "aim": 0.3, "hfov": 110.0}),
-    # many cameras on a grid under a hall's ceiling, turned every way (a new grid each seed):
-    # half the pairs share no floor, pairs of cameras seeing different walkers fit wrong poses
     # a capture space: cameras all round at chest height and high up, one in the ceiling
     # looking straight down (an image with no "up"), three kinds of lens
     "studio": ("studio", {}),
     # two rooms joined by a door, four cameras each: the two networks see each other's
     # floor only through the doorway
     "tworooms": ("tworooms", {}),
+    # many cameras on a grid under a hall's ceiling, turned every way (a new grid each seed):
+    # half the pairs share no floor, pairs of cameras seeing different walkers fit wrong poses
     "grid30": ("grid", {"cameras": 30, "seed": None}),
     "grid40": ("grid", {"cameras": 40, "seed": None}),
 }
