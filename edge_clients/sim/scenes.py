@@ -100,8 +100,8 @@ def _walled(names: tuple[str, ...], intr: dict, poses: dict, lo: tuple[float, fl
     free = np.zeros((H, W), bool)
     k = int(round(_WALL / _MPP))
     free[k:H - k, k:W - k] = True
-    for a0, b0, a1, b1 in inner:
-        free[int(round((b0 - y0 + _WALL) / _MPP)):int(round((b1 - y0 + _WALL) / _MPP)),
+    for a0, b0, a1, b1 in inner:  # image rows run against y (FloorPlan.pixel_of)
+        free[H - int(round((b1 - y0 + _WALL) / _MPP)):H - int(round((b0 - y0 + _WALL) / _MPP)),
              int(round((a0 - x0 + _WALL) / _MPP)):int(round((a1 - x0 + _WALL) / _MPP))] = False
     plan = FloorPlan(occupied=~free, free=free, metres_per_pixel=_MPP, map_R=np.eye(2),
                      map_t=np.array([x0 - _WALL, y0 - _WALL]))

@@ -7,7 +7,7 @@ import pytest
 from typer.testing import CliRunner
 
 from edge_clients.sim import Scene, SimConfig, Simulator
-from edge_clients.sim.scenes import corridor, floor_views, grid, make, room, studio, tworooms, write_scene
+from edge_clients.sim.scenes import _walled, corridor, floor_views, grid, make, room, studio, tworooms, write_scene
 
 # a standing person's torso as the association needs it (both hips and both shoulders),
 # for statures 1.55-2.0 m: hips 0.53 H, shoulders 0.818 H
@@ -148,6 +148,10 @@ def test_two_rooms_see_each_other_only_through_their_door():
     assert 0.2 < side.mean() < 0.8 and (np.diff(side.astype(int)) != 0).sum() >= 4
     with pytest.raises(ValueError, match="door"):
         tworooms(door=0.3)
+    # an inner wall lies where it is said to, also off the middle
+    lopsided = _walled(s.names, s.intrinsics, s.poses, (0.0, 0.0), (10.0, 4.0), ((5.0, 0.0, 5.2, 1.0),))
+    occ = lopsided.floorplan.occupied_at(np.array([[5.1, 0.5], [5.1, 3.5], [4.8, 0.5], [5.1, 1.2]]))
+    assert occ.tolist() == [True, False, False, False]
 
 
 def test_written_scene_loads_and_simulates(tmp_path):
