@@ -256,6 +256,12 @@ def test_a_person_detected_twice_keeps_its_better_detection(pre, lab_intrinsics)
     v4 = replace(_view("cam_4", [a, again, far, a], intr.resolution), kp=np.stack([*kp, third]))
     assert [d.index for d in p.view(v4)] == [0, 2]
     assert p.rejected["duplicate"] == 4
+    # copies do not make a crowd
+    few = pre(PreprocessConfig(max_persons=3))
+    three = [_pixels(intr, _body([x, 0.0, 6.0])) for x in (-2.0, 0.0, 2.0)]
+    twice = three + [uv + rng.normal(0.0, 1.0, uv.shape) for uv in three]
+    assert [d.index for d in few.view(_view("cam_4", twice, intr.resolution))] == [0, 1, 2]
+    assert few.rejected["duplicate"] == 3 and few.rejected["crowded_view"] == 0
     # off: the two overlap, and both go as too close (as before)
     off = pre(PreprocessConfig(duplicate_distance=0.0))
     assert [d.index for d in off.view(v)] == [2] and off.rejected["too_close"] == 2
