@@ -134,6 +134,7 @@ def duplicates(kp: np.ndarray, max_distance: float) -> np.ndarray:
     and both stay to the min_box_distance check.
 
     kp: (P, 17, 3) float64 pixels and confidence, 0 = not detected."""
+    assert kp.ndim == 3 and kp.shape[1:] == (17, 3)
     P = len(kp)
     out = np.zeros(P, bool)
     if P < 2 or max_distance <= 0:
