@@ -123,7 +123,7 @@ class ConfidenceScale:
         return conf if k == 1.0 else np.minimum(conf * k, 1.0)
 
 
-def duplicates(kp: np.ndarray, max_distance: float) -> np.ndarray:
+def duplicates(kp: np.ndarray, max_distance: float, max_candidates: int | None = None) -> np.ndarray:
     """(P,) True for the detections that are another's person detected again: of the joints
     both detected (confidence > 0; at least 3 and half of the smaller skeleton's), 80 % lie
     within ``max_distance`` times the smaller one's size (its joints' extent) of the
@@ -133,14 +133,17 @@ def duplicates(kp: np.ndarray, max_distance: float) -> np.ndarray:
     the two (some joints on the one in front, others its own); that is no copy of either,
     and both stay to the min_box_distance check.
 
+    ``max_candidates``: with more detections of 3 joints or more, none is tested (the
+    pairwise test's (P, P, 17) arrays are for views that can still be used).
+
     kp: (P, 17, 3) float64 pixels and confidence, 0 = not detected."""
     assert kp.ndim == 3 and kp.shape[1:] == (17, 3)
     P = len(kp)
     out = np.zeros(P, bool)
-    if P < 2 or max_distance <= 0:
-        return out
     seen = kp[..., 2] > 0
     n = seen.sum(1)
+    if P < 2 or max_distance <= 0 or (max_candidates is not None and int((n >= 3).sum()) > max_candidates):
+        return out
     lo = np.where(seen[..., None], kp[..., :2], np.inf).min(1)
     hi = np.where(seen[..., None], kp[..., :2], -np.inf).max(1)
     size = np.where(n >= 2, np.max(hi - lo, axis=1), 0.0)  # (P,)
@@ -162,8 +165,8 @@ def duplicates(kp: np.ndarray, max_distance: float) -> np.ndarray:
     order = np.lexsort((-kp[..., 2].sum(1), -n))  # best first
     rank = np.empty(P, np.int64)
     rank[order] = np.arange(P)
-    for a in order:
-        if not out[a] and n[a] >= 3:
+    for a in order:  # ``same`` holds only pairs of 3 joints or more
+        if not out[a]:
             out |= same[a] & (rank > rank[a])
     return out
 
@@ -238,9 +241,7 @@ class Preprocessor:
         self.torso_low[v.sensor] += int((detected & ~confident).sum())
         kp[kp[..., 2] < self.cfg.min_confidence, 2] = 0.0
         # more than three times max_persons detections are a crowd however many are copies
-        # (and would cost the pairwise test (P, P, 17) arrays for nothing)
-        few = int(((kp[..., 2] > 0).sum(1) >= 3).sum()) <= 3 * self.cfg.max_persons
-        dup = duplicates(kp, self.cfg.duplicate_distance) if few else np.zeros(P, bool)
+        dup = duplicates(kp, self.cfg.duplicate_distance, 3 * self.cfg.max_persons)
         self.rejected["duplicate"] += int(dup.sum())
         # A detection with no joint at the threshold is no one the calibration sees: real
         # detectors send such low-score boxes by the dozen, and counted as persons they

@@ -109,6 +109,17 @@ def _walled(names: tuple[str, ...], intr: dict, poses: dict, lo: tuple[float, fl
     return Scene(names, intr, poses, floor, plan)
 
 
+def _lens(name: str, resolution: tuple[int, int], hfov: float, k1: float, *, aspect: float = 1.002,
+          centre: tuple[float, float] = (0.01, -0.01)) -> Intrinsics:
+    """A lens ``hfov`` deg wide at ``resolution`` (w, h) with barrel distortion ``k1``
+    (k2 = k1²/3), fy = ``aspect`` fx, the principal point off the image centre by
+    ``centre`` times the width and the height."""
+    w, h = resolution
+    f = (w / 2) / math.tan(math.radians(hfov) / 2)
+    return Intrinsics(name, f, f * aspect, w / 2 + centre[0] * w, h / 2 + centre[1] * h,
+                      np.array([k1, k1 * k1 / 3, 0.0, 0.0, 0.0]), (w, h))
+
+
 def _look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
     """world_R_cam of a camera at ``centre`` looking at ``target``, image rows horizontal."""
     z = target - centre
@@ -136,8 +147,6 @@ def room(cameras: int = 4, *, width: float = 7.0, depth: float = 5.0, height: fl
     m = 0.3
     spots = [(m, m), (width - m, depth - m), (width - m, m), (m, depth - m),
              (width / 2, m), (width / 2, depth - m), (m, depth / 2), (width - m, depth / 2)]
-    w, h = resolution
-    f = (w / 2) / math.tan(math.radians(hfov) / 2)
     names = tuple(f"cam_{i}" for i in range(cameras))
     intr, poses = {}, {}
     centre = np.array([width / 2, depth / 2, aim])
@@ -149,8 +158,7 @@ def room(cameras: int = 4, *, width: float = 7.0, depth: float = 5.0, height: fl
             a = math.radians(roll[i % len(roll)])
             R = R @ np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
         poses[n] = Pose(R, c)
-        intr[n] = Intrinsics(n, f, f * 1.002, w / 2 + 0.01 * w, h / 2 - 0.01 * h,
-                             np.array([k1, k1 * k1 / 3, 0.0, 0.0, 0.0]), (w, h))
+        intr[n] = _lens(n, resolution, hfov, k1)
     return _walled(names, intr, poses, (0.0, 0.0), (width, depth))
 
 
@@ -198,10 +206,7 @@ def studio(cameras: int = 8, *, radius: float = 3.5, heights: tuple[float, float
     lenses = (((1280, 720), 80.0, -0.08), ((848, 480), 95.0, -0.054), ((1024, 1024), 120.0, -0.3))
 
     def lens(n: str, kind: int) -> Intrinsics:
-        (w, h), hfov, k1 = lenses[kind]
-        f = (w / 2) / math.tan(math.radians(hfov) / 2)
-        return Intrinsics(n, f, f * 1.001, w / 2 + 0.01 * w, h / 2 + 0.01 * h,
-                          np.array([k1, k1 * k1 / 3, 0.0, 0.0, 0.0]), (w, h))
+        return _lens(n, *lenses[kind], aspect=1.001, centre=(0.01, 0.01))
 
     intr, poses = {}, {}
     target = np.array([0.0, 0.0, aim])
@@ -229,8 +234,7 @@ def tworooms(*, width: float = 5.0, depth: float = 4.0, height: float = 2.6, doo
     room's 640x480 lens, 100° wide, k1 = -0.28."""
     if not (width > 2.0 and depth > 2.0 and height > 1.8 and 0.6 <= door < depth - 0.5):
         raise ValueError("tworooms: width and depth > 2 m, height > 1.8 m, 0.6 m <= door < depth - 0.5 m expected")
-    m, w, h = 0.3, 640, 480
-    f = (w / 2) / math.tan(math.radians(100.0) / 2)
+    m = 0.3
     intr, poses = {}, {}
     for r in range(2):
         x0, sgn = (0.0, 1.0) if r == 0 else (2 * width, -1.0)  # the second room mirrored
@@ -244,8 +248,7 @@ def tworooms(*, width: float = 5.0, depth: float = 4.0, height: float = 2.6, doo
         n, c = f"cam_{4 * r + 3}", np.array([x0 + sgn * m, depth / 2 + 0.2, height])
         poses[n] = Pose(_look_at(c, np.array([width, depth / 2, aim])), c)
     for n in poses:
-        intr[n] = Intrinsics(n, f, f * 1.002, w / 2 + 0.01 * w, h / 2 - 0.01 * h,
-                             np.array([-0.28, 0.28 ** 2 / 3, 0.0, 0.0, 0.0]), (w, h))
+        intr[n] = _lens(n, (640, 480), 100.0, -0.28)
     t = _WALL / 2
     wall = ((width - t, 0.0, width + t, (depth - door) / 2), (width - t, (depth + door) / 2, width + t, depth))
     return _walled(tuple(sorted(poses, key=lambda n: int(n[4:]))), intr, poses, (0.0, 0.0), (2 * width, depth), wall)

@@ -328,9 +328,7 @@ class SensorSim:
             kp[..., 1] = np.where(rep, np.clip(kp[..., 1], 0, h - 1e-3), 0.0)
             if P >= 2:
                 self._snap(kp, noise, flags, uv, visible, detected, lo, hi, rng)
-            if cfg.pixel_decimals is not None:
-                kp[..., :2] = np.round(kp[..., :2], cfg.pixel_decimals)
-                kp[..., 2] = np.where(rep, np.clip(np.round(kp[..., 2], 4), 1e-4, 1.0), 0.0)
+            _round_reported(kp, cfg.pixel_decimals)
         bbox, score = self._boxes(kp)
         if cfg.noise:
             score = np.clip(np.round(score + 0.05 * (up[..., 3] - 0.5), 4), 0.01, 0.999)
@@ -498,9 +496,7 @@ class SensorSim:
             rep &= (rng.random(17) >= 0.2) & (kp[:, 0] >= 0) & (kp[:, 0] < self.size[0]) \
                 & (kp[:, 1] >= 0) & (kp[:, 1] < self.size[1])
             kp[~rep] = 0.0
-            if self.cfg.pixel_decimals is not None:
-                kp[:, :2] = np.round(kp[:, :2], self.cfg.pixel_decimals)
-                kp[:, 2] = np.where(rep, np.clip(np.round(kp[:, 2], 4), 1e-4, 1.0), 0.0)
+            _round_reported(kp, self.cfg.pixel_decimals)
             bbox, _ = self._boxes(kp)
             score = float(round(d.score * rng.uniform(0.5, 0.95), 4))
             out.append(Detection(d.person, d.flags | FLAG_DUPLICATE, kp, bbox, score))
@@ -539,6 +535,16 @@ class SensorSim:
         bbox, score = self._boxes(kp)
         score = float(round(min(float(score), 0.2 + 0.3 * rng.random()), 4))
         return Detection(-1, flags, kp, bbox, score)
+
+
+def _round_reported(kp: np.ndarray, decimals: int | None) -> None:
+    """Reported keypoints (..., 17, 3) rounded in place as a sensor sends them: pixels to
+    ``decimals`` (None: not rounded), confidences to 4 decimals and at least 1e-4; joints
+    not reported (confidence 0) stay 0."""
+    if decimals is not None:
+        rep = kp[..., 2] > 0
+        kp[..., :2] = np.round(kp[..., :2], decimals)
+        kp[..., 2] = np.where(rep, np.clip(np.round(kp[..., 2], 4), 1e-4, 1.0), 0.0)
 
 
 _TEMPLATES: np.ndarray | None = None

@@ -270,6 +270,7 @@ class Simulator:
             hist += np.bincount(counts, minlength=S + 1)[: S + 1]
         share = hist / hist.sum() if hist.sum() else hist
         flags = truth.det_flags
+        original = (flags & FLAG_DUPLICATE) == 0  # a duplicate's flags are its original's
         tot = sum((s.counters for s in rec.sensors), Counter())
         rms = {g: float(np.sqrt(tot[f"sq{i}"] / tot[f"n{i}"])) if tot[f"n{i}"] else float("nan")
                for i, g in enumerate(GROUP_NAMES)}
@@ -284,8 +285,8 @@ class Simulator:
             detections=int(tot["detections"]),
             false_detections=st.false,
             missed=int(tot["missed"]),
-            swaps=int(np.sum((flags & FLAG_SWAP > 0) & (flags & FLAG_DUPLICATE == 0))),
-            snaps=int(np.sum((flags & FLAG_SNAP > 0) & (flags & FLAG_DUPLICATE == 0))),
+            swaps=int(np.sum(((flags & FLAG_SWAP) > 0) & original)),
+            snaps=int(np.sum(((flags & FLAG_SNAP) > 0) & original)),
             guessed_joints=int(tot["guessed"]),
             visible_joints=tot["joints"] / det,
             confident_joints=tot["confident"] / det,
