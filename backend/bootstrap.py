@@ -60,10 +60,10 @@ from proto import KeypointMessage
 
 from .associate import Hypothesis, torso_centre
 from .cameras import CameraSet, Extrinsics, Intrinsics, Pose, natural_key
-from .config import BootstrapConfig, EngineConfig, FloorFrame
+from .config import BootstrapConfig, EngineConfig, FloorFrame, OptimizeConfig
 from .floor import median_up, plane_of_ankles, world_frame
 from .geometry import hat, pose_std, project_so3, rotation_angle_deg, so3_exp, triangulate_batch
-from .optimize import BONE_NAMES, BONES
+from .optimize import BONE_NAMES, BONES, Solution
 from .people import ANKLE_HEIGHT, ScaleEstimate, Segments, measure_scale, segments
 from .preprocess import Detection, Preprocessor
 from .stamp_watch import StampWatch
@@ -930,6 +930,7 @@ class BootstrapResult:
     # views were timed by here (its lead, or 0 where its stamps fitted its pairs better)
     mistimed: Mapping[str, float] = field(default_factory=dict)
     depth: np.ndarray | None = None
+    joins: tuple[str, ...] = ()  # the groups of cameras no pair linked to the others, and how each was joined (or not)
 
     def __post_init__(self) -> None:
         C = len(self.names)
@@ -966,6 +967,7 @@ class BootstrapResult:
             "bridge_checks": list(self.checks),
             "resections": list(self.resections),
             "mistimed": dict(self.mistimed),
+            "joined_groups": list(self.joins),
         }
 
 
@@ -1185,10 +1187,6 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     (``stamps_apart``; name -> lead, s): their views timed by their lead or as stamped,
     whichever their pairs agree with more (``_timed``). Raises BootstrapError when fewer
     than 2 cameras can be placed."""
-    from .optimize import Problem, solve
-    from .relocalize import relocalize
-    from .resect import EVENT_S, PAIR_SPLIT_DEG, block_witnesses, follow_moved, move_block, resect_unplaced, turned_blocks
-
     cfg = config.bootstrap
     say = progress or (lambda _m: None)
     t_start = _time.perf_counter()
@@ -1207,6 +1205,88 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
         raise BootstrapError(f"{len(frames)} framesets with >= 2 views: too few to start "
                              f"(a pair needs {cfg.min_pair_frames})")
     data_seconds = frames[-1][0] - frames[0][0]
+    g = _place(frames, names, focal, config, heights, seed=seed, say=say, stages=stages)
+    t0 = _time.perf_counter()
+    g, scale, note, spec = _on_floor(frames, g, names, config, heights, say)
+    stages["people"] = _time.perf_counter() - t0
+    joins: list[str] = []
+    if cfg.join_groups:
+        t0 = _time.perf_counter()
+        g, scale, note, spec, joins = _join_groups(frames, g, (scale, note, spec), names, focal, config, heights,
+                                                   seed=seed, say=say)
+        stages["groups"] = _time.perf_counter() - t0
+    located = g.located
+    R, t = g.R.copy(), g.t.copy()
+    R[~located], t[~located] = np.eye(3), 0.0
+    std_t, std_r = np.where(located, g.std_t, np.nan), np.where(located, g.std_r, np.nan)
+    residual_px = np.where(located, g.residual_px, np.nan)
+    observations = np.where(located, g.observations, 0)
+    depth = np.where(located, g.depth, np.nan)
+    return BootstrapResult(tuple(names), R, t, located, std_t, std_r, scale, note, g.pairs, g.tried, len(frames),
+                           float(data_seconds), _time.perf_counter() - t_start, stages, g.checks, g.resections,
+                           residual_px, observations, spec, timed, depth, tuple(joins))
+
+
+@dataclass(frozen=True)
+class _Placed:
+    """One group of cameras placed by steps 1-5 (in the units of its rough scale until
+    ``_on_floor``). R (C, 3, 3), t (C, 3), located (C,) bool; std_t (C,) m, std_r (C,) deg,
+    residual_px (C,), observations (C,), depth (C,) m from the last adjustment (NaN, 0
+    where unknown); pairs: the view graph's pairs; tried: pairs tried; checks,
+    resections: as BootstrapResult's; optimize: the adjustments' settings (their bones)."""
+
+    R: np.ndarray
+    t: np.ndarray
+    located: np.ndarray
+    std_t: np.ndarray
+    std_r: np.ndarray
+    residual_px: np.ndarray
+    observations: np.ndarray
+    depth: np.ndarray
+    pairs: int
+    tried: int
+    checks: tuple[str, ...]
+    resections: tuple[str, ...]
+    optimize: OptimizeConfig
+
+
+def _batch(cycle: int, frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located: np.ndarray, focal: np.ndarray,
+           config: EngineConfig, opt: OptimizeConfig, *, seed: int, marginals: bool) -> Solution:
+    """One of the bootstrap's bundle adjustments: every frame of the ``located`` cameras
+    re-associated with R, t, under a weak prior (a gauge, not information)."""
+    from .optimize import Problem, solve
+
+    cfg = config.bootstrap
+    C = len(R)
+    prior = np.diag([np.radians(cfg.prior_std_rotation) ** 2] * 3 + [cfg.prior_std_translation**2] * 3)
+    return solve(Problem(cycle=cycle, R=R.copy(), t=t.copy(), prior_R=R.copy(), prior_t=t.copy(),
+                         prior_cov=np.repeat(prior[None], C, axis=0), focal=focal, config=opt,
+                         frames=tuple(_without(frames, located)), associate=config.associate, gate_px=None,
+                         max_hypotheses=cfg.batch_hypotheses, spacing=config.select.min_spacing / 2, seed=seed,
+                         marginals=marginals, kind="batch", bones_from_start=True))
+
+
+def _stds(sol: Solution) -> tuple[np.ndarray, np.ndarray]:
+    """(std_t (C,) m, std_r (C,) deg) of a solution's shape covariances (NaN where unknown)."""
+    C = len(sol.active)
+    std_t, std_r = np.full(C, np.nan), np.full(C, np.nan)
+    for c in np.flatnonzero(sol.active):
+        P = sol.cov_shape[c]
+        if np.all(np.isfinite(P)):
+            std_t[c], sr = pose_std(P)
+            std_r[c] = np.degrees(sr)
+    return std_t, std_r
+
+
+def _place(frames: list[Frame], names: Sequence[str], focal: np.ndarray, config: EngineConfig,
+           heights: Sequence[float], *, seed: int, say: Progress, stages: dict[str, float]) -> _Placed:
+    """Steps 1-5 of the module doc on ``frames``: the cameras of the group the busiest
+    pairs reach. Raises BootstrapError when fewer than 2 can be placed."""
+    from .relocalize import relocalize
+    from .resect import EVENT_S, PAIR_SPLIT_DEG, block_witnesses, follow_moved, move_block, resect_unplaced, turned_blocks
+
+    cfg = config.bootstrap
+    C = len(names)
 
     # 1. pairs
     t0 = _time.perf_counter()
@@ -1279,7 +1359,6 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     t0 = _time.perf_counter()
     std_t = np.full(C, np.nan)
     std_r = np.full(C, np.nan)
-    prior = np.diag([np.radians(cfg.prior_std_rotation) ** 2] * 3 + [cfg.prior_std_translation**2] * 3)
     opt = config.optimize.model_copy(update={"max_iterations": max(config.optimize.max_iterations, 100)})
     bones_auto = opt.bones == "auto"
     if bones_auto:  # a scale carried by bones needs them to hold it in the adjustment too
@@ -1298,13 +1377,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     while r < rounds:
         r += 1
         last = r == rounds
-        fr = _without(frames, located)
-        p = Problem(cycle=r, R=R.copy(), t=t.copy(), prior_R=R.copy(), prior_t=t.copy(),
-                    prior_cov=np.repeat(prior[None], C, axis=0), focal=focal, config=opt, frames=tuple(fr),
-                    associate=config.associate, gate_px=None, max_hypotheses=cfg.batch_hypotheses,
-                    spacing=config.select.min_spacing / 2, seed=int(rng.integers(2**31)), marginals=last,
-                    kind="batch", bones_from_start=True)
-        sol = solve(p)
+        sol = _batch(r, frames, R, t, located, focal, config, opt, seed=int(rng.integers(2**31)), marginals=last)
         if not sol.ok and not last:
             say(f"bundle adjustment {r}: {sol.reason}")
             continue
@@ -1319,11 +1392,7 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
         if last and sol.ok:
             residual_px, observations = sol.residual_cam_px.copy(), sol.obs_per_camera.copy()
             depth = sol.depth_cam.copy()
-            for c in np.flatnonzero(sol.active):
-                P = sol.cov_shape[c]
-                if np.all(np.isfinite(P)):
-                    std_t[c], sr = pose_std(P)
-                    std_r[c] = np.degrees(sr)
+            std_t, std_r = _stds(sol)
         if last and not tried_reloc:
             tried_reloc = True
             R, t, located, checks = check_bridged(frames, good, R, t, located, focal, config, seed=seed)
@@ -1432,9 +1501,16 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
                 say("one more bundle adjustment")
                 rounds += 1
     stages["bundle"] = _time.perf_counter() - t0
+    return _Placed(R, t, located, std_t, std_r, residual_px, observations, depth, len(good), tried, check_notes,
+                   resect_notes, opt)
 
-    # 6. people: scale, then the floor
-    t0 = _time.perf_counter()
+
+def _on_floor(frames: Sequence[Frame], g: _Placed, names: Sequence[str], config: EngineConfig,
+              heights: Sequence[float], say: Progress) -> tuple[_Placed, ScaleEstimate | None, str, FloorFrame]:
+    """Step 6 of the module doc: ``g`` in metres by its people and in the frame of their
+    floor; with the scale, the frame's note and its definition."""
+    cfg = config.bootstrap
+    R, t, std_t, depth, located = g.R, g.t, g.std_t, g.depth, g.located
     scale, seg = measure_scale(frames, R, t, config.associate, cfg, heights=heights, cameras=located)
     if scale is not None:
         t = t * scale.factor
@@ -1449,14 +1525,69 @@ def bootstrap(frames: Sequence[Frame], names: Sequence[str], focal: np.ndarray, 
     F, o, note, spec = floor_frame(seg, t, located, mean_h, names, config.optimize.floor_sigma)
     R = np.einsum("ij,cjk->cik", F, R)
     t = (t - o) @ F.T
-    R[~located], t[~located] = np.eye(3), 0.0
-    std_t[~located] = np.nan
-    std_r[~located] = np.nan
-    residual_px[~located], observations[~located], depth[~located] = np.nan, 0, np.nan
-    stages["people"] = _time.perf_counter() - t0
-    return BootstrapResult(tuple(names), R, t, located, std_t, std_r, scale, note, len(good), tried, len(frames),
-                           float(data_seconds), _time.perf_counter() - t_start, stages, check_notes, resect_notes,
-                           residual_px, observations, spec, timed, depth)
+    return replace(g, R=R, t=t, std_t=std_t, depth=depth), scale, note, spec
+
+
+def _join_groups(frames: list[Frame], g: _Placed, floor: tuple[ScaleEstimate | None, str, FloorFrame],
+                 names: Sequence[str], focal: np.ndarray, config: EngineConfig, heights: Sequence[float], *,
+                 seed: int, say: Progress) -> tuple[_Placed, ScaleEstimate | None, str, FloorFrame, list[str]]:
+    """The cameras ``g`` left unplaced, bootstrapped on their own and joined to it by the
+    persons both triangulate (``backend.groups``), as long as a group of >= 2 is placed
+    and joined; then all adjusted together and put on their floor again. Returns ``g``
+    (as given when nothing joined) with its floor and a note per group tried."""
+    from .groups import join
+
+    cfg = config.bootstrap
+    scale, note, spec = floor
+    notes: list[str] = []
+    while (rest := ~g.located).sum() >= 2:
+        part = _without(frames, rest)
+        if len(part) < cfg.min_pair_frames:
+            break
+        names_rest = ", ".join(names[c] for c in np.flatnonzero(rest))
+        say(f"not placed: {names_rest}; bootstrapped on their own, to be joined by the persons both groups see")
+        try:
+            h = _place(part, names, focal, config, heights, seed=seed, say=lambda m: say("  " + m), stages={})
+            h, _, _, _ = _on_floor(part, h, names, config, heights, lambda m: say("  " + m))
+        except BootstrapError as e:
+            notes.append(f"{names_rest}: not placed on their own ({e})")
+            say(notes[-1])
+            break
+        group = h.located & rest
+        j = join(frames, (g.R, g.t, g.located), (h.R, h.t, group), focal, view_box(frames, len(names)),
+                 config.associate, cfg, seed=seed)
+        notes.append(f"{', '.join(names[c] for c in np.flatnonzero(group))}: {j.summary()}")
+        say(notes[-1])
+        if not j.accepted:
+            break
+        R, t = g.R.copy(), g.t.copy()
+        R[group] = np.einsum("ij,cjk->cik", j.Q, h.R[group])
+        t[group] = j.s * h.t[group] @ j.Q.T + j.d
+        located = g.located | group
+        opt = g.optimize if g.optimize.bones != "off" else h.optimize
+        rng = np.random.default_rng(seed)
+        sol = None
+        for r in range(1, cfg.batch_rounds + 1):
+            last = r == cfg.batch_rounds
+            s = _batch(r, frames, R, t, located, focal, config, opt, seed=int(rng.integers(2**31)), marginals=last)
+            if not s.ok:
+                say(f"  bundle adjustment of the joined groups {r}: {s.reason}")
+                continue
+            sol, R, t = s, s.R.copy(), s.t.copy()
+            located &= s.active
+            say(f"  bundle adjustment of the joined groups {r}/{cfg.batch_rounds}: {s.hypotheses} hypotheses, "
+                f"{int(s.active.sum())} cameras, median reprojection "
+                f"{np.median(s.residual_px) if len(s.residual_px) else float('nan'):.2f} px")
+        if sol is None:
+            notes.append("the joined groups' adjustment failed: the second group is left out")
+            say(notes[-1])
+            break
+        std_t, std_r = _stds(sol)
+        g = _Placed(R, t, located, std_t, std_r, sol.residual_cam_px.copy(), sol.obs_per_camera.copy(),
+                    sol.depth_cam.copy(), g.pairs + h.pairs, g.tried, g.checks + h.checks,
+                    g.resections + h.resections, opt)
+        g, scale, note, spec = _on_floor(frames, g, names, config, heights, say)
+    return g, scale, note, spec, notes
 
 
 def mistimed_summary(timed: Mapping[str, float]) -> str:

@@ -381,6 +381,10 @@ class BootstrapConfig(_Section):
                                      "std of their centres): a person at one spot leaves the pose poorly determined")
     resect_ambiguity: float = Field(0.5, ge=0, description="no clearly different pose (10°, 0.5 m) may agree in more than "
                                     "this share of the frames the best one agrees in")
+    join_groups: bool = Field(True, description="cameras no pair links to the placed ones (two rooms joined by a door: "
+                              "where a camera in each sees one person, it is a different one) are bootstrapped on their "
+                              "own and joined as one body by the persons each group sees of the other's (backend/groups.py; "
+                              "the resection's guards, resect_*, pooled over the group's cameras)")
     late: bool = Field(True, description="cameras the bootstrap did not place are resected again (same guards) against "
                        "the online estimate over all data when the run ends, and join its final batch adjustment "
                        "(backend/late_join.py) ...")

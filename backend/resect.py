@@ -33,7 +33,7 @@ from __future__ import annotations
 import functools
 import warnings
 from dataclasses import dataclass, replace
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -222,16 +222,42 @@ def _covariance(X: np.ndarray, x: np.ndarray, frame: np.ndarray, R: np.ndarray, 
     return Hi @ meat @ Hi
 
 
-def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, box: np.ndarray,
-           cfg: BootstrapConfig, *, seed: int = 0, iterations: int = 200,
-           at: tuple[np.ndarray, np.ndarray] | None = None) -> Resection:
-    """The pose of camera ``cam`` from the persons the placed cameras triangulate
-    (``triangulate_persons``) and its own detections in the same frames; ``box`` (2, 2):
-    where its detections lie in its image (``bootstrap.view_box``); ``at``: a pose it has
-    (R (3, 3), t (3,)) whose agreeing frames are counted too (``Resection.held``). See the
-    module doc."""
-    tol = cfg.resect_px / focal
-    # candidates: (person, detection) in the same frame
+@dataclass(frozen=True)
+class Candidates:
+    """What one camera could see of the persons others triangulate: every (person,
+    detection) of one frame with >= 6 joints in both. P: (K, 17, 3) the persons' joints;
+    x: (K, 17, 2) the detections (normalised); frame: (K,) frame index; detections: the
+    camera's detections per frame index (all, candidates or not)."""
+
+    P: np.ndarray
+    x: np.ndarray
+    frame: np.ndarray
+    detections: Mapping[int, list[np.ndarray]]
+
+    def __post_init__(self) -> None:
+        K = len(self.frame)
+        assert self.P.shape == (K, 17, 3) and self.x.shape == (K, 17, 2)
+
+    @property
+    def frames(self) -> int:
+        return len(np.unique(self.frame))
+
+    def agreeing(self, R: np.ndarray, t: np.ndarray, tol: float) -> tuple[int, np.ndarray]:
+        """(frames in which the camera at R (3, 3), t (3,) sees one of the persons within
+        ``tol`` (normalised, the joints' median), each such frame's best candidate)."""
+        if not len(self.frame):
+            return 0, np.zeros(0, np.int64)
+        _, inv = np.unique(self.frame, return_inverse=True)
+        e = _frame_errors(self.P, self.x, R, t)
+        order = np.lexsort((e, inv))  # by frame, then error: each frame's best candidate first
+        first = np.r_[True, inv[order][1:] != inv[order][:-1]]
+        arg = order[first]
+        agree = e[arg] < tol
+        return int(agree.sum()), arg[agree]
+
+
+def candidates(frames: Sequence[Frame], persons: Persons, cam: int) -> Candidates:
+    """Camera ``cam``'s candidates against ``persons`` (triangulated in ``frames``)."""
     cand_P, cand_x, cand_f = [], [], []
     dets_by_frame: dict[int, list[np.ndarray]] = {}
     for fi, (_, views) in enumerate(frames):
@@ -246,26 +272,33 @@ def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, bo
                 cand_P.append(persons.X[k])
                 cand_x.append(xy)
                 cand_f.append(fi)
-    nf = len(set(cand_f))
+    if not cand_f:
+        return Candidates(np.zeros((0, 17, 3)), np.zeros((0, 17, 2)), np.zeros(0, np.int64), dets_by_frame)
+    return Candidates(np.stack(cand_P), np.stack(cand_x), np.array(cand_f, np.int64), dets_by_frame)
+
+
+def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, box: np.ndarray,
+           cfg: BootstrapConfig, *, seed: int = 0, iterations: int = 200,
+           at: tuple[np.ndarray, np.ndarray] | None = None) -> Resection:
+    """The pose of camera ``cam`` from the persons the placed cameras triangulate
+    (``triangulate_persons``) and its own detections in the same frames; ``box`` (2, 2):
+    where its detections lie in its image (``bootstrap.view_box``); ``at``: a pose it has
+    (R (3, 3), t (3,)) whose agreeing frames are counted too (``Resection.held``). See the
+    module doc."""
+    tol = cfg.resect_px / focal
+    cands = candidates(frames, persons, cam)
+    dets_by_frame = cands.detections
+    nf = cands.frames
 
     def empty(reason: str) -> Resection:
         return Resection(cam, None, None, 0, 0, nf, 0.0, 0, float("nan"), None, False, reason)
 
     if nf < cfg.resect_min_frames:
         return empty(f"{nf} frames with candidates, {cfg.resect_min_frames} needed")
-    P = np.stack(cand_P)
-    x = np.stack(cand_x)
-    f = np.array(cand_f)
-    _, inv = np.unique(f, return_inverse=True)
+    P, x = cands.P, cands.x
 
     def score(R, t):
-        """(agreeing frames, best candidate per agreeing frame)."""
-        e = _frame_errors(P, x, R, t)
-        order = np.lexsort((e, inv))  # by frame, then error: each frame's best candidate first
-        first = np.r_[True, inv[order][1:] != inv[order][:-1]]
-        arg = order[first]
-        agree = e[arg] < tol
-        return int(agree.sum()), arg[agree]
+        return cands.agreeing(R, t, tol)
 
     rng = np.random.default_rng(seed)
     models = []  # (agreeing frames, R, t)

@@ -1,0 +1,225 @@
+"""Groups of cameras that no camera pair links, joined by the persons each group sees of
+the other's.
+
+Two rooms joined by a door: every pair within a room gives a relative pose, no pair across
+(where a camera in each room sees one person, it is a different one in each room, and the
+essential matrix rightly fails). The bootstrap places one group; each other group is
+bootstrapped on its own, in its own floor frame and with the metric scale of its own
+people (``bootstrap._join_groups``). Here such a group is joined to the placed one as one
+rigid body: a similarity X_placed = s Q X_group + d.
+
+One camera of the group resected against the placed group's persons (``resect.resect``)
+rarely has the frames to be trusted alone: through a door it sees a few of them, close
+together (measured, two rooms with four walkers, 120 s: 0-39 frames per camera). But each
+camera's pose, with the group's own geometry, is a candidate join, and a join is judged by
+every camera at once: the frames in which a camera of the group sees a person the placed
+cameras triangulate where the join puts it, and a placed camera one of the group's
+persons. The best candidate is refined on all those frames (least squares of the
+reprojection errors over the 7 parameters) and taken when it agrees in enough frames,
+over persons spread enough, and no clearly different join agrees nearly as often.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from .config import AssociateConfig, BootstrapConfig
+from .geometry import rotation_angle_deg, so3_exp
+from .preprocess import Detection
+from .resect import Candidates, _project, candidates, resect, triangulate_persons
+
+Frame = tuple[float, tuple[tuple[Detection, ...], ...]]
+
+_MAX_SCALE = 1.4  # the two groups' scales, each from its own people's bones, agree to within this factor
+_MAX_TILT = 10.0  # deg: both groups stand on their floor; a join that tilts one more is no join
+_REFINE_ROUNDS = 4
+
+
+@dataclass(frozen=True)
+class Join:
+    """How a group's frame maps onto the placed cameras': X_placed = s Q X_group + d.
+    frames: (camera, frame) agreements over both groups' cameras; cameras: how many
+    cameras agree at all; rival: the agreements of the best clearly different join (10°,
+    0.5 m at the group's cameras); spread: m, the agreeing persons' spread over the floor
+    (2nd principal std of their centres); residual_px: the agreeing joints' median
+    reprojection error."""
+
+    accepted: bool
+    reason: str
+    s: float = 1.0
+    Q: np.ndarray | None = None
+    d: np.ndarray | None = None
+    frames: int = 0
+    cameras: int = 0
+    rival: int = 0
+    spread: float = 0.0
+    residual_px: float = float("nan")
+
+    def summary(self) -> str:
+        if self.Q is None:
+            return f"not joined: {self.reason}"
+        return (f"{'joined' if self.accepted else 'not joined'}: its cameras and the others see each other's persons "
+                f"in {self.frames} frames ({self.cameras} cameras; a clearly different join {self.rival}), spread "
+                f"{self.spread:.2f} m, {self.residual_px:.1f} px, the scales {self.s:.3f} apart"
+                + ("" if self.accepted else f"; {self.reason}"))
+
+
+@dataclass(frozen=True)
+class _Side:
+    """One direction of the evidence: cameras of one group (poses R (N, 3, 3), t (N, 3)
+    in its own frame, focal (N,)) and their candidates against the other group's persons
+    (in the other's frame)."""
+
+    R: np.ndarray
+    t: np.ndarray
+    focal: np.ndarray
+    cands: tuple[Candidates, ...]
+
+
+def join(frames: Sequence[Frame], placed: tuple[np.ndarray, np.ndarray, np.ndarray],
+         group: tuple[np.ndarray, np.ndarray, np.ndarray], focal: np.ndarray, box: np.ndarray,
+         associate: AssociateConfig, cfg: BootstrapConfig, *, seed: int = 0) -> Join:
+    """The similarity that maps ``group`` (R (C, 3, 3), t (C, 3), its cameras (C,) bool;
+    on its floor, metres) onto ``placed`` (the same; disjoint cameras). ``box`` (C, 2, 2):
+    where each camera's detections lie (``bootstrap.view_box``)."""
+    Ra, ta, A = placed
+    Rb, tb, B = group
+    assert not (A & B).any()
+    pa = triangulate_persons(frames, Ra, ta, A, associate)
+    pb = triangulate_persons(frames, Rb, tb, B, associate)
+    ia, ib = np.flatnonzero(A), np.flatnonzero(B)
+    # the group's cameras against the placed persons; the placed cameras against the group's
+    into_a = _Side(Rb[ib], tb[ib], focal[ib], tuple(candidates(frames, pa, int(c)) for c in ib))
+    into_b = _Side(Ra[ia], ta[ia], focal[ia], tuple(candidates(frames, pb, int(c)) for c in ia))
+
+    hyps: list[tuple[float, np.ndarray, np.ndarray]] = []
+    for c in ib:  # a camera of the group resected in the placed frame
+        r = resect(frames, pa, int(c), float(focal[c]), box[c], cfg, seed=seed)
+        if r.R is not None:
+            Q = r.R @ Rb[c].T
+            hyps.append((1.0, Q, r.t - Q @ tb[c]))
+    for c in ia:  # a placed camera resected in the group's frame: the inverse join
+        r = resect(frames, pb, int(c), float(focal[c]), box[c], cfg, seed=seed)
+        if r.R is not None:
+            Q = Ra[c] @ r.R.T
+            hyps.append((1.0, Q, ta[c] - Q @ r.t))
+    if not hyps:
+        return Join(False, "no camera of either group sees enough of the other's persons to be resected "
+                           f"({cfg.resect_min_frames} frames with candidates)")
+    tol_a = cfg.resect_px / into_a.focal
+    tol_b = cfg.resect_px / into_b.focal
+    scored = sorted(((_agreeing(into_a, into_b, *h, tol_a, tol_b)[0], h) for h in hyps), key=lambda x: -x[0])
+    best = _refine(into_a, into_b, *scored[0][1], tol_a, tol_b)
+    centre = tb[ib].mean(0)
+
+    def different(h) -> bool:
+        return (rotation_angle_deg(h[1], best[1]) > 10.0
+                or np.linalg.norm(h[0] * h[1] @ centre + h[2] - (best[0] * best[1] @ centre + best[2])) > 0.5)
+
+    rival = 0
+    for _, h in scored[1:4]:
+        if different(h) and different(h := _refine(into_a, into_b, *h, tol_a, tol_b)):
+            rival = max(rival, _agreeing(into_a, into_b, *h, tol_a, tol_b)[0])
+    s, Q, d = best
+    n, cams, spread, res_px = _agreeing(into_a, into_b, s, Q, d, tol_a, tol_b, details=True)
+    tilt = rotation_angle_deg(Q, _turn_z(float(np.arctan2(Q[1, 0], Q[0, 0]))))
+    out = Join(False, "", s, Q, d, n, cams, rival, spread, res_px)
+    reasons = []
+    if n < 2 * cfg.resect_min_frames:
+        reasons.append(f"{n} agreeing frames, {2 * cfg.resect_min_frames} needed")
+    if cams < 2:
+        reasons.append("one camera alone agrees")
+    if spread < cfg.resect_min_spread:
+        reasons.append(f"the persons it agrees with spread {spread:.2f} m, {cfg.resect_min_spread:g} m needed")
+    if rival > cfg.resect_ambiguity * n:
+        reasons.append(f"a different join agrees in {rival} frames")
+    if not 1 / _MAX_SCALE < s < _MAX_SCALE:
+        reasons.append(f"the groups' scales {s:.2f} apart")
+    if tilt > _MAX_TILT:
+        reasons.append(f"it tilts the group {tilt:.1f}° off its floor")
+    return Join(not reasons, "; ".join(reasons), s, Q, d, n, cams, rival, spread, res_px)
+
+
+def _turn_z(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _poses_into_a(side: _Side, s: float, Q: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The group's cameras in the placed frame."""
+    return np.einsum("ij,njk->nik", Q, side.R), s * side.t @ Q.T + d
+
+
+def _poses_into_b(side: _Side, s: float, Q: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The placed cameras in the group's frame (the inverse join)."""
+    return np.einsum("ji,njk->nik", Q, side.R), (side.t - d) @ Q / s
+
+
+def _agreeing(into_a: _Side, into_b: _Side, s: float, Q: np.ndarray, d: np.ndarray, tol_a: np.ndarray,
+              tol_b: np.ndarray, *, details: bool = False):
+    """Agreeing (camera, frame)s of the join over both sides; with ``details`` also
+    (cameras that agree, the agreeing persons' spread in m, their median error in px)."""
+    total, cams, centres, errs = 0, 0, [], []
+    for side, poses, tol, to_a in ((into_a, _poses_into_a, tol_a, None), (into_b, _poses_into_b, tol_b, (s, Q, d))):
+        R, t = poses(side, s, Q, d)
+        for k, cand in enumerate(side.cands):
+            n, sel = cand.agreeing(R[k], t[k], tol[k])
+            total += n
+            cams += n > 0
+            if details and n:
+                P = cand.P[sel]
+                c = np.nanmean(P, axis=1)
+                centres.append(c if to_a is None else s * c @ Q.T + d)
+                u, _ = _project(P, R[k], t[k])
+                errs.append(np.linalg.norm(u - cand.x[sel], axis=-1).ravel() * side.focal[k])
+    if not details:
+        return total, None
+    spread = 0.0
+    if centres and len(C := np.concatenate(centres)) >= 3:
+        C = C[np.isfinite(C).all(1)]
+        sv = np.linalg.svd(C[:, :2] - C[:, :2].mean(0), compute_uv=False) / np.sqrt(len(C))
+        spread = float(sv[1])
+    e = np.concatenate(errs) if errs else np.zeros(0)
+    return total, cams, spread, float(np.nanmedian(e)) if np.isfinite(e).any() else float("nan")
+
+
+def _refine(into_a: _Side, into_b: _Side, s: float, Q: np.ndarray, d: np.ndarray, tol_a: np.ndarray,
+            tol_b: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """The join refined on the frames it agrees in (both sides; robust least squares of
+    the reprojection errors in px), those frames found again after each round."""
+    from scipy.optimize import least_squares
+
+    for _ in range(_REFINE_ROUNDS):
+        # the agreeing correspondences: (side, camera k, P (M, 17, 3), x (M, 17, 2))
+        corr = []
+        for side, poses, tol in ((into_a, _poses_into_a, tol_a), (into_b, _poses_into_b, tol_b)):
+            R, t = poses(side, s, Q, d)
+            for k, cand in enumerate(side.cands):
+                n, sel = cand.agreeing(R[k], t[k], tol[k])
+                if n:
+                    ok = np.isfinite(cand.P[sel]).all(-1) & np.isfinite(cand.x[sel]).all(-1)
+                    corr.append((side is into_a, k, cand.P[sel][ok], cand.x[sel][ok], side))
+        if sum(len(c[2]) for c in corr) < 12:
+            break
+        s0, Q0, d0 = s, Q, d
+
+        def residuals(p: np.ndarray) -> np.ndarray:
+            si, Qi, di = s0 * np.exp(p[6]), so3_exp(p[:3]) @ Q0, d0 + p[3:6]
+            out = []
+            for in_a, k, P, x, side in corr:
+                if in_a:  # the group's camera k in the placed frame, the placed persons
+                    R, t = Qi @ side.R[k], si * Qi @ side.t[k] + di
+                    X = P
+                else:  # the placed camera k, the group's persons mapped into the placed frame
+                    R, t = side.R[k], side.t[k]
+                    X = si * P @ Qi.T + di
+                u, z = _project(X, R, t)
+                out.append(np.where(z[:, None] > 0.05, u - x, 1.0).ravel() * side.focal[k])
+            return np.concatenate(out)
+
+        sol = least_squares(residuals, np.zeros(7), loss="soft_l1", f_scale=3.0, max_nfev=100)
+        s, Q, d = s0 * float(np.exp(sol.x[6])), so3_exp(sol.x[:3]) @ Q0, d0 + sol.x[3:6]
+    return s, Q, d
