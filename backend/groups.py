@@ -27,7 +27,7 @@ from typing import Sequence
 import numpy as np
 
 from .config import AssociateConfig, BootstrapConfig
-from .geometry import rotation_angle_deg, so3_exp
+from .geometry import rotation_angle_deg
 from .preprocess import Detection
 from .resect import Candidates, _project, candidates, resect, triangulate_persons
 
@@ -96,19 +96,23 @@ def join(frames: Sequence[Frame], placed: tuple[np.ndarray, np.ndarray, np.ndarr
     into_b = _Side(Ra[ia], ta[ia], focal[ia], tuple(candidates(frames, pb, int(c)) for c in ia))
 
     hyps: list[tuple[float, np.ndarray, np.ndarray]] = []
-    for c in ib:  # a camera of the group resected in the placed frame
-        r = resect(frames, pa, int(c), float(focal[c]), box[c], cfg, seed=seed)
-        if r.R is not None:
-            Q = r.R @ Rb[c].T
-            hyps.append((1.0, Q, r.t - Q @ tb[c]))
-    for c in ia:  # a placed camera resected in the group's frame: the inverse join
-        r = resect(frames, pb, int(c), float(focal[c]), box[c], cfg, seed=seed)
-        if r.R is not None:
-            Q = Ra[c] @ r.R.T
-            hyps.append((1.0, Q, ta[c] - Q @ r.t))
+    tilted = 0
+    for c in np.r_[ib, ia]:
+        r = resect(frames, pa if B[c] else pb, int(c), float(focal[c]), box[c], cfg, seed=seed)
+        if r.R is None:
+            continue
+        # a camera of the group resected in the placed frame; a placed camera resected in
+        # the group's frame gives the inverse join
+        Q = r.R @ Rb[c].T if B[c] else Ra[c] @ r.R.T
+        if _tilt(Q) > _MAX_TILT:
+            tilted += 1
+            continue
+        Q = _turn_z(_yaw(Q))
+        hyps.append((1.0, Q, r.t - Q @ tb[c] if B[c] else ta[c] - Q @ r.t))
     if not hyps:
         return Join(False, "no camera of either group sees enough of the other's persons to be resected "
-                           f"({cfg.resect_min_frames} frames with candidates)")
+                           f"({cfg.resect_min_frames} frames with candidates)"
+                    + (f", or its pose tilts the groups' floors apart ({tilted})" if tilted else ""))
     tol_a = cfg.resect_px / into_a.focal
     tol_b = cfg.resect_px / into_b.focal
     scored = sorted(((_agreeing(into_a, into_b, *h, tol_a, tol_b)[0], h) for h in hyps), key=lambda x: -x[0])
@@ -125,8 +129,6 @@ def join(frames: Sequence[Frame], placed: tuple[np.ndarray, np.ndarray, np.ndarr
             rival = max(rival, _agreeing(into_a, into_b, *h, tol_a, tol_b)[0])
     s, Q, d = best
     n, cams, spread, res_px = _agreeing(into_a, into_b, s, Q, d, tol_a, tol_b, details=True)
-    tilt = rotation_angle_deg(Q, _turn_z(float(np.arctan2(Q[1, 0], Q[0, 0]))))
-    out = Join(False, "", s, Q, d, n, cams, rival, spread, res_px)
     reasons = []
     if n < 2 * cfg.resect_min_frames:
         reasons.append(f"{n} agreeing frames, {2 * cfg.resect_min_frames} needed")
@@ -138,9 +140,16 @@ def join(frames: Sequence[Frame], placed: tuple[np.ndarray, np.ndarray, np.ndarr
         reasons.append(f"a different join agrees in {rival} frames")
     if not 1 / _MAX_SCALE < s < _MAX_SCALE:
         reasons.append(f"the groups' scales {s:.2f} apart")
-    if tilt > _MAX_TILT:
-        reasons.append(f"it tilts the group {tilt:.1f}° off its floor")
     return Join(not reasons, "; ".join(reasons), s, Q, d, n, cams, rival, spread, res_px)
+
+
+def _yaw(Q: np.ndarray) -> float:
+    return float(np.arctan2(Q[1, 0], Q[0, 0]))
+
+
+def _tilt(Q: np.ndarray) -> float:
+    """deg: how far Q (3, 3) turns z."""
+    return float(np.degrees(np.arccos(np.clip(Q[2, 2], -1.0, 1.0))))
 
 
 def _turn_z(yaw: float) -> np.ndarray:
@@ -189,7 +198,10 @@ def _agreeing(into_a: _Side, into_b: _Side, s: float, Q: np.ndarray, d: np.ndarr
 def _refine(into_a: _Side, into_b: _Side, s: float, Q: np.ndarray, d: np.ndarray, tol_a: np.ndarray,
             tol_b: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """The join refined on the frames it agrees in (both sides; robust least squares of
-    the reprojection errors in px), those frames found again after each round."""
+    the reprojection errors in px), those frames found again after each round. Only its
+    turn about z: both groups stand on their floor, and a door's persons, seen from one
+    side, hold a tilt about the door poorly (measured: a join tilted 12° agreed in 62 of
+    the 116 frames of the right one)."""
     from scipy.optimize import least_squares
 
     for _ in range(_REFINE_ROUNDS):
@@ -207,7 +219,7 @@ def _refine(into_a: _Side, into_b: _Side, s: float, Q: np.ndarray, d: np.ndarray
         s0, Q0, d0 = s, Q, d
 
         def residuals(p: np.ndarray) -> np.ndarray:
-            si, Qi, di = s0 * np.exp(p[6]), so3_exp(p[:3]) @ Q0, d0 + p[3:6]
+            si, Qi, di = s0 * np.exp(p[4]), _turn_z(p[0]) @ Q0, d0 + p[1:4]
             out = []
             for in_a, k, P, x, side in corr:
                 if in_a:  # the group's camera k in the placed frame, the placed persons
@@ -220,6 +232,6 @@ def _refine(into_a: _Side, into_b: _Side, s: float, Q: np.ndarray, d: np.ndarray
                 out.append(np.where(z[:, None] > 0.05, u - x, 1.0).ravel() * side.focal[k])
             return np.concatenate(out)
 
-        sol = least_squares(residuals, np.zeros(7), loss="soft_l1", f_scale=3.0, max_nfev=100)
-        s, Q, d = s0 * float(np.exp(sol.x[6])), so3_exp(sol.x[:3]) @ Q0, d0 + sol.x[3:6]
+        sol = least_squares(residuals, np.zeros(5), loss="soft_l1", f_scale=3.0, max_nfev=100)
+        s, Q, d = s0 * float(np.exp(sol.x[4])), _turn_z(sol.x[0]) @ Q0, d0 + sol.x[1:4]
     return s, Q, d

@@ -1,0 +1,76 @@
+"""Joining a group of cameras no pair links to the placed ones (backend/groups.py): two
+rooms joined by a door (``scenes.tworooms``), four walkers, a short seeded simulation. The
+placed room keeps its true poses; the other room's are given in a frame of their own (a
+known similarity away), as its own bootstrap would give them: the join must find that
+similarity from the persons each room sees of the other's, and must refuse when those
+sightings are of other instants (nobody seen by both)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from backend.bootstrap import bootstrap, collect_frames, view_box
+from backend.config import EngineConfig
+from backend.evaluate import evaluate
+from backend.geometry import rotation_angle_deg, so3_exp
+from backend.groups import join
+
+
+@pytest.fixture(scope="module")
+def two_rooms():
+    from edge_clients.sim import SimConfig, Simulator
+    from edge_clients.sim.scenes import tworooms
+
+    scene = tworooms()
+    names = scene.names
+    sim = Simulator(scene, SimConfig(persons=4, duration=90.0, seed=0))
+    msgs = [m for _, m in sim.messages()]
+    cfg = EngineConfig().for_images(i.resolution for i in scene.intrinsics.values())
+    frames = collect_frames(names, scene.intrinsics, cfg, msgs)
+    R = np.array([scene.poses[n].R for n in names])
+    t = np.array([scene.poses[n].t for n in names])
+    focal = np.array([0.5 * (scene.intrinsics[n].fx + scene.intrinsics[n].fy) for n in names])
+    return scene, frames, R, t, focal, cfg
+
+
+# the second room's own frame: X_own = s Q X_world + d (turned about z, as two floor frames are)
+S, Q, D = 0.94, so3_exp(np.array([0.0, 0.0, 1.9])), np.array([-3.0, 7.5, 0.02])
+
+
+def _own_frame(R, t):
+    return np.einsum("ij,cjk->cik", Q, R), S * t @ Q.T + D
+
+
+def test_a_room_in_its_own_frame_is_joined_by_what_each_room_sees_of_the_other(two_rooms):
+    _, frames, R, t, focal, cfg = two_rooms
+    first = np.arange(len(R)) < 4
+    Rb, tb = _own_frame(R, t)
+    j = join(frames, (R, t, first), (Rb, tb, ~first), focal, view_box(frames, len(R)), cfg.associate, cfg.bootstrap)
+    print(j.summary())
+    assert j.accepted, j.summary()
+    assert j.cameras >= 4 and j.frames >= 2 * cfg.bootstrap.resect_min_frames
+    # the join undoes the own frame: X_world = (1/S) Q^T (X_own - D)
+    assert j.s == pytest.approx(1 / S, rel=0.01)
+    assert rotation_angle_deg(j.Q, Q.T) < 0.5
+    back = j.s * tb[~first] @ j.Q.T + j.d
+    assert np.abs(back - t[~first]).max() < 0.05
+
+
+def test_sightings_of_other_instants_join_nothing(two_rooms):
+    _, frames, R, t, focal, cfg = two_rooms
+    first = np.arange(len(R)) < 4
+    # the second room's detections 20 s late: each room still sees people, never the other's
+    # at the instant it triangulates them
+    times = np.array([f[0] for f in frames])
+    late = []
+    for k, (time_, views) in enumerate(frames):
+        j = int(np.searchsorted(times, time_ - 20.0))
+        own = tuple(v for v in views if first[v[0].cam])
+        other = tuple(v for v in frames[j][1] if not first[v[0].cam]) if time_ - 20.0 >= times[0] else ()
+        if len(own) + len(other) >= 2:
+            late.append((time_, tuple(sorted(own + other, key=lambda v: v[0].cam))))
+    Rb, tb = _own_frame(R, t)
+    res = join(late, (R, t, first), (Rb, tb, ~first), focal, view_box(late, len(R)), cfg.associate, cfg.bootstrap)
+    print(res.summary())
+    assert not res.accepted
