@@ -45,8 +45,8 @@ intervals in a known world). This module finds one from the preprocessed framese
 7. Groups. Cameras no pair links to the placed ones (two rooms joined by a door: where a
    camera in each room sees one person, it is a different one) are bootstrapped on their
    own (steps 1-6) and joined to the placed ones as one body, by the persons each group
-   sees of the other's (``backend.groups``); then all are adjusted together and step 6
-   runs again.
+   sees of the other's (``backend.groups``). Each keeps its own adjustment (one over both
+   sides of a wall associates people through it); step 6 runs again over all.
 
 The result goes to the online pipeline as its initial estimate, with an honest, large
 uncertainty (``handover``).
@@ -68,7 +68,7 @@ from .cameras import CameraSet, Extrinsics, Intrinsics, Pose, natural_key
 from .config import BootstrapConfig, EngineConfig, FloorFrame, OptimizeConfig
 from .floor import median_up, plane_of_ankles, world_frame
 from .geometry import hat, pose_std, project_so3, rotation_angle_deg, so3_exp, triangulate_batch
-from .optimize import BONE_NAMES, BONES, Solution
+from .optimize import BONE_NAMES, BONES
 from .people import ANKLE_HEIGHT, ScaleEstimate, Segments, measure_scale, segments
 from .preprocess import Detection, Preprocessor
 from .stamp_watch import StampWatch
@@ -1255,38 +1255,11 @@ class _Placed:
     optimize: OptimizeConfig
 
 
-def _batch(cycle: int, frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located: np.ndarray, focal: np.ndarray,
-           config: EngineConfig, opt: OptimizeConfig, *, seed: int, marginals: bool) -> Solution:
-    """One of the bootstrap's bundle adjustments: every frame of the ``located`` cameras
-    re-associated with R, t, under a weak prior (a gauge, not information)."""
-    from .optimize import Problem, solve
-
-    cfg = config.bootstrap
-    C = len(R)
-    prior = np.diag([np.radians(cfg.prior_std_rotation) ** 2] * 3 + [cfg.prior_std_translation**2] * 3)
-    return solve(Problem(cycle=cycle, R=R.copy(), t=t.copy(), prior_R=R.copy(), prior_t=t.copy(),
-                         prior_cov=np.repeat(prior[None], C, axis=0), focal=focal, config=opt,
-                         frames=tuple(_without(frames, located)), associate=config.associate, gate_px=None,
-                         max_hypotheses=cfg.batch_hypotheses, spacing=config.select.min_spacing / 2, seed=seed,
-                         marginals=marginals, kind="batch", bones_from_start=True))
-
-
-def _stds(sol: Solution) -> tuple[np.ndarray, np.ndarray]:
-    """(std_t (C,) m, std_r (C,) deg) of a solution's shape covariances (NaN where unknown)."""
-    C = len(sol.active)
-    std_t, std_r = np.full(C, np.nan), np.full(C, np.nan)
-    for c in np.flatnonzero(sol.active):
-        P = sol.cov_shape[c]
-        if np.all(np.isfinite(P)):
-            std_t[c], sr = pose_std(P)
-            std_r[c] = np.degrees(sr)
-    return std_t, std_r
-
-
 def _place(frames: list[Frame], names: Sequence[str], focal: np.ndarray, config: EngineConfig,
            heights: Sequence[float], *, seed: int, say: Progress, stages: dict[str, float]) -> _Placed:
     """Steps 1-5 of the module doc on ``frames``: the cameras of the group the busiest
     pairs reach. Raises BootstrapError when fewer than 2 can be placed."""
+    from .optimize import Problem, solve
     from .relocalize import relocalize
     from .resect import EVENT_S, PAIR_SPLIT_DEG, block_witnesses, follow_moved, move_block, resect_unplaced, turned_blocks
 
@@ -1364,6 +1337,7 @@ def _place(frames: list[Frame], names: Sequence[str], focal: np.ndarray, config:
     t0 = _time.perf_counter()
     std_t = np.full(C, np.nan)
     std_r = np.full(C, np.nan)
+    prior = np.diag([np.radians(cfg.prior_std_rotation) ** 2] * 3 + [cfg.prior_std_translation**2] * 3)
     opt = config.optimize.model_copy(update={"max_iterations": max(config.optimize.max_iterations, 100)})
     bones_auto = opt.bones == "auto"
     if bones_auto:  # a scale carried by bones needs them to hold it in the adjustment too
@@ -1382,7 +1356,13 @@ def _place(frames: list[Frame], names: Sequence[str], focal: np.ndarray, config:
     while r < rounds:
         r += 1
         last = r == rounds
-        sol = _batch(r, frames, R, t, located, focal, config, opt, seed=int(rng.integers(2**31)), marginals=last)
+        fr = _without(frames, located)
+        p = Problem(cycle=r, R=R.copy(), t=t.copy(), prior_R=R.copy(), prior_t=t.copy(),
+                    prior_cov=np.repeat(prior[None], C, axis=0), focal=focal, config=opt, frames=tuple(fr),
+                    associate=config.associate, gate_px=None, max_hypotheses=cfg.batch_hypotheses,
+                    spacing=config.select.min_spacing / 2, seed=int(rng.integers(2**31)), marginals=last,
+                    kind="batch", bones_from_start=True)
+        sol = solve(p)
         if not sol.ok and not last:
             say(f"bundle adjustment {r}: {sol.reason}")
             continue
@@ -1397,7 +1377,11 @@ def _place(frames: list[Frame], names: Sequence[str], focal: np.ndarray, config:
         if last and sol.ok:
             residual_px, observations = sol.residual_cam_px.copy(), sol.obs_per_camera.copy()
             depth = sol.depth_cam.copy()
-            std_t, std_r = _stds(sol)
+            for c in np.flatnonzero(sol.active):
+                P = sol.cov_shape[c]
+                if np.all(np.isfinite(P)):
+                    std_t[c], sr = pose_std(P)
+                    std_r[c] = np.degrees(sr)
         if last and not tried_reloc:
             tried_reloc = True
             R, t, located, checks = check_bridged(frames, good, R, t, located, focal, config, seed=seed)
@@ -1578,11 +1562,16 @@ def _join_groups(frames: list[Frame], g: _Placed, floor: tuple[ScaleEstimate | N
 
         Rj = put(g.R, np.einsum("ij,cjk->cik", j.Q, h.R))
         tj = put(g.t, j.s * h.t @ j.Q.T + j.d)
-        g = _Placed(Rj, tj, g.located | group, put(g.std_t, j.s * h.std_t), put(g.std_r, h.std_r),
-                    put(g.residual_px, h.residual_px), put(g.observations, h.observations),
-                    put(g.depth, j.s * h.depth), g.pairs + h.pairs, g.tried, g.checks + h.checks,
-                    g.resections + h.resections, g.optimize if g.optimize.bones != "off" else h.optimize)
-        g, scale, note, spec = _on_floor(frames, g, names, config, heights, say)
+        joined = _Placed(Rj, tj, g.located | group, put(g.std_t, j.s * h.std_t), put(g.std_r, h.std_r),
+                         put(g.residual_px, h.residual_px), put(g.observations, h.observations),
+                         put(g.depth, j.s * h.depth), g.pairs + h.pairs, g.tried, g.checks + h.checks,
+                         g.resections + h.resections, g.optimize if g.optimize.bones != "off" else h.optimize)
+        try:
+            g, scale, note, spec = _on_floor(frames, joined, names, config, heights, say)
+        except BootstrapError as e:  # the placed group keeps the floor it had
+            notes.append(f"the joined groups found no floor ({e}): the group is left out")
+            say(notes[-1])
+            break
     return g, scale, note, spec, notes
 
 
