@@ -1524,7 +1524,7 @@ def _join_groups(frames: list[Frame], g: _Placed, floor: tuple[ScaleEstimate | N
     persons each group sees of the other's (``backend.groups``), as long as a group of
     >= 2 is placed and joined; then put on their floor again. Returns ``g`` (as given when
     nothing joined) with its floor and a note per group tried."""
-    from .groups import join
+    from .groups import contradicted, join
 
     cfg = config.bootstrap
     scale, note, spec = floor
@@ -1545,8 +1545,8 @@ def _join_groups(frames: list[Frame], g: _Placed, floor: tuple[ScaleEstimate | N
             say(notes[-1])
             break
         group = h.located & rest
-        j = join(frames, (g.R, g.t, g.located), (h.R, h.t, group), focal, view_box(frames, len(names)),
-                 config.associate, cfg, seed=seed)
+        box = view_box(frames, len(names))
+        j = join(frames, (g.R, g.t, g.located), (h.R, h.t, group), focal, box, config.associate, cfg, seed=seed)
         notes.append(f"{', '.join(names[c] for c in np.flatnonzero(group))}: {j.summary()}")
         say(notes[-1])
         if not j.accepted:
@@ -1562,6 +1562,13 @@ def _join_groups(frames: list[Frame], g: _Placed, floor: tuple[ScaleEstimate | N
 
         Rj = put(g.R, np.einsum("ij,cjk->cik", j.Q, h.R))
         tj = put(g.t, j.s * h.t @ j.Q.T + j.d)
+        bad = contradicted(frames, Rj, tj, g.located | group, group, focal, box, config.associate, cfg)
+        if bad:
+            notes.append("left out of the join, the others' persons in their view contradict them: "
+                         + ", ".join(f"{names[c]} (agrees in {n} of {k} frames)" for c, (n, k) in bad.items()))
+            say(notes[-1])
+            group = group.copy()
+            group[list(bad)] = False
         joined = _Placed(Rj, tj, g.located | group, put(g.std_t, j.s * h.std_t), put(g.std_r, h.std_r),
                          put(g.residual_px, h.residual_px), put(g.observations, h.observations),
                          put(g.depth, j.s * h.depth), g.pairs + h.pairs, g.tried, g.checks + h.checks,

@@ -256,6 +256,16 @@ class Candidates:
         return int(agree.sum()), arg[agree]
 
 
+    def in_view(self, persons: Persons, R: np.ndarray, t: np.ndarray, box: np.ndarray) -> int:
+        """Frames in which the camera at R (3, 3), t (3,) has one of ``persons`` in its
+        view (half its joints in front and inside ``box`` (2, 2), where its detections
+        lie) while it sees somebody."""
+        u, z = _project(persons.X, R, t)
+        inside = (z > 0.1) & np.all((u >= box[0]) & (u <= box[1]), axis=-1)
+        in_view = np.mean(inside, axis=1) >= 0.5
+        return len(set(persons.frame[in_view].tolist()) & set(self.detections))
+
+
 def candidates(frames: Sequence[Frame], persons: Persons, cam: int) -> Candidates:
     """Camera ``cam``'s candidates against ``persons`` (triangulated in ``frames``)."""
     cand_P, cand_x, cand_f = [], [], []
@@ -287,7 +297,6 @@ def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, bo
     module doc."""
     tol = cfg.resect_px / focal
     cands = candidates(frames, persons, cam)
-    dets_by_frame = cands.detections
     nf = cands.frames
 
     def empty(reason: str) -> Resection:
@@ -340,12 +349,7 @@ def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, bo
         Rm, tm = refine(Rm, tm)
         if different(Rm, tm, R, t):
             rival = max(rival, score(Rm, tm)[0])
-    # frames in which the pose puts a person in view while the camera sees somebody
-    u, z = _project(persons.X, R, t)
-    inside = (z > 0.1) & np.all((u >= box[0]) & (u <= box[1]), axis=-1)
-    in_view = np.mean(inside, axis=1) >= 0.5
-    seen = len(set(persons.frame[in_view].tolist()) & set(dets_by_frame))
-    seen = max(seen, n)
+    seen = max(cands.in_view(persons, R, t, box), n)
     coms = np.nanmean(P[sel], axis=1) if len(sel) else np.zeros((0, 3))
     spread = 0.0
     if len(coms) >= 3:
