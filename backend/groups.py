@@ -246,7 +246,8 @@ def contradicted(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located:
     somebody, fewer than ``resect_min_share`` agree (the resection's guards). A group's
     own bootstrap can misplace one of its cameras that no check of its own caught (a hall
     of 40, seed 1: cam_3 13 m off among 15 cameras joined; the others within 0.07 m but
-    one). Returns camera -> (agreeing, in view)."""
+    one). A pose that looks where nobody walks has nobody in view to contradict it, and
+    is kept (the resection's gap too). Returns camera -> (agreeing, in view)."""
     out = {}
     for c in map(int, np.flatnonzero(cameras & located)):
         others = located.copy()
