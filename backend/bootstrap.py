@@ -1536,7 +1536,8 @@ def _join_groups(frames: list[Frame], g: _Placed, floor: tuple[ScaleEstimate | N
         if len(part) < cfg.min_pair_frames:
             break
         names_rest = ", ".join(names[c] for c in np.flatnonzero(rest))
-        say(f"not placed: {names_rest}; bootstrapped on their own, to be joined by the persons both groups see")
+        say(f"not placed: {names_rest}; bootstrapped on their own, to be joined by the persons each group sees "
+            "of the other's")
         try:
             h = _place(part, names, focal, config, heights, seed=seed, say=lambda m: say("  " + m), stages={})
             h, _, _, _ = _on_floor(part, h, names, config, heights, lambda m: say("  " + m))

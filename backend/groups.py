@@ -22,7 +22,7 @@ over persons spread enough, and no clearly different join agrees nearly as often
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -70,13 +70,17 @@ class Join:
 @dataclass(frozen=True)
 class _Side:
     """One direction of the evidence: cameras of one group (poses R (N, 3, 3), t (N, 3)
-    in its own frame, focal (N,)) and their candidates against the other group's persons
-    (in the other's frame)."""
+    in its own frame, focal (N,), the resection's tolerance tol (N,) normalised) and
+    their candidates against the other group's persons (in the other's frame);
+    into_placed: the group's cameras against the placed persons (else the placed cameras
+    against the group's)."""
 
     R: np.ndarray
     t: np.ndarray
     focal: np.ndarray
+    tol: np.ndarray
     cands: tuple[Candidates, ...]
+    into_placed: bool
 
 
 def join(frames: Sequence[Frame], placed: tuple[np.ndarray, np.ndarray, np.ndarray],
@@ -91,9 +95,11 @@ def join(frames: Sequence[Frame], placed: tuple[np.ndarray, np.ndarray, np.ndarr
     pa = triangulate_persons(frames, Ra, ta, A, associate)
     pb = triangulate_persons(frames, Rb, tb, B, associate)
     ia, ib = np.flatnonzero(A), np.flatnonzero(B)
-    # the group's cameras against the placed persons; the placed cameras against the group's
-    into_a = _Side(Rb[ib], tb[ib], focal[ib], tuple(candidates(frames, pa, int(c)) for c in ib))
-    into_b = _Side(Ra[ia], ta[ia], focal[ia], tuple(candidates(frames, pb, int(c)) for c in ia))
+    tol = cfg.resect_px / focal
+    sides = (  # the group's cameras against the placed persons; the placed cameras against the group's
+        _Side(Rb[ib], tb[ib], focal[ib], tol[ib], tuple(candidates(frames, pa, int(c)) for c in ib), True),
+        _Side(Ra[ia], ta[ia], focal[ia], tol[ia], tuple(candidates(frames, pb, int(c)) for c in ia), False),
+    )
 
     hyps: list[tuple[float, np.ndarray, np.ndarray]] = []
     tilted = 0
@@ -113,10 +119,8 @@ def join(frames: Sequence[Frame], placed: tuple[np.ndarray, np.ndarray, np.ndarr
         return Join(False, "no camera of either group sees enough of the other's persons to be resected "
                            f"({cfg.resect_min_frames} frames with candidates)"
                     + (f", or its pose tilts the groups' floors apart ({tilted})" if tilted else ""))
-    tol_a = cfg.resect_px / into_a.focal
-    tol_b = cfg.resect_px / into_b.focal
-    scored = sorted(((_agreeing(into_a, into_b, *h, tol_a, tol_b)[0], h) for h in hyps), key=lambda x: -x[0])
-    best = _refine(into_a, into_b, *scored[0][1], tol_a, tol_b)
+    scored = sorted(((_agreeing(sides, *h), h) for h in hyps), key=lambda x: -x[0])
+    best = _refine(sides, *scored[0][1])
     centre = tb[ib].mean(0)
 
     def different(h) -> bool:
@@ -125,11 +129,12 @@ def join(frames: Sequence[Frame], placed: tuple[np.ndarray, np.ndarray, np.ndarr
 
     rival = 0
     for _, h in scored[1:4]:
-        if different(h) and different(h := _refine(into_a, into_b, *h, tol_a, tol_b)):
-            rival = max(rival, _agreeing(into_a, into_b, *h, tol_a, tol_b)[0])
+        if different(h) and different(h := _refine(sides, *h)):
+            rival = max(rival, _agreeing(sides, *h))
     s, Q, d = best
-    n, cams, spread, res_px = _agreeing(into_a, into_b, s, Q, d, tol_a, tol_b, details=True)
+    n, cams, spread, res_px = _evidence(sides, s, Q, d)
     reasons = []
+    # one camera's bar twice over: a join moves several cameras at once
     if n < 2 * cfg.resect_min_frames:
         reasons.append(f"{n} agreeing frames, {2 * cfg.resect_min_frames} needed")
     if cams < 2:
@@ -157,46 +162,55 @@ def _turn_z(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _poses_into_a(side: _Side, s: float, Q: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The group's cameras in the placed frame."""
-    return np.einsum("ij,njk->nik", Q, side.R), s * side.t @ Q.T + d
-
-
-def _poses_into_b(side: _Side, s: float, Q: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The placed cameras in the group's frame (the inverse join)."""
+def _poses(side: _Side, s: float, Q: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The side's cameras in the other's frame: the group's in the placed frame (the
+    join), the placed ones in the group's (its inverse)."""
+    if side.into_placed:
+        return np.einsum("ij,njk->nik", Q, side.R), s * side.t @ Q.T + d
     return np.einsum("ji,njk->nik", Q, side.R), (side.t - d) @ Q / s
 
 
-def _agreeing(into_a: _Side, into_b: _Side, s: float, Q: np.ndarray, d: np.ndarray, tol_a: np.ndarray,
-              tol_b: np.ndarray, *, details: bool = False):
-    """Agreeing (camera, frame)s of the join over both sides; with ``details`` also
-    (cameras that agree, the agreeing persons' spread in m, their median error in px)."""
-    total, cams, centres, errs = 0, 0, [], []
-    for side, poses, tol, to_a in ((into_a, _poses_into_a, tol_a, None), (into_b, _poses_into_b, tol_b, (s, Q, d))):
-        R, t = poses(side, s, Q, d)
+def _agreements(sides: Sequence[_Side], s: float, Q: np.ndarray, d: np.ndarray
+                ) -> Iterator[tuple[_Side, int, Candidates, np.ndarray, np.ndarray, np.ndarray]]:
+    """Per camera of both sides under the join: (side, camera k, its candidates, the
+    agreeing ones (indices, one per agreeing frame), its pose R (3, 3), t (3,))."""
+    for side in sides:
+        R, t = _poses(side, s, Q, d)
         for k, cand in enumerate(side.cands):
-            n, sel = cand.agreeing(R[k], t[k], tol[k])
-            total += n
-            cams += n > 0
-            if details and n:
-                P = cand.P[sel]
-                c = np.nanmean(P, axis=1)
-                centres.append(c if to_a is None else s * c @ Q.T + d)
-                u, _ = _project(P, R[k], t[k])
-                errs.append(np.linalg.norm(u - cand.x[sel], axis=-1).ravel() * side.focal[k])
-    if not details:
-        return total, None
+            _, sel = cand.agreeing(R[k], t[k], side.tol[k])
+            yield side, k, cand, sel, R[k], t[k]
+
+
+def _agreeing(sides: Sequence[_Side], s: float, Q: np.ndarray, d: np.ndarray) -> int:
+    """Agreeing (camera, frame)s of the join over both sides."""
+    return sum(len(sel) for *_, sel, _R, _t in _agreements(sides, s, Q, d))
+
+
+def _evidence(sides: Sequence[_Side], s: float, Q: np.ndarray, d: np.ndarray) -> tuple[int, int, float, float]:
+    """(agreeing (camera, frame)s, cameras that agree, the agreeing persons' spread over
+    the floor in m (2nd principal std of their centres, in the placed frame), their
+    joints' median reprojection error in px)."""
+    total, cams, centres, errs = 0, 0, [], []
+    for side, k, cand, sel, R, t in _agreements(sides, s, Q, d):
+        if not len(sel):
+            continue
+        total += len(sel)
+        cams += 1
+        P = cand.P[sel]
+        c = np.nanmean(P, axis=1)
+        centres.append(c if side.into_placed else s * c @ Q.T + d)  # the group's persons: into the placed frame
+        u, _ = _project(P, R, t)
+        errs.append(np.linalg.norm(u - cand.x[sel], axis=-1).ravel() * side.focal[k])
     spread = 0.0
-    if centres and len(C := np.concatenate(centres)) >= 3:
-        C = C[np.isfinite(C).all(1)]
-        sv = np.linalg.svd(C[:, :2] - C[:, :2].mean(0), compute_uv=False) / np.sqrt(len(C))
-        spread = float(sv[1])
+    C = np.concatenate(centres) if centres else np.zeros((0, 3))
+    C = C[np.isfinite(C).all(1)]
+    if len(C) >= 3:
+        spread = float(np.linalg.svd(C[:, :2] - C[:, :2].mean(0), compute_uv=False)[1] / np.sqrt(len(C)))
     e = np.concatenate(errs) if errs else np.zeros(0)
     return total, cams, spread, float(np.nanmedian(e)) if np.isfinite(e).any() else float("nan")
 
 
-def _refine(into_a: _Side, into_b: _Side, s: float, Q: np.ndarray, d: np.ndarray, tol_a: np.ndarray,
-            tol_b: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+def _refine(sides: Sequence[_Side], s: float, Q: np.ndarray, d: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """The join refined on the frames it agrees in (both sides; robust least squares of
     the reprojection errors in px), those frames found again after each round. Only its
     turn about z: both groups stand on their floor, and a door's persons, seen from one
@@ -205,15 +219,11 @@ def _refine(into_a: _Side, into_b: _Side, s: float, Q: np.ndarray, d: np.ndarray
     from scipy.optimize import least_squares
 
     for _ in range(_REFINE_ROUNDS):
-        # the agreeing correspondences: (side, camera k, P (M, 17, 3), x (M, 17, 2))
-        corr = []
-        for side, poses, tol in ((into_a, _poses_into_a, tol_a), (into_b, _poses_into_b, tol_b)):
-            R, t = poses(side, s, Q, d)
-            for k, cand in enumerate(side.cands):
-                n, sel = cand.agreeing(R[k], t[k], tol[k])
-                if n:
-                    ok = np.isfinite(cand.P[sel]).all(-1) & np.isfinite(cand.x[sel]).all(-1)
-                    corr.append((side is into_a, k, cand.P[sel][ok], cand.x[sel][ok], side))
+        corr = []  # (side, camera k, joints (M, 3), their detections (M, 2)) of the agreeing frames
+        for side, k, cand, sel, _R, _t in _agreements(sides, s, Q, d):
+            ok = np.isfinite(cand.P[sel]).all(-1) & np.isfinite(cand.x[sel]).all(-1)
+            if ok.any():
+                corr.append((side, k, cand.P[sel][ok], cand.x[sel][ok]))
         if sum(len(c[2]) for c in corr) < 12:
             break
         s0, Q0, d0 = s, Q, d
@@ -221,13 +231,11 @@ def _refine(into_a: _Side, into_b: _Side, s: float, Q: np.ndarray, d: np.ndarray
         def residuals(p: np.ndarray) -> np.ndarray:
             si, Qi, di = s0 * np.exp(p[4]), _turn_z(p[0]) @ Q0, d0 + p[1:4]
             out = []
-            for in_a, k, P, x, side in corr:
-                if in_a:  # the group's camera k in the placed frame, the placed persons
-                    R, t = Qi @ side.R[k], si * Qi @ side.t[k] + di
-                    X = P
+            for side, k, P, x in corr:
+                if side.into_placed:  # the group's camera k in the placed frame, the placed persons
+                    R, t, X = Qi @ side.R[k], si * Qi @ side.t[k] + di, P
                 else:  # the placed camera k, the group's persons mapped into the placed frame
-                    R, t = side.R[k], side.t[k]
-                    X = si * P @ Qi.T + di
+                    R, t, X = side.R[k], side.t[k], si * P @ Qi.T + di
                 u, z = _project(X, R, t)
                 out.append(np.where(z[:, None] > 0.05, u - x, 1.0).ravel() * side.focal[k])
             return np.concatenate(out)

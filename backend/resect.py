@@ -240,21 +240,25 @@ class Candidates:
 
     @property
     def frames(self) -> int:
+        """Frames with a candidate."""
         return len(np.unique(self.frame))
+
+    @functools.cached_property
+    def _inv(self) -> np.ndarray:
+        return np.unique(self.frame, return_inverse=True)[1]
 
     def agreeing(self, R: np.ndarray, t: np.ndarray, tol: float) -> tuple[int, np.ndarray]:
         """(frames in which the camera at R (3, 3), t (3,) sees one of the persons within
         ``tol`` (normalised, the joints' median), each such frame's best candidate)."""
         if not len(self.frame):
             return 0, np.zeros(0, np.int64)
-        _, inv = np.unique(self.frame, return_inverse=True)
+        inv = self._inv
         e = _frame_errors(self.P, self.x, R, t)
         order = np.lexsort((e, inv))  # by frame, then error: each frame's best candidate first
         first = np.r_[True, inv[order][1:] != inv[order][:-1]]
         arg = order[first]
         agree = e[arg] < tol
         return int(agree.sum()), arg[agree]
-
 
     def in_view(self, persons: Persons, R: np.ndarray, t: np.ndarray, box: np.ndarray) -> int:
         """Frames in which the camera at R (3, 3), t (3,) has one of ``persons`` in its
