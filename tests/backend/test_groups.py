@@ -3,7 +3,9 @@ rooms joined by a door (``scenes.tworooms``), four walkers, a short seeded simul
 placed room keeps its true poses; the other room's are given in a frame of their own (a
 known similarity away), as its own bootstrap would give them: the join must find that
 similarity from the persons each room sees of the other's, and must refuse when those
-sightings are of other instants (nobody seen by both)."""
+sightings are of other instants (nobody seen by both). The whole bootstrap places both
+rooms (it placed one), and a camera its group misplaced is contradicted by the persons in
+its view."""
 
 from __future__ import annotations
 
