@@ -1558,20 +1558,21 @@ def _join_groups(frames: list[Frame], g: _Placed, floor: tuple[ScaleEstimate | N
         # own adjustment and the join 0.016 m / 0.42° (shape), three adjustments together
         # from there 0.17 m / 2.0°, and from the true poses too (0.16 m). The online
         # pipeline's depth gates and the final batch take it from here.
-        def put(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # a, with the group's rows of b
-            return np.where(group.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
-
-        Rj = put(g.R, np.einsum("ij,cjk->cik", j.Q, h.R))
-        tj = put(g.t, j.s * h.t @ j.Q.T + j.d)
-        bad = contradicted(frames, Rj, tj, g.located | group, group, focal, box, config.associate, cfg)
+        Rg, tg = np.einsum("ij,cjk->cik", j.Q, h.R), j.s * h.t @ j.Q.T + j.d  # the group in the placed frame
+        bad = contradicted(frames, np.where(group[:, None, None], Rg, g.R), np.where(group[:, None], tg, g.t),
+                           g.located | group, group, focal, box, config.associate, cfg)
         if bad:
             notes.append("left out of the join, the others' persons in their view contradict them: "
                          + ", ".join(f"{names[c]} (agrees in {n} of {k} frames)" for c, (n, k) in bad.items()))
             say(notes[-1])
             group = group.copy()
             group[list(bad)] = False
-        joined = _Placed(Rj, tj, g.located | group, put(g.std_t, j.s * h.std_t), put(g.std_r, h.std_r),
-                         put(g.residual_px, h.residual_px), put(g.observations, h.observations),
+
+        def put(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # a, with the joined cameras' rows of b
+            return np.where(group.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
+
+        joined = _Placed(put(g.R, Rg), put(g.t, tg), g.located | group, put(g.std_t, j.s * h.std_t),
+                         put(g.std_r, h.std_r), put(g.residual_px, h.residual_px), put(g.observations, h.observations),
                          put(g.depth, j.s * h.depth), g.pairs + h.pairs, g.tried, g.checks + h.checks,
                          g.resections + h.resections, g.optimize if g.optimize.bones != "off" else h.optimize)
         try:
