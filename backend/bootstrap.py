@@ -65,7 +65,7 @@ from proto import KeypointMessage
 
 from .associate import Hypothesis, torso_centre
 from .cameras import CameraSet, Extrinsics, Intrinsics, Pose, natural_key
-from .config import BootstrapConfig, EngineConfig, FloorFrame, OptimizeConfig
+from .config import BootstrapConfig, EngineConfig, FloorFrame
 from .floor import median_up, plane_of_ankles, world_frame
 from .geometry import hat, pose_std, project_so3, rotation_angle_deg, so3_exp, triangulate_batch
 from .optimize import BONE_NAMES, BONES
@@ -1238,7 +1238,7 @@ class _Placed:
     ``_on_floor``). R (C, 3, 3), t (C, 3), located (C,) bool; std_t (C,) m, std_r (C,) deg,
     residual_px (C,), observations (C,), depth (C,) m from the last adjustment (NaN, 0
     where unknown); pairs: the view graph's pairs; tried: pairs tried; checks,
-    resections: as BootstrapResult's; optimize: the adjustments' settings (their bones)."""
+    resections: as BootstrapResult's."""
 
     R: np.ndarray
     t: np.ndarray
@@ -1252,7 +1252,6 @@ class _Placed:
     tried: int
     checks: tuple[str, ...]
     resections: tuple[str, ...]
-    optimize: OptimizeConfig
 
 
 def _place(frames: list[Frame], names: Sequence[str], focal: np.ndarray, config: EngineConfig,
@@ -1491,7 +1490,7 @@ def _place(frames: list[Frame], names: Sequence[str], focal: np.ndarray, config:
                 rounds += 1
     stages["bundle"] = _time.perf_counter() - t0
     return _Placed(R, t, located, std_t, std_r, residual_px, observations, depth, len(good), tried, check_notes,
-                   resect_notes, opt)
+                   resect_notes)
 
 
 def _on_floor(frames: Sequence[Frame], g: _Placed, names: Sequence[str], config: EngineConfig,
@@ -1574,7 +1573,7 @@ def _join_groups(frames: list[Frame], g: _Placed, floor: tuple[ScaleEstimate | N
         joined = _Placed(put(g.R, Rg), put(g.t, tg), g.located | group, put(g.std_t, j.s * h.std_t),
                          put(g.std_r, h.std_r), put(g.residual_px, h.residual_px), put(g.observations, h.observations),
                          put(g.depth, j.s * h.depth), g.pairs + h.pairs, g.tried, g.checks + h.checks,
-                         g.resections + h.resections, g.optimize if g.optimize.bones != "off" else h.optimize)
+                         g.resections + h.resections)
         try:
             g, scale, note, spec = _on_floor(frames, joined, names, config, heights, say)
         except BootstrapError as e:  # the placed group keeps the floor it had

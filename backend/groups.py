@@ -15,7 +15,7 @@ camera's pose, with the group's own geometry, is a candidate join, and a join is
 every camera at once: the frames in which a camera of the group sees a person the placed
 cameras triangulate where the join puts it, and a placed camera one of the group's
 persons. The best candidate is refined on all those frames (least squares of the
-reprojection errors over the 7 parameters) and taken when it agrees in enough frames,
+reprojection errors over a turn about z, a shift and a scale) and taken when it agrees in enough frames,
 over persons spread enough, and no clearly different join agrees nearly as often.
 """
 
@@ -27,7 +27,7 @@ from typing import Iterator, Sequence
 import numpy as np
 
 from .config import AssociateConfig, BootstrapConfig
-from .geometry import rotation_angle_deg
+from .geometry import rotation_angle_deg, so3_exp
 from .preprocess import Detection
 from .resect import Candidates, _project, candidates, resect, triangulate_persons
 
@@ -103,8 +103,9 @@ def join(frames: Sequence[Frame], placed: tuple[np.ndarray, np.ndarray, np.ndarr
 
     hyps: list[tuple[float, np.ndarray, np.ndarray]] = []
     tilted = 0
+    cands = dict(zip(np.r_[ib, ia].tolist(), sides[0].cands + sides[1].cands))
     for c in np.r_[ib, ia]:
-        r = resect(frames, pa if B[c] else pb, int(c), float(focal[c]), box[c], cfg, seed=seed)
+        r = resect(frames, pa if B[c] else pb, int(c), float(focal[c]), box[c], cfg, seed=seed, cands=cands[int(c)])
         if r.R is None:
             continue
         # a camera of the group resected in the placed frame; a placed camera resected in
@@ -148,6 +149,10 @@ def join(frames: Sequence[Frame], placed: tuple[np.ndarray, np.ndarray, np.ndarr
     return Join(not reasons, "; ".join(reasons), s, Q, d, n, cams, rival, spread, res_px)
 
 
+def _turn_z(yaw: float) -> np.ndarray:
+    return so3_exp(np.array([0.0, 0.0, yaw]))
+
+
 def _yaw(Q: np.ndarray) -> float:
     return float(np.arctan2(Q[1, 0], Q[0, 0]))
 
@@ -155,11 +160,6 @@ def _yaw(Q: np.ndarray) -> float:
 def _tilt(Q: np.ndarray) -> float:
     """deg: how far Q (3, 3) turns z."""
     return float(np.degrees(np.arccos(np.clip(Q[2, 2], -1.0, 1.0))))
-
-
-def _turn_z(yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _poses(side: _Side, s: float, Q: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -293,14 +293,15 @@ def candidates(frames: Sequence[Frame], persons: Persons, cam: int) -> Candidate
 
 def resect(frames: Sequence[Frame], persons: Persons, cam: int, focal: float, box: np.ndarray,
            cfg: BootstrapConfig, *, seed: int = 0, iterations: int = 200,
-           at: tuple[np.ndarray, np.ndarray] | None = None) -> Resection:
+           at: tuple[np.ndarray, np.ndarray] | None = None, cands: Candidates | None = None) -> Resection:
     """The pose of camera ``cam`` from the persons the placed cameras triangulate
     (``triangulate_persons``) and its own detections in the same frames; ``box`` (2, 2):
     where its detections lie in its image (``bootstrap.view_box``); ``at``: a pose it has
-    (R (3, 3), t (3,)) whose agreeing frames are counted too (``Resection.held``). See the
+    (R (3, 3), t (3,)) whose agreeing frames are counted too (``Resection.held``);
+    ``cands``: its ``candidates`` against ``persons``, when the caller has them. See the
     module doc."""
     tol = cfg.resect_px / focal
-    cands = candidates(frames, persons, cam)
+    cands = candidates(frames, persons, cam) if cands is None else cands
     nf = cands.frames
 
     def empty(reason: str) -> Resection:
