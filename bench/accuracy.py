@@ -26,6 +26,7 @@ online pipeline (``run_offline``) calibrates.
     python bench/accuracy.py --quick                    # smoke run: 1 seed, 60 s, 2 persons
     python bench/accuracy.py --persons 2 --seeds 3 --starts none --pixels 2.25   # HD cameras
     python bench/accuracy.py --persons 2 --seeds 3 --starts none --swap cam_3:cam_7   # a label mix-up
+    python bench/accuracy.py --persons 2 --seeds 1 --starts none --oracle   # the engine with true associations
     python bench/accuracy.py --report a.json            # the tables of an earlier --out
 
 Simulated recordings are cached (msgpack + truth sidecar) in --cache, keyed by the
@@ -36,6 +37,7 @@ here: tests/backend/test_accuracy.py holds the pass/fail bar.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import os
@@ -43,6 +45,7 @@ import shutil
 import sys
 import tempfile
 import time
+from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 from multiprocessing import get_context
@@ -186,14 +189,48 @@ def _acc_dict(acc, per_camera: bool = False) -> dict:
     return out
 
 
+def true_persons(truth, names) -> dict[tuple[int, int, int], int]:
+    """(camera index, message seq, index in its persons) → the simulator's person id
+    (negative: a false detection or a ghost)."""
+    person = {}
+    for s, q, i, pid in zip(truth.det_sensor, truth.det_seq, truth.det_index, truth.det_person):
+        person[(names.index(truth.sensors[s]) if truth.sensors[s] in names else -1, int(q), int(i))] = int(pid)
+    return person
+
+
+@contextlib.contextmanager
+def true_association(truth, names):
+    """``--oracle``: while it is open, every ``Associator`` in this process keeps of each
+    group of views only those of the group's most frequent true person (a false detection
+    is never kept). The engine then runs with its own schedule, gates and solves but no
+    wrong association: between it and the engine lies what association costs; between it
+    and the limit, what the online schedule does. Yields a Counter of views seen and dropped."""
+    from backend.associate import Associator
+
+    person, seen = true_persons(truth, names), Counter()
+    plain = Associator._hypothesis
+
+    def hypothesis(self, time_, dets, *args, **kwargs):
+        pids = [person.get((d.cam, d.seq, d.index), -1) if d.index >= 0 else -1 for d in dets]
+        top = Counter(pids).most_common(1)[0][0]
+        kept = [d for d, q in zip(dets, pids) if q == top and q >= 0]
+        seen["views"] += len(dets)
+        seen["dropped"] += len(dets) - len(kept)
+        return plain(self, time_, kept, *args, **kwargs) if len(kept) >= 2 else None
+
+    Associator._hypothesis = hypothesis
+    try:
+        yield seen
+    finally:
+        Associator._hypothesis = plain
+
+
 def true_hypotheses(frames, truth, names, R_ref, t_ref):
     """Hypotheses with the simulator's true associations: the detections of each frame
     grouped by true person (false detections left out), groups seen by >= 2 cameras."""
     from backend.associate import Hypothesis, intersect_rays, torso_centre
 
-    person = {}
-    for s, q, i, pid in zip(truth.det_sensor, truth.det_seq, truth.det_index, truth.det_person):
-        person[(names.index(truth.sensors[s]) if truth.sensors[s] in names else -1, int(q), int(i))] = int(pid)
+    person = true_persons(truth, names)
     hyps, unknown = [], 0
     for time_, views in frames:
         groups: dict[int, dict[int, object]] = {}
@@ -315,7 +352,7 @@ def bootstrap_cached(recording: str, intrinsics, cfg, seed: int, cache: Path):
 
 def run(spec: Spec, recording: str, overrides: list[str], config: str | None, limit_start: str,
         limit_budget: int | None = None, known_height: bool = False,
-        swap: tuple[tuple[str, str], ...] = ()) -> dict:
+        swap: tuple[tuple[str, str], ...] = (), oracle: bool = False) -> dict:
     """One calibration run of the full pipeline, its history, and its limit.
 
     Figures are over the cameras the data can calibrate: those the limit's solve
@@ -324,7 +361,9 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
     kept as *_all. The result is what ``extrcal calibrate`` writes: with the scale check's
     correction (``bootstrap.initial_scale``; ``known_height``: the walkers' true heights
     given, as ``--person-height``; ``swap``: pairs of cameras whose poses are exchanged in
-    the initial estimate, a label or cable mix-up)."""
+    the initial estimate, a label or cable mix-up; ``oracle``: the online pipeline's and final
+    batch's associations kept to the true persons, ``true_association``; the bootstrap that
+    ``bootstrap.with_initial`` runs before it is not)."""
     from backend.cameras import CameraSet, Pose, load_extrinsics, load_intrinsics
     from backend.config import EngineConfig
     from backend.evaluate import evaluate
@@ -383,8 +422,9 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
                               "initial_std": [cfg.refine.initial_std_translation, cfg.refine.initial_std_rotation]}
 
     t0 = time.perf_counter()
-    p = run_offline(cams, cfg, feed(), seed=spec.seed, progress=progress, start=start,
-                    scale_heights=tuple(truth.heights.tolist()) if known_height else (), data_shape=data_shape)
+    with true_association(truth, list(cams.names)) if oracle else contextlib.nullcontext(Counter()) as told:
+        p = run_offline(cams, cfg, feed(), seed=spec.seed, progress=progress, start=start,
+                        scale_heights=tuple(truth.heights.tolist()) if known_height else (), data_shape=data_shape)
     run_s = time.perf_counter() - t0 - spent[0]
     state = p.state()
     final_poses = state.poses()
@@ -460,6 +500,7 @@ def run(spec: Spec, recording: str, overrides: list[str], config: str | None, li
         "final_batch_start": p.final_batch_start,
         "reconciled": reconciled,
         "bootstrap_seconds": boot_s,
+        "oracle": {"views": told["views"], "dropped": told["dropped"]} if oracle else None,
     }
 
 
@@ -758,6 +799,9 @@ def main(argv: list[str] | None = None) -> None:
                          "cam_3:cam_7")
     ap.add_argument("--known-height", action="store_true",
                     help="the walkers' true heights given to the scale check (as `extrcal calibrate --person-height`)")
+    ap.add_argument("--oracle", action="store_true",
+                    help="the engine's associations kept to the simulator's true persons (``true_association``): "
+                         "what is left to the limit is not association")
     ap.add_argument("--limit-start", choices=("reference", "initial"), default="reference",
                     help="where the limit's solve starts (its prior is always the initial estimate); from "
                          "0.75 m / 20° the solve from the initial estimate can stall, from the reference it finds "
@@ -811,7 +855,8 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit("nothing to run: give --persons and/or --starts")
 
     args.commit = _commit()
-    console.print(f"extrcal {args.commit}, engine config {args.config or 'defaults'} {' '.join(args.overrides)}")
+    console.print(f"extrcal {args.commit}, engine config {args.config or 'defaults'} {' '.join(args.overrides)}"
+                  + (", associations kept to the true persons (--oracle)" if args.oracle else ""))
     jobs = max(1, args.jobs)
     pool = ProcessPoolExecutor(jobs, mp_context=get_context("fork")) if jobs > 1 else None
     mapper = pool.map if pool is not None else map
@@ -830,7 +875,7 @@ def main(argv: list[str] | None = None) -> None:
         console.print(f"  {time.perf_counter() - t0:.0f} s")
     runs = []
     work = [(s, str(paths[(s.persons, s.duration, s.seed)]), args.overrides, args.config, args.limit_start,
-             args.limit_hypotheses, args.known_height, _swaps(args.swap)) for s in specs]
+             args.limit_hypotheses, args.known_height, _swaps(args.swap), args.oracle) for s in specs]
     for spec_, r in zip(specs, mapper(_run_job, work)):
         runs.append(r)
         lim = r["limit"] or {}
@@ -839,7 +884,7 @@ def main(argv: list[str] | None = None) -> None:
                       f"| limit {lim.get('position', float('nan')):.4f} m {lim.get('orientation', float('nan')):.3f}° "
                       f"shape {lim.get('shape_position', float('nan')):.4f} m | {r['cycles']} cycles, "
                       f"{r['data_seconds'] / r['run_seconds']:.1f}x real time"
-                      + _worst(r) + _start(r) + _scale(r)
+                      + _worst(r) + _start(r) + _scale(r) + _oracle(r)
                       + (" | ARCHIVE FULL: the limit saw fewer frames" if r["frames_archive_full"] else ""))
         if args.out is not None:  # a partial file survives an interrupted run
             _write(args.out, args, runs, None)
@@ -850,6 +895,11 @@ def main(argv: list[str] | None = None) -> None:
     if args.out is not None:
         _write(args.out, args, runs, summary)
         console.print(f"\nwrote {args.out}")
+
+
+def _oracle(r: dict) -> str:
+    o = r.get("oracle")
+    return f" | oracle: {o['dropped']} of {o['views']} views dropped" if o else ""
 
 
 def _scale(r: dict) -> str:
