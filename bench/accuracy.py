@@ -204,7 +204,9 @@ def true_association(truth, names):
     group of views only those of the group's most frequent true person (a false detection
     is never kept). The engine then runs with its own schedule, gates and solves but no
     wrong association: between it and the engine lies what association costs; between it
-    and the limit, what the online schedule does. Yields a Counter of views seen and dropped."""
+    and the limit, what the online schedule does. Yields a Counter of views seen and dropped.
+    Not under it: a view with one side of the torso hidden that follows a hypothesis by its
+    reprojection (``Associator._follow``); the hypothesis carries no true person to hold it to."""
     from backend.associate import Associator
 
     person, seen = true_persons(truth, names), Counter()
