@@ -1529,6 +1529,7 @@ def _join_groups(frames: list[Frame], g: _Placed, floor: tuple[ScaleEstimate | N
     scale, note, spec = floor
     notes: list[str] = []
     attempted: list[np.ndarray] = []
+    box = view_box(frames, len(names))  # where each camera's detections lie: the same frames every round
     while (rest := ~g.located).sum() >= 2 and not any((rest == r).all() for r in attempted):
         attempted.append(rest)
         part = _without(frames, rest)
@@ -1545,7 +1546,6 @@ def _join_groups(frames: list[Frame], g: _Placed, floor: tuple[ScaleEstimate | N
             say(notes[-1])
             break
         group = h.located & rest
-        box = view_box(frames, len(names))
         j = join(frames, (g.R, g.t, g.located), (h.R, h.t, group), focal, box, config.associate, cfg, seed=seed)
         notes.append(f"{', '.join(names[c] for c in np.flatnonzero(group))}: {j.summary()}")
         say(notes[-1])

@@ -267,4 +267,3 @@ def contradicted(frames: Sequence[Frame], R: np.ndarray, t: np.ndarray, located:
         if seen >= cfg.resect_min_frames and n < cfg.resect_min_share * seen:
             out[c] = (n, seen)
     return out
-
