@@ -239,7 +239,10 @@ def calibrate(
         comment += f"\n{p.lenses.summary()}; the lenses: {lens_file}"
     if rec is not None:
         comment += f"\n{rec.summary()}"
-        if p.final_batch_start == "data":
+        if p.final_batch_start == "anchored":
+            comment += ("\nfinal batch adjustment: the online estimate ended apart from the data's shape; the one "
+                        "held to the data's shape explained as much of the data within its hold, and was kept")
+        elif p.final_batch_start == "data":
             comment += ("\nfinal batch adjustment: the one started from the data's shape explained the data better "
                         "than the one from the online estimate, and was kept")
         elif p.final_batch_start == "estimate":

@@ -59,7 +59,7 @@ from .bootstrap import BootstrapError, BootstrapResult, Progress, bootstrap_mess
 from .cameras import CameraSet, Intrinsics, Pose
 from .config import EngineConfig
 from .geometry import align_poses, within_std
-from .refine import initial_covariance
+from .refine import handover_covariance, initial_covariance
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,13 +123,9 @@ class Reconciled:
         data in the lab from 0.75 m / 20° (the final batch put it right)."""
         if not self.used:
             return None
-        b, rc = config.bootstrap, config.refine
-        P = np.repeat(initial_covariance(rc)[None], len(self.names), axis=0)
+        P = np.repeat(initial_covariance(config.refine)[None], len(self.names), axis=0)
         for c in np.flatnonzero(self.from_bootstrap):
-            st, sr = np.nan_to_num(self.std_translation[c]), np.nan_to_num(self.std_rotation[c])
-            P[c] = initial_covariance(rc.model_copy(update={
-                "initial_std_translation": max(b.handover_std_translation, 3 * st),
-                "initial_std_rotation": max(b.handover_std_rotation, 3 * sr)}))
+            P[c] = handover_covariance(config.bootstrap, self.std_translation[c], self.std_rotation[c])
         return self.R.copy(), self.t.copy(), P
 
     def data_shape(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import RefineConfig
+from .config import BootstrapConfig, RefineConfig
 from .geometry import pose_local, pose_retract, pose_std, rotation_angle_deg, trimmed_similarity
 
 
@@ -42,6 +42,14 @@ _HELD = 1e-4  # a held camera's share of its covariance in the cycles' graph
 def initial_covariance(cfg: RefineConfig) -> np.ndarray:
     """(6, 6) diagonal covariance of the initial estimate."""
     return _diag(cfg.initial_std_rotation, cfg.initial_std_translation)
+
+
+def handover_covariance(cfg: BootstrapConfig, std_m: float, std_deg: float) -> np.ndarray:
+    """(6, 6) the prior of a camera started from the data's shape (the bootstrap): 3x the
+    bootstrap's own std ``std_m`` m / ``std_deg`` deg (NaN counts as 0), or the
+    ``handover_std_*`` floor where that is more."""
+    return _diag(max(cfg.handover_std_rotation, 3 * float(np.nan_to_num(std_deg))),
+                 max(cfg.handover_std_translation, 3 * float(np.nan_to_num(std_m))))
 
 
 def _diag(std_deg: float, std_m: float) -> np.ndarray:

@@ -160,20 +160,28 @@ def test_the_final_batch_from_the_data_s_shape_is_kept_where_the_run_ended_apart
     off.cfg = off.cfg.merged({"refine": {"final_batch_from_data": False}})
     moved = copy.deepcopy(p)  # a live session's monitor saw cam_14 move: the data's pose of it is stale
     moved.monitor.alarms = [Alarm(20.0, c, 500.0, 2.0, 30.0, 15.0)]
-    for q in (agreeing, off, moved, p):
+    # the data's shape wrong instead (a camera the bootstrap chained 0.4 m / 4° off) and the run right:
+    # held there, the data push that camera out of its hold, and the batch is not kept
+    wrong = copy.deepcopy(agreeing)
+    k = names.index("cam_16")
+    R_w, t_w = R_d.copy(), t_d.copy()
+    R_w[k], t_w[k] = so3_exp(np.radians([0.0, 4.0, 0.0])) @ R_w[k], t_w[k] + np.array([0.0, 0.4, 0.0])
+    wrong.data_shape = (R_w, t_w, std)
+    for q in (agreeing, off, moved, wrong, p):
         q.finish()
 
-    def error(q) -> tuple[float, float]:
-        per = evaluate(q.state().poses(), truth, list(WEST)).per_camera["cam_14"]
+    def error(q, camera="cam_14") -> tuple[float, float]:
+        per = evaluate(q.state().poses(), truth, list(WEST)).per_camera[camera]
         return per[2], per[3]
 
-    print(error(agreeing), error(off), error(p))
+    print(error(agreeing), error(off), error(p), error(wrong, "cam_16"), wrong.final_batch_start)
     assert agreeing.final_batch_start is None and error(agreeing)[0] < 0.05
     assert off.final_batch_start is None
     assert error(moved)[0] > 0.3  # not put back where the data had it before it moved
     assert error(off)[0] > 0.3 or error(off)[1] > 3.0  # the batch from the dragged estimate does not bring it back
-    assert p.final_batch_start == "data"
+    assert p.final_batch_start == "anchored"  # held to the data's shape: the dragged camera put back
     assert error(p)[0] < 0.05 and error(p)[1] < 0.5
+    assert wrong.final_batch_start != "anchored" and error(wrong, "cam_16")[0] < 0.05
     # and a session resumed from a snapshot still has it for its end
     q = Pipeline.restore(cams, cfg, json.loads(json.dumps(p.snapshot())))
     assert np.array_equal(np.isnan(q.data_shape[1]), np.isnan(t_d))
