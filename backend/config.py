@@ -255,8 +255,14 @@ class RefineConfig(_Section):
     final_batch_from_data: bool = Field(True, description="a run from an initial estimate that the bootstrap checked "
                                         "(bootstrap.with_initial) and kept: the final batch also from the data's shape "
                                         "where the two disagree on a camera (beyond bootstrap.agree_* or 3x the "
-                                        "bootstrap's std), kept when it explains at least as many observations at a "
-                                        "lower cost per observation")
+                                        "bootstrap's std): held to the data's shape by the hand-over's prior where the "
+                                        "estimate lies beyond hold_gate of it, kept when the result stays within it and "
+                                        "explains at least as many observations; else with the initial estimate's prior, "
+                                        "kept when it explains at least as many observations at a lower cost per "
+                                        "observation")
+    hold_gate: float = Field(16.8, gt=0, description="χ² (6 dof, p 0.01) of a camera's pose against the hand-over's "
+                             "prior at the data's shape (final_batch_from_data): the estimate beyond it on some camera "
+                             "tries the batch held there; that batch is kept only with every camera within it")
     archive_frames: int = Field(10000, ge=100, description="preprocessed framesets kept for re-localisation and the final batch")
     split_check: bool = Field(True, description="after the final batch, solve it again on each of two halves of the "
                               "frames (alternate split_block s) and compare: a camera the halves place further apart "

@@ -137,8 +137,9 @@ def test_bad_messages_are_counted_and_lose_nothing(lab, run):
 def test_the_final_batch_from_the_data_s_shape_is_kept_where_the_run_ended_apart_from_it(lab):
     """A run from an initial estimate the bootstrap checked and kept carries the data's shape
     (``data_shape``) to its end. Where the final batch's result disagrees with it, the same
-    batch runs from the data's shape too and is kept when it explains the data better; where
-    they agree nothing more is solved. The run here is dragged by hand (cam_14 2 m / 30°)."""
+    batch runs from the data's shape too, held there, and is kept when the data keep it
+    there; where they agree nothing more is solved. The run here is dragged by hand (cam_14
+    2 m / 30°); and a data's shape with one camera wrong is not taken."""
     import copy
 
     from backend.geometry import so3_exp
@@ -160,12 +161,12 @@ def test_the_final_batch_from_the_data_s_shape_is_kept_where_the_run_ended_apart
     off.cfg = off.cfg.merged({"refine": {"final_batch_from_data": False}})
     moved = copy.deepcopy(p)  # a live session's monitor saw cam_14 move: the data's pose of it is stale
     moved.monitor.alarms = [Alarm(20.0, c, 500.0, 2.0, 30.0, 15.0)]
-    # the data's shape wrong instead (a camera the bootstrap chained 0.4 m / 4° off) and the run right:
-    # held there, the data push that camera out of its hold, and the batch is not kept
+    # the data's shape wrong instead (a camera the bootstrap placed 0.15 m / 2° off) and the run right:
+    # held there, the data pull that camera out of its hold (and it loses observations): not kept
     wrong = copy.deepcopy(agreeing)
     k = names.index("cam_16")
     R_w, t_w = R_d.copy(), t_d.copy()
-    R_w[k], t_w[k] = so3_exp(np.radians([0.0, 4.0, 0.0])) @ R_w[k], t_w[k] + np.array([0.0, 0.4, 0.0])
+    R_w[k], t_w[k] = so3_exp(np.radians([0.0, 2.0, 0.0])) @ R_w[k], t_w[k] + np.array([0.0, 0.15, 0.0])
     wrong.data_shape = (R_w, t_w, std)
     for q in (agreeing, off, moved, wrong, p):
         q.finish()
