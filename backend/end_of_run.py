@@ -248,7 +248,8 @@ class EndOfRun:
         if not alt.ok:
             return None
         n_p, n_q = int(sol.obs_per_camera.sum()), int(alt.obs_per_camera.sum())
-        out = [self.names[c] for c in np.flatnonzero(alt.active) if from_prior(R[c], t[c], P[c], alt.R[c], alt.t[c])[2] > gate]
+        out = [self.names[c] for c in np.flatnonzero(alt.active)
+               if from_prior(R[c], t[c], P[c], alt.R[c], alt.t[c])[2] > gate]
         if out or (sol.ok and n_q < n_p):
             log.info("the final batch held to the data's shape not kept: %s", f"the data pull {', '.join(out)} out of it"
                      if out else f"it explains fewer observations ({n_q} against {n_p})")

@@ -161,7 +161,8 @@ class Pipeline(ClockStage, EndOfRun, Snapshots):
         # (a dispute adjustment, a re-localisation); the cycle's report lists those since the last
         self.restarted: dict[int, tuple[float, str]] = {}
         self._restarted_new: list[str] = []
-        self.final_batch_start: str | None = None  # the final batch kept: from the "estimate", the "start", the "data", held to it ("anchored")
+        # the final batch kept: from the "estimate", the "start", the "data", held to it ("anchored")
+        self.final_batch_start: str | None = None
         if data_shape is not None:
             assert data_shape[0].shape == (C, 3, 3) and data_shape[1].shape == (C, 3) and data_shape[2].shape == (C, 2)
         self.data_shape = data_shape

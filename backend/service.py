@@ -1249,7 +1249,8 @@ class Service(ServiceApi):
                     rec.final_batch = {"ran": batch, "seconds": time.monotonic() - t0, "report":
                                        s.pipeline.last_report.to_dict() if batch and s.pipeline.last_report else None,
                                        # which start the kept final batch came from, where two were tried: the
-                                       # "estimate", the bootstrap's "start", the "data"'s shape, "anchored" to it (None: one tried)
+                                       # "estimate", the bootstrap's "start", the "data"'s shape, held to it
+                                       # ("anchored"); None: one tried
                                        "kept_from": s.pipeline.final_batch_start,
                                        # cameras far beyond the stated std of their start: a user should look
                                        "far_from_start": [{"camera": n, "translation": m, "rotation": d, "chi2": x}
