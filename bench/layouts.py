@@ -166,6 +166,9 @@ def run(recording: Path, start: str, seed: int, persons: int, work: Path, overri
     res["beyond_3std"] = sum(1 for n, s in stds.items() if a.per_camera[n][2] > 3 * s)
     res["cameras"] = len(a.per_camera)
     res["split"] = next((ln for ln in header if ln.startswith("split-half check")), "")
+    # which final batch was kept, where more than one was solved (the held one, from the data's shape, ...)
+    res["final_batch"] = next((ln.removeprefix("final batch adjustment: ") for ln in header
+                               if ln.startswith("final batch adjustment: ") and "kept" in ln), "")
     if initial is not None:
         b = evaluate({n: e.pose for n, e in initial.items()}, truth)
         res["initial_position"] = b.position.mean
@@ -250,6 +253,7 @@ def main(argv: list[str] | None = None) -> None:
                 + f", stated std {r['std_mean']:.4f} m, {r['beyond_3std']} beyond 3 std"
                 + (f", not calibrated: {r['not_calibrated']}" if r['not_calibrated'] else "")
                 + (f"\n    {r['split']}" if r["split"] else "")
+                + (f"\n    final batch: {r['final_batch']}" if r.get("final_batch") else "")
                 if r["ok"] else f"FAILED: {r['error']}") + f" | {r['wall']:.0f} s", highlight=False)
     con.print(table(runs, layouts, starts, args), highlight=False, soft_wrap=True)
     if args.out is not None:
