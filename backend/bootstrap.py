@@ -987,9 +987,10 @@ def handover(cfg: EngineConfig, result: BootstrapResult) -> EngineConfig:
     sr = result.std_rotation[result.located]
     worst_t = float(np.nanmax(st)) if np.any(np.isfinite(st)) else 0.0
     worst_r = float(np.nanmax(sr)) if np.any(np.isfinite(sr)) else 0.0
+    std_t, std_r = b.handover_std(worst_t, worst_r)
     refine = cfg.refine.model_copy(update={
-        "initial_std_translation": max(b.handover_std_translation, 3 * worst_t),
-        "initial_std_rotation": max(b.handover_std_rotation, 3 * worst_r),
+        "initial_std_translation": std_t,
+        "initial_std_rotation": std_r,
         # the bootstrap saw all its data at once: a final batch from it too, kept when better
         "final_batch_from_start": True,
         "floor_frame": result.floor if b.level_final else None,

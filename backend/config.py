@@ -472,6 +472,13 @@ class BootstrapConfig(_Section):
     live_confirm_translation: float = Field(0.25, gt=0, description="m (the bootstrap's own precision is 0.01-0.04 m)")
     live_confirm_rotation: float = Field(5.0, gt=0, description="deg (its own: 0.1-0.8°)")
 
+    def handover_std(self, std_m: float, std_deg: float) -> tuple[float, float]:
+        """(m, deg) the prior std of a camera started from the data's shape: 3x the
+        bootstrap's own std ``std_m`` / ``std_deg`` (NaN counts as 0), or the
+        ``handover_std_*`` floor where that is more."""
+        st, sr = (0.0 if math.isnan(x) else float(x) for x in (std_m, std_deg))
+        return max(self.handover_std_translation, 3 * st), max(self.handover_std_rotation, 3 * sr)
+
 
 class ClockConfig(_Section):
     """Sensor clock offsets estimated from the data (backend/clock_offsets.py, docs/clock_offsets.md)."""

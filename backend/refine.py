@@ -45,11 +45,10 @@ def initial_covariance(cfg: RefineConfig) -> np.ndarray:
 
 
 def handover_covariance(cfg: BootstrapConfig, std_m: float, std_deg: float) -> np.ndarray:
-    """(6, 6) the prior of a camera started from the data's shape (the bootstrap): 3x the
-    bootstrap's own std ``std_m`` m / ``std_deg`` deg (NaN counts as 0), or the
-    ``handover_std_*`` floor where that is more."""
-    return _diag(max(cfg.handover_std_rotation, 3 * float(np.nan_to_num(std_deg))),
-                 max(cfg.handover_std_translation, 3 * float(np.nan_to_num(std_m))))
+    """(6, 6) the prior of a camera started from the data's shape (the bootstrap), its
+    std ``cfg.handover_std`` of the bootstrap's own ``std_m`` m / ``std_deg`` deg."""
+    st, sr = cfg.handover_std(std_m, std_deg)
+    return _diag(sr, st)
 
 
 def _diag(std_deg: float, std_m: float) -> np.ndarray:
